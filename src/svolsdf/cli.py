@@ -1,0 +1,74 @@
+"""The ``svolsdf`` command: argument parsing only; the work happens in the package.
+
+Each sub-command maps its options onto the package's functions / dataclass configs. Bad input
+(`svolsdf.errors.InputError` and its subclasses, missing files) ends with exit status 2 and one
+line naming the file and the problem; ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from svolsdf.errors import InputError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="S-VolSDF: surfaces, point clouds and novel views from a few calibrated photos.",
+    pretty_exceptions_enable=False,
+)
+
+_STATE = {"debug": False}
+
+
+@app.callback()
+def _root(
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="More log output.")] = False,
+) -> None:
+    _STATE["debug"] = debug
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+
+
+# --------------------------------------------------------------------------- commands
+# Each command lives in its own section below; keep sections independent.
+
+
+def main(argv: Optional[list[str]] = None) -> None:
+    """Console entry point (``svolsdf``)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    try:
+        app(args=argv, standalone_mode=False)
+    except (InputError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
+        if debug:
+            raise
+        msg = str(e) if not isinstance(e, OSError) or not e.filename else (
+            f"{e.filename}: {e.strerror or e}"
+        )
+        print(f"error: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except typer.Exit as e:
+        raise SystemExit(e.exit_code) from None
+    except typer.Abort:
+        print("aborted", file=sys.stderr)
+        raise SystemExit(130) from None
+    except Exception as e:  # click usage errors
+        import click
+
+        if isinstance(e, click.ClickException):
+            e.show()
+            raise SystemExit(e.exit_code) from None
+        raise
+
+
+if __name__ == "__main__":
+    main()
