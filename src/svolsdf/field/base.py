@@ -1,0 +1,38 @@
+"""`SurfaceModel`: the interface every surface representation implements (ARCHITECTURE.md)."""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+__all__ = ["SurfaceModel"]
+
+
+class SurfaceModel(nn.Module):
+    """An SDF field (SDF > 0 outside), a Laplace density and a colour network, in the unit frame.
+
+    Subclasses: the paper's VolSDF MLP (`svolsdf.field.volsdf`) and the fast grid field.
+    """
+
+    #: bounding-sphere radius of the unit frame (METHOD.md 5.2)
+    radius: float = 3.0
+
+    def sdf(self, x: Tensor) -> Tensor:
+        """x: (N, 3) unit-frame points -> (N,) signed distances (clamped to the sphere)."""
+        raise NotImplementedError
+
+    def sdf_and_grad(self, x: Tensor, create_graph: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+        """x: (N, 3) -> sdf (N,), gradient (N, 3), feature (N, F)."""
+        raise NotImplementedError
+
+    def colour(self, x: Tensor, view_dir: Tensor, normal: Tensor, feature: Tensor) -> Tensor:
+        """x, view_dir, normal: (N, 3), feature: (N, F) -> rgb (N, 3) in [0, 1]."""
+        raise NotImplementedError
+
+    def density(self, sdf: Tensor, beta: Tensor | None = None) -> Tensor:
+        """sdf: (...) -> sigma (...) >= 0 (Laplace density, METHOD.md 5.4)."""
+        raise NotImplementedError
+
+    @property
+    def beta(self) -> Tensor:
+        """() current Laplace scale beta."""
+        raise NotImplementedError
