@@ -1,0 +1,240 @@
+"""The `MVSBackbone` protocol, the backbone registry, and helpers shared by all backbones.
+
+A backbone turns a `Scene` into per-view `ProbabilityVolume`s, one cascade stage at a time
+(ARCHITECTURE.md "Interfaces"). Every view of the scene is the reference once; its sources are the
+other views of the scene, ordered by ``scene.source_views`` (METHOD.md 1.4).
+
+Stage k (1-based, of ``num_stages`` = 3) works at 1 / 2^(3 - k) of the scene's working size
+(stage 1 at 1/4, stage 2 at 1/2, stage 3 at full size), like CasMVSNet (METHOD.md 1.3, 2.5).
+
+Backbones are created by name with :func:`get_backbone`; the built-in names are resolved lazily
+(no import work happens until a backbone is requested):
+
+- ``planesweep``: `svolsdf.mvs.planesweep.PlaneSweepBackbone` (training-free, the default)
+- ``casmvsnet``: `svolsdf.mvs.casmvsnet.CasMVSNetBackbone` (METHOD.md 2; needs ``weights``)
+- ``patchmatchnet``: `svolsdf.mvs.adapters.PatchmatchNetBackbone` (TorchScript weights)
+
+Other backbones can be added with :func:`register_backbone`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from svolsdf.errors import InputError
+from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.scene.cameras import Cameras
+from svolsdf.scene.scene import Scene
+
+__all__ = [
+    "MVSBackbone",
+    "get_backbone",
+    "register_backbone",
+    "available_backbones",
+    "stage_size",
+    "stage_cameras",
+    "expected_depth",
+    "photometric_confidence",
+    "volume_from_prob",
+    "check_depth_ranges",
+    "upsample_depth",
+]
+
+NUM_STAGES = 3
+
+
+class MVSBackbone(ABC):
+    """A multi-view-stereo backbone producing probability volumes stage by stage.
+
+    Subclasses implement :meth:`stage`. They are built by :meth:`create` (called by
+    :func:`get_backbone`), which by default rejects a ``weights`` path and passes ``**cfg`` to the
+    constructor; backbones with weights override it.
+    """
+
+    #: registry name
+    name: str = "backbone"
+    #: number of cascade stages
+    num_stages: int = NUM_STAGES
+
+    @classmethod
+    def create(cls, weights=None, **cfg) -> MVSBackbone:
+        """Build the backbone from an optional weights path and config keywords."""
+        if weights is not None:
+            raise InputError(f"{weights}: the {cls.name!r} backbone takes no weights")
+        return cls(**cfg)
+
+    @abstractmethod
+    def stage(
+        self,
+        k: int,
+        scene: Scene,
+        ref_ids: list[int] | None = None,
+        guide_depth: dict[int, Tensor] | None = None,
+        prev: dict[int, ProbabilityVolume] | None = None,
+    ) -> list[ProbabilityVolume]:
+        """Run cascade stage ``k`` for reference views ``ref_ids`` (default: every view).
+
+        Args:
+            k: stage, 1-based (1..num_stages).
+            scene: the views (images (V,3,H,W), cameras, depth ranges) at the working size.
+            ref_ids: view ids to use as reference, default all of ``scene.view_ids``.
+            guide_depth: view id -> (H', W') z-depth (world units, any size) that centres this
+                stage's hypotheses instead of the previous stage's depth (METHOD.md 6.1). Ignored
+                at stage 1.
+            prev: view id -> the previous stage's volume of that view; required at k > 1 for views
+                without a guide depth.
+
+        Returns:
+            One `ProbabilityVolume` per reference view, in ``ref_ids`` order, at
+            :func:`stage_size` (k).
+        """
+
+    def __call__(self, *args, **kwargs) -> list[ProbabilityVolume]:
+        return self.stage(*args, **kwargs)
+
+
+# --------------------------------------------------------------------------- registry
+_BUILTIN: dict[str, str] = {
+    "planesweep": "svolsdf.mvs.planesweep:PlaneSweepBackbone",
+    "casmvsnet": "svolsdf.mvs.casmvsnet:CasMVSNetBackbone",
+    "patchmatchnet": "svolsdf.mvs.adapters:PatchmatchNetBackbone",
+}
+_REGISTERED: dict[str, Callable[..., MVSBackbone]] = {}
+
+
+def register_backbone(name: str):
+    """Class decorator adding a backbone under ``name`` (its ``create`` builds it)."""
+
+    def deco(cls):
+        _REGISTERED[name] = cls
+        cls.name = name
+        return cls
+
+    return deco
+
+
+def available_backbones() -> list[str]:
+    """Names accepted by :func:`get_backbone`."""
+    return sorted(set(_BUILTIN) | set(_REGISTERED))
+
+
+def get_backbone(name: str, weights=None, **cfg) -> MVSBackbone:
+    """Create the backbone called ``name``.
+
+    Args:
+        name: one of :func:`available_backbones` ("planesweep", "casmvsnet", "patchmatchnet").
+        weights: path to the weights file, for backbones that need one.
+        **cfg: fields of the backbone's config.
+
+    Raises:
+        InputError: unknown name, or a weights problem reported by the backbone.
+    """
+    cls = _REGISTERED.get(name)
+    if cls is None:
+        if name not in _BUILTIN:
+            raise InputError(
+                f"unknown MVS backbone {name!r} (available: {', '.join(available_backbones())})"
+            )
+        module, attr = _BUILTIN[name].split(":")
+        cls = getattr(importlib.import_module(module), attr)
+    return cls.create(weights=weights, **cfg)
+
+
+# --------------------------------------------------------------------------- helpers
+def stage_size(k: int, width: int, height: int, num_stages: int = NUM_STAGES) -> tuple[int, int]:
+    """(W_k, H_k) of stage ``k``: the working size divided by 2^(num_stages - k), rounded."""
+    if not 1 <= k <= num_stages:
+        raise ValueError(f"stage must be in 1..{num_stages}, got {k}")
+    s = 2 ** (num_stages - k)
+    return max(1, round(width / s)), max(1, round(height / s))
+
+
+def stage_cameras(cameras: Cameras, k: int, num_stages: int = NUM_STAGES) -> Cameras:
+    """Cameras resized to stage ``k``'s size (METHOD.md 1.3; c' = s (c + 0.5) - 0.5)."""
+    W, H = stage_size(k, cameras.width, cameras.height, num_stages)
+    return cameras.resize(W, H)
+
+
+def expected_depth(prob: Tensor, depths: Tensor) -> Tensor:
+    """Soft depth regression sum_k P_k d_k (METHOD.md 2.4).
+
+    Args:
+        prob: (..., D, H, W) probabilities over D.
+        depths: (..., D, H, W) hypothesis depths (broadcastable).
+
+    Returns:
+        (..., H, W) expected depth.
+    """
+    return (prob * depths).sum(-3)
+
+
+def photometric_confidence(prob: Tensor) -> Tensor:
+    """CasMVSNet's 4-bin photometric confidence (METHOD.md 2.4).
+
+    s4_k = sum_{j=k-1}^{k+2} P_j (zero padded), k* = floor(sum_k P_k k) clamped to [0, D-1],
+    conf = s4_{k*}.
+
+    Args:
+        prob: (..., D, H, W) probabilities over D.
+
+    Returns:
+        (..., H, W) confidence in [0, 1].
+    """
+    D = prob.shape[-3]
+    lead = prob.shape[:-3]
+    p = prob.reshape(-1, 1, D, *prob.shape[-2:])
+    s4 = 4 * F.avg_pool3d(F.pad(p, (0, 0, 0, 0, 1, 2)), (4, 1, 1), stride=1)[:, 0]
+    idx = torch.arange(D, device=prob.device, dtype=prob.dtype).view(D, 1, 1)
+    kstar = (p[:, 0] * idx).sum(1).floor().clamp(0, D - 1).long()
+    conf = torch.gather(s4, 1, kstar[:, None])[:, 0]
+    return conf.reshape(*lead, *prob.shape[-2:])
+
+
+def volume_from_prob(
+    prob: Tensor,
+    depths: Tensor,
+    cameras: Cameras,
+    view_id: int,
+    stage: int,
+    inverse_depth: bool = False,
+) -> ProbabilityVolume:
+    """Assemble a `ProbabilityVolume` from (D, H, W) probabilities and hypotheses.
+
+    depth = expectation, confidence = 4-bin sum (METHOD.md 2.4).
+    """
+    return ProbabilityVolume(
+        depths=depths,
+        prob=prob,
+        depth=expected_depth(prob, depths),
+        confidence=photometric_confidence(prob),
+        cameras=cameras,
+        view_id=int(view_id),
+        stage=int(stage),
+        inverse_depth=inverse_depth,
+    )
+
+
+def check_depth_ranges(scene: Scene, ref_ids: list[int] | None = None) -> None:
+    """Raise InputError naming the view when its depth range is empty, negative or not finite."""
+    for vid in ref_ids if ref_ids is not None else scene.view_ids:
+        near, far = (float(x) for x in scene.depth_range[scene.index(vid)])
+        if not (torch.isfinite(torch.tensor([near, far])).all() and 0 < near < far):
+            raise InputError(
+                f"{scene.path}: view {vid} has depth range [{near:g}, {far:g}]; it must satisfy "
+                "0 < near < far (fix the scene's depth range or cameras)"
+            )
+
+
+def upsample_depth(depth: Tensor, width: int, height: int) -> Tensor:
+    """Bilinearly resize (H, W) depth to (height, width), align_corners=False (METHOD.md 2.5)."""
+    if depth.shape == (height, width):
+        return depth
+    return F.interpolate(
+        depth[None, None].float(), size=(height, width), mode="bilinear", align_corners=False
+    )[0, 0]
