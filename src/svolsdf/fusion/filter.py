@@ -1,0 +1,483 @@
+"""Geometric-consistency filtering of depth maps and their fusion into a coloured point cloud.
+
+Implements METHOD.md 6.3 (the released ``runner.py::filter_depth`` and
+``helpers/utils.py::check_geometric_consistency``), vectorized in torch:
+
+1. Each view is the reference once; every other view is a source.
+2. A reference pixel is consistent with a source if its depth, carried to the source, sampled
+   there (bilinear) and carried back, lands within ``dist_thresh`` pixels of where it started and
+   within a relative depth difference ``rel_thresh``.
+3. Pixels with at least ``min_consistent`` consistent sources, a confidence above
+   ``conf_thresh`` and inside the dilated object mask are kept; their depth is the average of the
+   reference depth and the consistent reprojected depths, back-projected to world coordinates
+   and coloured from the reference image.
+
+Depth is z-depth in the cameras' world units; pixel centres sit at integer coordinates
+(`svolsdf.scene.cameras`).
+
+``check_geometric_consistency_reference`` is a slow per-pixel twin of the vectorized check, kept
+for the tests (STYLE.md habit 5).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+from torch import Tensor
+
+from svolsdf.scene.cameras import Cameras
+
+__all__ = [
+    "FusionConfig",
+    "FusedPoints",
+    "check_geometric_consistency",
+    "check_geometric_consistency_reference",
+    "dilate_mask",
+    "fuse_depth_maps",
+    "mask_to_depth_resolution",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FusionConfig:
+    """Depth-map filtering and fusion (METHOD.md 6.3)."""
+
+    dist_thresh: float = 1.0
+    """Largest reprojection distance, in pixels of the reference depth map, for a source to count
+    as consistent (the released ``filter_dist``)."""
+
+    rel_thresh: float = 0.01
+    """Largest relative depth difference |d_reproj - d| / d for a source to count as consistent
+    (the released ``filter_diff``)."""
+
+    min_consistent: int = 1
+    """Least number of consistent source views for a pixel to be kept (the released
+    ``thres_view``; with three input views each reference has two sources)."""
+
+    conf_thresh: float = 0.0
+    """Photometric filter: keep pixels whose confidence is strictly greater than this. The default
+    0 reproduces the released code, where conf > 0 removes (almost) nothing (METHOD.md 9.2.9);
+    the paper's probability-based check needs a positive value, e.g. 0.3 for conf1*conf2*conf3.
+    Ignored when no confidences are given."""
+
+    use_masks: bool = True
+    """Keep only pixels inside the (dilated) object mask of the reference view when masks are
+    given (the released ``eval_mask = true``)."""
+
+    mask_dilation: int = 12
+    """Radius in pixels of the disk the masks are dilated with, at the mask's native resolution,
+    before they are resized to the depth resolution (METHOD.md 6.3)."""
+
+    estimate_normals: bool = False
+    """Also return per-point normals, from finite differences of the fused depth map's
+    back-projected points, oriented towards the reference camera."""
+
+
+class FusedPoints(NamedTuple):
+    """The result of `fuse_depth_maps`.
+
+    Attributes:
+        points: (N, 3) float32 world points.
+        colors: (N, 3) uint8 colours from the reference images, or None without images.
+        normals: (N, 3) float32 unit normals, or None unless ``estimate_normals``.
+        stats: view id -> {"valid", "geo", "photo", "mask", "kept": share of the depth map's
+            pixels; "points": number of points contributed}.
+    """
+
+    points: Tensor
+    colors: Tensor | None
+    normals: Tensor | None
+    stats: dict
+
+
+# ---------------------------------------------------------------------------------------------
+# consistency check
+
+
+def _check_camera(cam: Cameras, name: str) -> None:
+    if len(cam) != 1:
+        raise ValueError(f"{name} must hold exactly one view, got {len(cam)}")
+
+
+def _check_depth(depth: Tensor, name: str) -> None:
+    if depth.ndim != 2:
+        raise ValueError(f"{name} must be (H, W), got {tuple(depth.shape)}")
+
+
+def _at_size(cam: Cameras, depth: Tensor) -> Cameras:
+    """The camera resized to the depth map's size (no-op when they already agree)."""
+    h, w = depth.shape
+    return cam if (cam.width, cam.height) == (w, h) else cam.resize(w, h)
+
+
+def check_geometric_consistency(
+    depth_ref: Tensor,
+    cam_ref: Cameras,
+    depth_src: Tensor,
+    cam_src: Cameras,
+    dist_thresh: float = 1.0,
+    rel_thresh: float = 0.01,
+) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+    """Forward-backward depth consistency of a reference depth map against one source.
+
+    METHOD.md 6.3, "Geometric check, per source": back-project every reference pixel (u, v) with
+    its depth d, project into the source at (x_s, y_s), sample the source depth there bilinearly,
+    back-project that source point and reproject it into the reference at (u', v') with z-depth
+    d'. The pixel is consistent if ||(u', v') - (u, v)|| < dist_thresh and
+    |d' - d| / d < rel_thresh.
+
+    The bilinear sample counts as valid only if every source pixel with a non-zero bilinear weight
+    lies inside the source image and has a positive depth (the released code blends with zeros
+    outside the image and at holes, which fails the depth test in all but borderline cases).
+    Cameras are resized to their depth map's size when they differ.
+
+    Args:
+        depth_ref: (H, W) reference z-depth, world units; <= 0 or non-finite = no depth.
+        cam_ref: `Cameras` with one view (the reference).
+        depth_src: (Hs, Ws) source z-depth.
+        cam_src: `Cameras` with one view (the source).
+        dist_thresh: reprojection distance threshold in reference pixels.
+        rel_thresh: relative depth difference threshold.
+
+    Returns:
+        mask: (H, W) bool, consistent pixels.
+        depth_reproj: (H, W) d' (0 where the check is invalid), dtype of ``depth_ref``.
+        (x_src, y_src): each (H, W), the projection of the reference pixels into the source.
+    """
+    _check_depth(depth_ref, "depth_ref")
+    _check_depth(depth_src, "depth_src")
+    _check_camera(cam_ref, "cam_ref")
+    _check_camera(cam_src, "cam_src")
+    out_dtype = depth_ref.dtype if depth_ref.is_floating_point() else torch.float32
+    device = depth_ref.device
+    # Geometry in float64: DTU depths are ~600 mm and the test is at 1 % / 1 px.
+    dt = torch.float64
+    cam_ref = _at_size(cam_ref, depth_ref).to(device=device, dtype=dt)
+    cam_src = _at_size(cam_src, depth_src).to(device=device, dtype=dt)
+    H, W = depth_ref.shape
+    Hs, Ws = depth_src.shape
+    d_ref = depth_ref.to(dt)
+    d_src = depth_src.to(device=device, dtype=dt)
+    ok_ref = torch.isfinite(d_ref) & (d_ref > 0)
+    d_ref = torch.where(ok_ref, d_ref, torch.ones_like(d_ref))  # dummy depth, masked below
+    ok_src = torch.isfinite(d_src) & (d_src > 0)
+    d_src = torch.where(ok_src, d_src, torch.zeros_like(d_src))
+
+    uv = cam_ref.pixel_grid(device=device, dtype=dt).reshape(1, -1, 2)  # (1, HW, 2)
+    x_world = cam_ref.unproject(uv, d_ref.reshape(1, -1))  # (1, HW, 3)
+    uv_s, z_s = cam_src.project(x_world)  # (1, HW, 2), (1, HW)
+
+    # grid_sample with align_corners=True maps -1/+1 to the centres of the first/last pixels,
+    # i.e. integer pixel centres (the convention of `Cameras`), like cv2.remap.
+    gx = 2.0 * uv_s[..., 0] / max(Ws - 1, 1) - 1.0
+    gy = 2.0 * uv_s[..., 1] / max(Hs - 1, 1) - 1.0
+    grid = torch.stack([gx, gy], dim=-1).reshape(1, H, W, 2)
+    grid = torch.nan_to_num(grid, nan=-4.0, posinf=-4.0, neginf=-4.0)
+    stacked = torch.stack([d_src, ok_src.to(dt)], dim=0)[None]  # (1, 2, Hs, Ws)
+    sampled = F.grid_sample(
+        stacked, grid, mode="bilinear", padding_mode="zeros", align_corners=True
+    )[0]
+    d_s = sampled[0]  # (H, W)
+    # All neighbours with weight > 0 inside and valid <=> the sampled validity is exactly 1.
+    ok_s = (sampled[1] > 1.0 - 1e-9) & (z_s.reshape(H, W) > 0)
+
+    uv_s_hw = uv_s.reshape(H, W, 2)
+    d_s_safe = torch.where(ok_s, d_s, torch.ones_like(d_s))
+    x_back = cam_src.unproject(uv_s_hw.reshape(1, -1, 2), d_s_safe.reshape(1, -1))
+    uv_r, z_r = cam_ref.project(x_back)
+    uv_r = uv_r.reshape(H, W, 2)
+    z_r = z_r.reshape(H, W)
+
+    dist = (uv_r - uv.reshape(H, W, 2)).norm(dim=-1)
+    rel = (z_r - d_ref).abs() / d_ref
+    valid = ok_ref & ok_s & (z_r > 0) & torch.isfinite(dist) & torch.isfinite(rel)
+    mask = valid & (dist < dist_thresh) & (rel < rel_thresh)
+    depth_reproj = torch.where(valid, z_r, torch.zeros_like(z_r)).to(out_dtype)
+    return mask, depth_reproj, (
+        uv_s_hw[..., 0].to(out_dtype),
+        uv_s_hw[..., 1].to(out_dtype),
+    )
+
+
+def check_geometric_consistency_reference(
+    depth_ref: Tensor,
+    cam_ref: Cameras,
+    depth_src: Tensor,
+    cam_src: Cameras,
+    dist_thresh: float = 1.0,
+    rel_thresh: float = 0.01,
+) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+    """Slow per-pixel twin of `check_geometric_consistency` (same arguments and returns).
+
+    Loops over the reference pixels with explicit matrices and a hand-written bilinear
+    interpolation; only for tests on tiny depth maps.
+    """
+    _check_depth(depth_ref, "depth_ref")
+    _check_depth(depth_src, "depth_src")
+    cam_ref = _at_size(cam_ref, depth_ref)
+    cam_src = _at_size(cam_src, depth_src)
+    Kr = cam_ref.K[0].double().cpu().numpy()
+    Er = cam_ref.w2c[0].double().cpu().numpy()
+    Ks = cam_src.K[0].double().cpu().numpy()
+    Es = cam_src.w2c[0].double().cpu().numpy()
+    Kr_inv, Ks_inv = np.linalg.inv(Kr), np.linalg.inv(Ks)
+    Er_inv, Es_inv = np.linalg.inv(Er), np.linalg.inv(Es)
+    dr = depth_ref.double().cpu().numpy()
+    ds = depth_src.double().cpu().numpy()
+    H, W = dr.shape
+    Hs, Ws = ds.shape
+    mask = np.zeros((H, W), bool)
+    depth_reproj = np.zeros((H, W))
+    xs = np.zeros((H, W))
+    ys = np.zeros((H, W))
+
+    def src_depth_at(x: float, y: float) -> float | None:
+        x0, y0 = math.floor(x), math.floor(y)
+        total = 0.0
+        for yy, wy in ((y0, 1 - (y - y0)), (y0 + 1, y - y0)):
+            for xx, wx in ((x0, 1 - (x - x0)), (x0 + 1, x - x0)):
+                w = wx * wy
+                if w <= 1e-12:
+                    continue
+                if not (0 <= xx < Ws and 0 <= yy < Hs):
+                    return None
+                d = ds[yy, xx]
+                if not (np.isfinite(d) and d > 0):
+                    return None
+                total += w * d
+        return total
+
+    for v in range(H):
+        for u in range(W):
+            d = dr[v, u]
+            ok = np.isfinite(d) and d > 0
+            dd = d if ok else 1.0
+            cam = Kr_inv @ np.array([u, v, 1.0]) * dd
+            world = Er_inv @ np.append(cam, 1.0)
+            cs = (Es @ world)[:3]
+            zs = cs[2]
+            p = Ks @ cs
+            x, y = p[0] / zs, p[1] / zs
+            xs[v, u], ys[v, u] = x, y
+            if not ok or zs <= 0 or not (np.isfinite(x) and np.isfinite(y)):
+                continue
+            d_s = src_depth_at(x, y)
+            if d_s is None:
+                continue
+            cam_s = Ks_inv @ np.array([x, y, 1.0]) * d_s
+            world_s = Es_inv @ np.append(cam_s, 1.0)
+            cr = (Er @ world_s)[:3]
+            if cr[2] <= 0:
+                continue
+            pr = Kr @ cr
+            ur, vr = pr[0] / cr[2], pr[1] / cr[2]
+            depth_reproj[v, u] = cr[2]
+            dist = math.hypot(ur - u, vr - v)
+            rel = abs(cr[2] - d) / d
+            mask[v, u] = dist < dist_thresh and rel < rel_thresh
+    dt = depth_ref.dtype
+    return (
+        torch.from_numpy(mask),
+        torch.from_numpy(depth_reproj).to(dt),
+        (torch.from_numpy(xs).to(dt), torch.from_numpy(ys).to(dt)),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# masks
+
+
+def dilate_mask(mask: Tensor, radius: int) -> Tensor:
+    """Binary dilation with a disk of ``radius`` pixels (METHOD.md 6.3, "Evaluation mask").
+
+    Equal to ``scipy.ndimage.binary_dilation`` with ``skimage.morphology.disk(radius)`` (pixels
+    with dx^2 + dy^2 <= radius^2), computed with a Euclidean distance transform so the cost does
+    not grow with the radius.
+
+    Args:
+        mask: (H, W) or (1, H, W) bool or {0, 1} float; > 0.5 is inside.
+        radius: disk radius in pixels; 0 returns the mask unchanged.
+
+    Returns:
+        (H, W) bool.
+    """
+    m = mask.reshape(mask.shape[-2:]) if mask.ndim == 3 else mask
+    if m.ndim != 2:
+        raise ValueError(f"mask must be (H, W) or (1, H, W), got {tuple(mask.shape)}")
+    m = (m > 0.5) if m.is_floating_point() else m.bool()
+    if radius <= 0 or not bool(m.any()):
+        return m.clone()
+    dist = ndimage.distance_transform_edt(~m.cpu().numpy())
+    return torch.from_numpy(dist <= radius).to(m.device)
+
+
+def mask_to_depth_resolution(mask: Tensor, height: int, width: int) -> Tensor:
+    """Resize a binary mask to the depth resolution: bilinear, then > 0 (METHOD.md 6.3).
+
+    Args:
+        mask: (H, W) bool or float.
+        height, width: target size.
+
+    Returns:
+        (height, width) bool.
+    """
+    if tuple(mask.shape) == (height, width):
+        return mask > 0 if mask.is_floating_point() else mask.bool()
+    m = mask.float()[None, None]
+    # cv2.resize(INTER_LINEAR) semantics: half-pixel centres, no antialiasing.
+    r = F.interpolate(m, size=(height, width), mode="bilinear", align_corners=False)
+    return r[0, 0] > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# fusion
+
+
+def _normals_from_points(pts: Tensor, center: Tensor) -> Tensor:
+    """(H, W, 3) point map -> (H, W, 3) unit normals facing ``center`` (zeros where undefined)."""
+    du = torch.zeros_like(pts)
+    dv = torch.zeros_like(pts)
+    du[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
+    dv[1:-1] = pts[2:] - pts[:-2]
+    n = torch.cross(du, dv, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    to_cam = center.to(pts) - pts
+    flip = (n * to_cam).sum(-1, keepdim=True) < 0
+    return torch.where(flip, -n, n)
+
+
+def _image_at(image: Tensor, height: int, width: int) -> Tensor:
+    """(3, H, W) image resized to (3, height, width) (bilinear, antialiased when shrinking)."""
+    if tuple(image.shape[-2:]) == (height, width):
+        return image
+    shrink = height < image.shape[-2] or width < image.shape[-1]
+    return F.interpolate(
+        image[None].float(), size=(height, width), mode="bilinear", align_corners=False,
+        antialias=shrink,
+    )[0]
+
+
+def fuse_depth_maps(
+    depths: dict[int, Tensor],
+    cameras: dict[int, Cameras],
+    images: dict[int, Tensor] | None = None,
+    confidences: dict[int, Tensor] | None = None,
+    masks: dict[int, Tensor] | None = None,
+    cfg: FusionConfig | None = None,
+) -> FusedPoints:
+    """Filter every depth map against the others and fuse the survivors (METHOD.md 6.3).
+
+    Each view is the reference once with all other views as sources. A pixel survives if
+    ``#consistent >= cfg.min_consistent`` (geometric), ``conf > cfg.conf_thresh`` (photometric,
+    when confidences are given) and it lies in the reference's dilated mask (when masks are given
+    and ``cfg.use_masks``). Its fused depth is
+    (d_ref + sum of consistent reprojected d) / (1 + #consistent), back-projected with the
+    reference camera into world coordinates (the cameras' units).
+
+    Depth maps may be at another resolution than the cameras, images and masks: cameras are
+    resized to the depth size (`Cameras.resize`), masks are dilated at their own resolution and
+    then resized bilinearly and thresholded at > 0, images are resized to the depth size before
+    the colours are read.
+
+    Args:
+        depths: view id -> (H, W) z-depth in world units (<= 0 = no depth).
+        cameras: view id -> `Cameras` with one view (any resolution).
+        images: view id -> (3, Hi, Wi) float in [0, 1] (or uint8), or None.
+        confidences: view id -> (H, W) confidence at the depth resolution, or None.
+        masks: view id -> (Hm, Wm) or (1, Hm, Wm) object masks, or None.
+        cfg: `FusionConfig`; defaults reproduce the released settings.
+
+    Returns:
+        `FusedPoints` (points (N, 3), colors (N, 3) uint8 or None, normals (N, 3) or None, stats).
+    """
+    cfg = cfg or FusionConfig()
+    ids = list(depths)
+    if len(ids) < 2:
+        raise ValueError(f"fusion needs at least two depth maps, got {len(ids)}")
+    for name, d in (("cameras", cameras), ("images", images), ("confidences", confidences),
+                    ("masks", masks)):
+        if d is not None and any(v not in d for v in ids):
+            missing = [v for v in ids if v not in d]
+            raise ValueError(f"{name} has no entry for view(s) {missing}")
+    for v in ids:
+        _check_depth(depths[v], f"depths[{v}]")
+        _check_camera(cameras[v], f"cameras[{v}]")
+
+    all_pts, all_cols, all_nrm = [], [], []
+    stats: dict = {}
+    for ref in ids:
+        d_ref = depths[ref].float()
+        H, W = d_ref.shape
+        cam_ref = _at_size(cameras[ref], d_ref)
+        valid = torch.isfinite(d_ref) & (d_ref > 0)
+        count = torch.zeros(H, W, dtype=torch.int32, device=d_ref.device)
+        d_sum = torch.where(valid, d_ref, torch.zeros_like(d_ref)).double()
+        for src in ids:
+            if src == ref:
+                continue
+            m, d_rep, _ = check_geometric_consistency(
+                d_ref, cam_ref, depths[src].float().to(d_ref.device), cameras[src],
+                cfg.dist_thresh, cfg.rel_thresh,
+            )
+            count += m.int()
+            d_sum += torch.where(m, d_rep.double(), torch.zeros_like(d_sum))
+        geo = valid & (count >= cfg.min_consistent)
+        keep = geo.clone()
+        photo = torch.ones_like(geo)
+        if confidences is not None:
+            conf = confidences[ref].to(d_ref.device)
+            conf = conf.reshape(conf.shape[-2:])
+            if tuple(conf.shape) != (H, W):
+                raise ValueError(
+                    f"confidences[{ref}] is {tuple(conf.shape)} but its depth map is {(H, W)}"
+                )
+            photo = conf > cfg.conf_thresh
+            keep &= photo
+        inside = torch.ones_like(geo)
+        if masks is not None and cfg.use_masks:
+            dil = dilate_mask(masks[ref], cfg.mask_dilation)
+            inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
+            keep &= inside
+        fused = (d_sum / (1 + count).double()).float()  # METHOD.md 6.3, "Fused depth"
+
+        uv = cam_ref.pixel_grid(device=d_ref.device, dtype=torch.float64).reshape(1, -1, 2)
+        cam64 = cam_ref.to(device=d_ref.device, dtype=torch.float64)
+        pts_map = cam64.unproject(uv, fused.double().reshape(1, -1))[0].reshape(H, W, 3)
+        all_pts.append(pts_map[keep].float())
+        if images is not None:
+            img = images[ref]
+            if img.dtype == torch.uint8:
+                img = img.float() / 255.0
+            img = _image_at(img.to(d_ref.device), H, W)
+            col = (img.permute(1, 2, 0)[keep].clamp(0, 1) * 255.0).round().to(torch.uint8)
+            all_cols.append(col)
+        if cfg.estimate_normals:
+            pm = torch.where(keep[..., None], pts_map, torch.full_like(pts_map, float("nan")))
+            nrm = _normals_from_points(pm, cam64.centers[0])
+            all_nrm.append(torch.nan_to_num(nrm[keep], nan=0.0).float())
+        n = H * W
+        stats[ref] = {
+            "valid": float(valid.sum()) / n,
+            "geo": float(geo.sum()) / n,
+            "photo": float((photo & valid).sum()) / n,
+            "mask": float((inside & valid).sum()) / n,
+            "kept": float(keep.sum()) / n,
+            "points": int(keep.sum()),
+        }
+        log.info(
+            "fusion: view %s keeps %.1f%% of pixels (valid %.1f%%, geometric %.1f%%)",
+            ref, 100 * stats[ref]["kept"], 100 * stats[ref]["valid"], 100 * stats[ref]["geo"],
+        )
+    points = torch.cat(all_pts, 0)
+    colors = torch.cat(all_cols, 0) if images is not None else None
+    normals = torch.cat(all_nrm, 0) if cfg.estimate_normals else None
+    return FusedPoints(points, colors, normals, stats)

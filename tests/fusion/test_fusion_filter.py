@@ -1,0 +1,224 @@
+"""Tests for svolsdf.fusion.filter on an analytic sphere seen by three cameras."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+from skimage.morphology import disk
+
+from svolsdf.fusion.filter import (
+    FusionConfig,
+    check_geometric_consistency,
+    check_geometric_consistency_reference,
+    dilate_mask,
+    fuse_depth_maps,
+    mask_to_depth_resolution,
+)
+from svolsdf.scene.cameras import Cameras
+
+CENTER = torch.tensor([0.1, -0.05, 0.0], dtype=torch.float64)
+RADIUS = 1.0
+
+
+def look_at_camera(eye, target=(0.0, 0.0, 0.0), W=48, H=40, f=55.0) -> Cameras:
+    """One OpenCV camera at ``eye`` looking at ``target`` (y down)."""
+    eye = torch.tensor(eye, dtype=torch.float64)
+    target = torch.tensor(target, dtype=torch.float64)
+    z = target - eye
+    z = z / z.norm()
+    up = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    x = torch.linalg.cross(up, z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])  # rows: camera axes in world
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ eye
+    K = torch.tensor([[f, 0, (W - 1) / 2 + 0.3], [0, f, (H - 1) / 2 - 0.2], [0, 0, 1]],
+                     dtype=torch.float64)
+    return Cameras(K[None], w2c[None], W, H)
+
+
+def sphere_depth(cam: Cameras, center=CENTER, radius=RADIUS) -> torch.Tensor:
+    """(H, W) exact z-depth of the sphere (0 where the ray misses)."""
+    o, d, cos = cam.rays()
+    o, d, cos = o[0], d[0], cos[0]
+    oc = o - center
+    b = (d * oc).sum(-1)
+    c = (oc * oc).sum(-1) - radius**2
+    disc = b * b - c
+    t = -b - torch.sqrt(disc.clamp_min(0))
+    z = torch.where(disc > 0, t * cos, torch.zeros_like(t))
+    return z.reshape(cam.height, cam.width)
+
+
+def three_cameras():
+    return {
+        0: look_at_camera((0.0, 0.0, -4.0)),
+        1: look_at_camera((4.0 * math.sin(0.35), 0.2, -4.0 * math.cos(0.35))),
+        2: look_at_camera((-4.0 * math.sin(0.3), -0.3, -4.0 * math.cos(0.3))),
+    }
+
+
+def test_consistency_accepts_exact_and_rejects_perturbed():
+    cams = three_cameras()
+    d0, d1 = sphere_depth(cams[0]), sphere_depth(cams[1])
+    mask, d_rep, (xs, ys) = check_geometric_consistency(d0, cams[0], d1, cams[1])
+    assert mask.shape == d0.shape and mask.dtype == torch.bool
+    # Exact depths: the pixels that are not near the silhouette are consistent.
+    interior = torch.from_numpy(ndimage.binary_erosion((d0 > 0).numpy(), iterations=4))
+    vis = interior & (xs > 1) & (xs < 46) & (ys > 1) & (ys < 38)
+    assert vis.sum() > 200
+    assert mask[vis].float().mean() > 0.97
+    # Bilinear sampling of a sphere at ~28 px radius: < 0.5 % depth error inside the disk.
+    torch.testing.assert_close(d_rep[mask & vis], d0[mask & vis], rtol=5e-3, atol=0)
+    # No depth -> never consistent.
+    assert not mask[d0 <= 0].any()
+    # Perturb a block of the reference depth by +5 %: rejected (relative test).
+    d0p = d0.clone()
+    d0p[15:25, 18:28] *= 1.05
+    mp, _, _ = check_geometric_consistency(d0p, cams[0], d1, cams[1])
+    assert not mp[15:25, 18:28].any()
+    # Perturb the source instead: the reprojection lands elsewhere / depth disagrees.
+    d1p = d1.clone()
+    d1p[10:30, 10:38] *= 0.9
+    ms, _, (xs2, ys2) = check_geometric_consistency(d0, cams[0], d1p, cams[1])
+    hit = (xs2 > 11) & (xs2 < 36) & (ys2 > 11) & (ys2 < 28) & vis
+    assert hit.sum() > 50
+    assert not ms[hit].any()
+
+
+def test_consistency_rejects_out_of_source_image():
+    cams = three_cameras()
+    d0 = sphere_depth(cams[0])
+    d1 = sphere_depth(cams[1])[:, :20].contiguous()  # a source that only sees its left part
+    cam1 = cams[1].crop(0, 0, 20, 40)
+    mask, d_rep, (xs, ys) = check_geometric_consistency(d0, cams[0], d1, cam1)
+    assert not mask[xs > 19.0].any()
+    assert (d_rep[xs > 19.5] == 0).all()
+
+
+def test_vectorized_matches_reference():
+    cams = three_cameras()
+    g = torch.Generator().manual_seed(3)
+    d0 = sphere_depth(cams[0])
+    d1 = sphere_depth(cams[1])
+    # Noise of ~1 % so that both outcomes of the tests occur, plus holes.
+    d0 = d0 * (1 + 0.01 * torch.randn(d0.shape, generator=g, dtype=d0.dtype))
+    d1 = d1 * (1 + 0.005 * torch.randn(d1.shape, generator=g, dtype=d1.dtype))
+    d1[5:9, 20:26] = 0
+    d0, d1 = d0.float(), d1.float()
+    cam1 = cams[1].resize(36, 30)  # a source at another resolution
+    d1 = torch.nn.functional.interpolate(d1[None, None], size=(30, 36), mode="nearest")[0, 0]
+    m, r, (x, y) = check_geometric_consistency(d0, cams[0], d1, cam1, 1.0, 0.01)
+    mr, rr, (xr, yr) = check_geometric_consistency_reference(d0, cams[0], d1, cam1, 1.0, 0.01)
+    torch.testing.assert_close(x, xr, atol=1e-4, rtol=0)
+    torch.testing.assert_close(y, yr, atol=1e-4, rtol=0)
+    # Decisions may only differ where a quantity sits at its threshold.
+    assert (m != mr).sum() <= 1
+    assert m.sum() > 50 and (~m & (d0 > 0)).sum() > 50
+    both = m & mr
+    torch.testing.assert_close(r[both], rr[both], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close((r > 0), (rr > 0))
+
+
+def test_fusion_points_lie_on_the_sphere():
+    cams = three_cameras()
+    depths = {v: sphere_depth(c).float() for v, c in cams.items()}
+    images = {v: torch.full((3, 40, 48), 0.25 * (v + 1)) for v in cams}
+    out = fuse_depth_maps(depths, cams, images, cfg=FusionConfig(estimate_normals=True))
+    pts, cols, nrm, stats = out
+    assert pts.shape[1] == 3 and pts.shape[0] > 1500
+    r = (pts.double() - CENTER).norm(dim=-1)
+    # The filter admits 1 % depth disagreement (~0.03 here), the average halves it; most
+    # points are far more accurate.
+    assert (r - RADIUS).abs().max() < 0.015
+    assert (r - RADIUS).abs().median() < 1e-3
+    assert cols.dtype == torch.uint8 and cols.shape == pts.shape
+    # Colours come from the reference view of each point.
+    n0 = stats[0]["points"]
+    assert (cols[:n0] == round(0.25 * 255)).all()
+    assert set(stats) == {0, 1, 2} and all(0 < s["kept"] <= s["valid"] for s in stats.values())
+    # Normals point outwards on the visible sphere (towards the cameras).
+    radial = (pts.double() - CENTER) / r[:, None]
+    good = nrm.norm(dim=-1) > 0.5
+    assert good.float().mean() > 0.8
+    assert ((nrm.double()[good] * radial[good]).sum(-1) > 0.9).float().mean() > 0.95
+
+
+def test_fusion_averages_and_min_consistent():
+    cams = three_cameras()
+    depths = {v: sphere_depth(c).float() for v, c in cams.items()}
+    # View 2's depth is corrupted everywhere: a second consistent view is required -> fewer points
+    depths[2] = depths[2] * 1.1
+    one = fuse_depth_maps(depths, cams, cfg=FusionConfig(min_consistent=1))
+    two = fuse_depth_maps(depths, cams, cfg=FusionConfig(min_consistent=2))
+    assert one.colors is None and one.normals is None
+    assert one.stats[2]["kept"] < 0.01  # (almost) nothing agrees with the corrupted view
+    assert two.points.shape[0] < one.points.shape[0]
+    assert two.stats[0]["points"] == 0  # view 0 can have at most one consistent source now
+
+
+def test_fusion_depth_is_the_average_of_consistent_depths():
+    cams = three_cameras()
+    depths = {v: sphere_depth(c).float() for v, c in cams.items()}
+    depths[1] = depths[1] * 1.004  # a bias inside the 1 % tolerance
+    out = fuse_depth_maps(depths, cams)
+    d0 = depths[0]
+    num = d0.double().clone()
+    cnt = torch.ones_like(num)
+    for s in (1, 2):
+        m, r, _ = check_geometric_consistency(d0, cams[0], depths[s], cams[s])
+        num += torch.where(m, r.double(), torch.zeros_like(num))
+        cnt += m.double()
+    expected = (num / cnt)[cnt > 1]
+    n0 = out.stats[0]["points"]
+    assert n0 == int((cnt > 1).sum())
+    _, z = cams[0].project(out.points[:n0].double())
+    torch.testing.assert_close(z[0], expected, rtol=1e-5, atol=0)
+    # The average moved the depths of view 0 towards the biased view 1 somewhere.
+    assert (z[0] > d0.double()[cnt > 1] * 1.0005).any()
+
+
+def test_fusion_confidence_and_masks():
+    cams = three_cameras()
+    depths = {v: sphere_depth(c).float() for v, c in cams.items()}
+    conf = {v: torch.ones(40, 48) for v in cams}
+    conf[0][:, :24] = 0.2
+    out = fuse_depth_maps(depths, cams, confidences=conf, cfg=FusionConfig(conf_thresh=0.5))
+    ref = fuse_depth_maps(depths, cams)
+    assert 0 < out.stats[0]["points"] < ref.stats[0]["points"]
+    # Masks at twice the depth resolution, covering only a small square of view 0.
+    masks = {v: torch.ones(80, 96) for v in cams}
+    masks[0] = torch.zeros(80, 96)
+    masks[0][36:44, 44:52] = 1
+    cfg = FusionConfig(mask_dilation=4)
+    mo = fuse_depth_maps(depths, cams, masks=masks, cfg=cfg)
+    keep0 = mask_to_depth_resolution(dilate_mask(masks[0], 4), 40, 48)
+    assert mo.stats[0]["points"] <= int(keep0.sum())
+    assert 0 < mo.stats[0]["points"]
+    off = fuse_depth_maps(depths, cams, masks=masks, cfg=FusionConfig(use_masks=False))
+    assert off.stats[0]["points"] == ref.stats[0]["points"]
+
+
+def test_dilate_mask_equals_disk_dilation():
+    g = np.random.default_rng(0)
+    m = g.random((60, 70)) > 0.995
+    for r in (0, 1, 3, 12):
+        ours = dilate_mask(torch.from_numpy(m), r).numpy()
+        ref = ndimage.binary_dilation(m, structure=disk(r)) if r > 0 else m
+        np.testing.assert_array_equal(ours, ref)
+    assert not dilate_mask(torch.zeros(5, 5), 3).any()
+
+
+def test_mask_to_depth_resolution_keeps_any_coverage():
+    m = torch.zeros(8, 8)
+    m[3, 3] = 1
+    r = mask_to_depth_resolution(m, 4, 4)
+    assert r.dtype == torch.bool and r[1, 1] and r.sum() >= 1
+    with pytest.raises(ValueError, match="two depth maps"):
+        fuse_depth_maps({0: torch.ones(4, 4)}, {0: look_at_camera((0, 0, -4.0))})
