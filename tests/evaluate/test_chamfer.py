@@ -1,0 +1,282 @@
+"""Tests of svolsdf.evaluate.chamfer: known values, exact greedy downsampling, the obs mask, the
+plane, the real ObsMask file, and agreement with a slow transcription of the DTUeval-python
+protocol (METHOD.md 8.1)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from plyfile import PlyData, PlyElement
+from scipy.io import savemat
+
+from conftest import shared_path
+from svolsdf.errors import InputError
+from svolsdf.evaluate.chamfer import (
+    ObsMask,
+    chamfer_fscore,
+    dtu_chamfer,
+    dtu_chamfer_arrays,
+    find_dtu_files,
+    greedy_radius_downsample,
+    load_obs_mask,
+    load_plane,
+    obs_mask_filter,
+    sample_mesh_surface,
+)
+
+# --------------------------------------------------------------------------- slow references
+
+
+def slow_greedy(points: np.ndarray, radius: float) -> np.ndarray:
+    """The reference's sequential loop with brute-force neighbourhoods."""
+    keep = np.ones(len(points), dtype=bool)
+    for i in range(len(points)):
+        if keep[i]:
+            keep[np.linalg.norm(points - points[i], axis=1) <= radius] = False
+            keep[i] = True
+    return keep
+
+
+def slow_nn(query: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    return np.array([np.sqrt(((ref - q) ** 2).sum(1)).min() for q in query])
+
+
+def slow_sample_triangles(vertices, faces, density):
+    """Per-triangle barycentric grids with np.mgrid, one triangle at a time."""
+    out = [vertices]
+    for f in faces:
+        v0, v1, v2 = vertices[f]
+        e1, e2 = v1 - v0, v2 - v0
+        l1, l2 = np.linalg.norm(e1), np.linalg.norm(e2)
+        a2 = np.linalg.norm(np.cross(e1, e2))
+        if a2 <= 0:
+            continue
+        thr = density * np.sqrt(l1 * l2 / a2)
+        n1, n2 = np.floor(l1 / thr), np.floor(l2 / thr)
+        c = np.mgrid[: n1 + 1, : n2 + 1].astype(np.float64) + 0.5
+        c[0] /= max(n1, 1e-7)
+        c[1] /= max(n2, 1e-7)
+        c = c.reshape(2, -1).T
+        k = c[c.sum(1) < 1]
+        out.append(e1 * k[:, :1] + e2 * k[:, 1:] + v0)
+    return np.concatenate(out)
+
+
+def slow_dtu(points, stl, mask, bb, res, plane, seed, mode="pcd", faces=None, density=0.2,
+             patch=60.0, max_dist=20.0):
+    """A plain transcription of the DTUeval-python steps (loops, brute-force distances)."""
+    data = slow_sample_triangles(points, faces, density) if mode == "mesh" else points.copy()
+    np.random.default_rng(seed).shuffle(data, axis=0)
+    data = data[slow_greedy(data, density)]
+    bb = bb.astype(np.float32)
+    data_in, data_in_obs = [], []
+    for p in data:
+        if all(bb[0, a] - patch <= p[a] < bb[1, a] + 2 * patch for a in range(3)):
+            data_in.append(p)
+            g = [int(np.around((p[a] - bb[0, a]) / res)) for a in range(3)]
+            if all(0 <= g[a] < mask.shape[a] for a in range(3)) and mask[g[0], g[1], g[2]]:
+                data_in_obs.append(p)
+    data_in, data_in_obs = np.array(data_in), np.array(data_in_obs)
+    above = np.array([plane[:3] @ s + plane[3] > 0 for s in stl])
+    d2s = slow_nn(data_in_obs, stl)
+    s2d = slow_nn(stl[above], data_in)
+    acc = d2s[d2s < max_dist].mean()
+    comp = s2d[s2d < max_dist].mean()
+    return acc, comp, (acc + comp) / 2
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+def write_ply(path, pts):
+    v = np.zeros(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    v["x"], v["y"], v["z"] = pts.T
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
+
+
+def dtu_like(rng, n_stl=1500, n_pred=1200):
+    """A tiny DTU-like scene: a bumpy surface over a floor, an obs mask, a plane z > -4."""
+    bb = np.array([[0, 0, -5], [20, 20, 10]], dtype=np.int16)
+    res = 1
+    shape = tuple(int(s) for s in (bb[1] - bb[0]) // res + 1)
+    mask = np.zeros(shape, dtype=np.uint8)
+    mask[2:18, 2:19, :] = 1  # observed except a border
+    xy = rng.uniform(-2, 22, size=(n_stl, 2))
+    z = np.sin(xy[:, 0] / 3) + 0.5 * np.cos(xy[:, 1] / 4)
+    stl = np.c_[xy, z]
+    floor = np.c_[rng.uniform(0, 20, size=(200, 2)), np.full(200, -6.0)]  # below the plane
+    stl = np.concatenate([stl, floor])
+    pick = rng.choice(n_stl, n_pred)
+    pred = stl[pick] + rng.normal(scale=0.3, size=(n_pred, 3))
+    pred = np.concatenate([pred, rng.uniform([-30, -30, -30], [100, 100, 100], size=(40, 3))])
+    plane = np.array([0.0, 0.0, 1.0, 4.0])  # above: z > -4
+    return pred, stl, mask, bb, res, plane
+
+
+def write_dtu_dir(root, scan, stl, mask, bb, res, plane, plane_scan=None, sub=""):
+    base = root / sub if sub else root
+    (base / "ObsMask").mkdir(parents=True)
+    (base / "Points" / "stl").mkdir(parents=True)
+    savemat(base / "ObsMask" / f"ObsMask{scan}_10.mat",
+            {"ObsMask": mask, "BB": bb, "Res": np.array([[res]], dtype=np.uint8)})
+    savemat(base / "ObsMask" / f"Plane{plane_scan or scan}.mat", {"P": plane.reshape(4, 1)})
+    write_ply(base / "Points" / "stl" / f"stl{scan:03d}_total.ply", stl)
+
+
+# --------------------------------------------------------------------------- generic Chamfer
+
+
+def test_shifted_sets_chamfer_equals_offset():
+    g = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), [0.0]), -1).reshape(-1, 3)
+    r = chamfer_fscore(g + [0, 0, 0.3], g, threshold=0.5)
+    assert r["accuracy"] == pytest.approx(0.3)
+    assert r["completeness"] == pytest.approx(0.3)
+    assert r["overall"] == pytest.approx(0.3)
+    assert r["fscore"] == 1.0
+    r = chamfer_fscore(g + [0, 0, 0.3], g, threshold=0.2)
+    assert r["precision"] == 0 and r["recall"] == 0 and r["fscore"] == 0
+
+
+def test_fscore_partial_coverage_and_max_dist():
+    gt = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)]
+    pred = gt[:5]
+    r = chamfer_fscore(pred, gt, threshold=0.5)
+    assert r["precision"] == 1.0 and r["recall"] == 0.5
+    assert r["fscore"] == pytest.approx(2 / 3)
+    assert r["accuracy"] == 0.0
+    assert r["completeness"] == pytest.approx(np.mean([0, 0, 0, 0, 0, 1, 2, 3, 4, 5]))
+    r = chamfer_fscore(pred, gt, threshold=0.5, max_dist=3)  # drops the 3, 4, 5 distances
+    assert r["completeness"] == pytest.approx(np.mean([0, 0, 0, 0, 0, 1, 2]))
+
+
+def test_chamfer_fscore_downsample_and_errors():
+    rng = np.random.default_rng(1)
+    gt = rng.random((500, 3))
+    r = chamfer_fscore(np.concatenate([gt, gt]), gt, threshold=0.01, downsample=1e-6)
+    assert r["overall"] == 0.0 and r["fscore"] == 1.0
+    with pytest.raises(InputError, match="0 predicted"):
+        chamfer_fscore(np.zeros((0, 3)), gt, threshold=0.1)
+    with pytest.raises(InputError, match=r"\(N, 3\)"):
+        chamfer_fscore(np.zeros((5, 2)), gt, threshold=0.1)
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+@pytest.mark.parametrize("radius", [0.05, 0.1, 0.3])
+def test_greedy_downsampling_matches_sequential_loop(radius):
+    rng = np.random.default_rng(int(radius * 100))
+    p = rng.random((1500, 3))
+    p = np.concatenate([p, p[:100]])  # exact duplicates are removed
+    rng.shuffle(p)
+    keep = greedy_radius_downsample(p, radius)
+    np.testing.assert_array_equal(keep, slow_greedy(p, radius))
+
+
+def test_mesh_sampling_matches_per_triangle_grids():
+    rng = np.random.default_rng(2)
+    v = rng.uniform(0, 3, size=(30, 3))
+    f = rng.integers(0, 30, size=(40, 3))
+    f[0] = [1, 1, 2]  # degenerate: skipped
+    fast = sample_mesh_surface(v, f, density=0.2, max_batch=500)  # several batches
+    slow = slow_sample_triangles(v, f, 0.2)
+    assert fast.shape == slow.shape and len(fast) > 500
+    np.testing.assert_array_equal(fast, slow)
+
+
+def test_obs_mask_indexing_on_hand_built_mat(tmp_path):
+    mask = np.zeros((5, 6, 7), dtype=np.uint8)
+    mask[2, 3, 1] = 1
+    savemat(tmp_path / "ObsMask1_10.mat", {"ObsMask": mask, "BB": np.array(
+        [[10, 20, 30], [14, 25, 36]], dtype=np.int16), "Res": np.array([[1]], dtype=np.uint8)})
+    obs = load_obs_mask(tmp_path / "ObsMask1_10.mat")
+    assert obs.mask.dtype == bool and obs.bb.dtype == np.float32 and obs.res == 1.0
+    pts = np.array([
+        [12.4, 23.4, 31.0],   # rounds to (2, 3, 1): observed
+        [12.5, 22.5, 30.5],   # half to even: (2, 2, 0): not observed
+        [11.5, 23.0, 31.0],   # (2, 3, 1) via round-half-even of 1.5 -> 2: observed
+        [12.6, 23.0, 31.0],   # (3, 3, 1): not observed
+        [9.0, 23.0, 31.0],    # index -1: in the BB margin, outside the grid
+        [-50.0, 20.0, 30.0],  # BB_min - 60 <= p: inside the margin
+        [-50.1, 20.0, 30.0],  # below BB_min - 60
+        [133.9, 20.0, 30.0],  # < BB_max + 120
+        [134.0, 20.0, 30.0],  # not < BB_max + 120
+    ])
+    in_bb, in_obs = obs_mask_filter(pts, obs)
+    np.testing.assert_array_equal(in_bb, [1, 1, 1, 1, 1, 1, 0, 1, 0])
+    np.testing.assert_array_equal(in_obs, [1, 0, 1, 0, 0, 0, 0, 0, 0])
+
+
+def test_plane_filters_completeness_only():
+    obs = ObsMask(mask=np.ones((11, 11, 11), bool), bb=np.array([[0, 0, 0], [10, 10, 10]],
+                                                                   np.float32), res=1.0)
+    g = np.stack(np.meshgrid(np.arange(0, 10, 0.5), np.arange(0, 10, 0.5), [5.0]), -1)
+    top = g.reshape(-1, 3)
+    below = top - [0, 0, 4]  # 4 mm under the prediction, under the plane z = 3
+    stl = np.concatenate([top, below])
+    plane = np.array([0, 0, 1.0, -3.0])
+    r = dtu_chamfer_arrays(top, stl, obs, plane)
+    assert r["completeness"] == 0.0 and r["accuracy"] == 0.0
+    r = dtu_chamfer_arrays(top, stl, obs, np.array([0, 0, 1.0, 0.0]))  # everything above
+    assert r["completeness"] == pytest.approx(2.0)
+
+
+def test_find_files_layouts_and_errors(tmp_path):
+    rng = np.random.default_rng(3)
+    _, stl, mask, bb, res, plane = dtu_like(rng, 50, 10)
+    write_dtu_dir(tmp_path / "a", 82, stl, mask, bb, res, plane, plane_scan=83)
+    files = find_dtu_files(tmp_path / "a", 82)
+    assert files.plane.name == "Plane83.mat"
+    write_dtu_dir(tmp_path / "b", 9, stl, mask, bb, res, plane, sub="DTU_MVS_Data")
+    assert find_dtu_files(tmp_path / "b", 9).stl.name == "stl009_total.ply"
+    np.testing.assert_allclose(load_plane(find_dtu_files(tmp_path / "b", 9).plane), plane)
+    with pytest.raises(InputError, match="ObsMask10_10.mat"):
+        find_dtu_files(tmp_path / "b", 10)
+    (tmp_path / "b" / "DTU_MVS_Data" / "ObsMask" / "Plane9.mat").unlink()
+    with pytest.raises(InputError, match="Plane9.mat"):
+        dtu_chamfer(stl, tmp_path / "b", 9)
+
+
+def test_real_obsmask_loads():
+    path = shared_path("data", "dtu_raw", "ObsMask", "ObsMask9_10.mat")
+    obs = load_obs_mask(path)
+    assert obs.mask.shape == (204, 382, 340) and obs.mask.dtype == bool
+    assert obs.bb.dtype == np.float32 and obs.bb.shape == (2, 3)
+    np.testing.assert_array_equal(obs.bb, [[-73, -197, 472], [129, 183, 810]])
+    assert obs.res == 1.0 and obs.mask.any() and not obs.mask.all()
+
+
+# --------------------------------------------------------------------------- reference agreement
+
+
+def test_dtu_protocol_agrees_with_slow_reference_pcd(tmp_path):
+    rng = np.random.default_rng(4)
+    pred, stl, mask, bb, res, plane = dtu_like(rng)
+    write_dtu_dir(tmp_path, 24, stl, mask, bb, res, plane)
+    stl32 = stl.astype(np.float32).astype(np.float64)  # as stored in the PLY
+    ours = dtu_chamfer(pred, tmp_path, 24, seed=7)
+    ref = slow_dtu(pred, stl32, mask, bb, res, plane, seed=7)
+    for key, want in zip(("accuracy", "completeness", "overall"), ref, strict=True):
+        assert ours[key] == pytest.approx(want, rel=0.01)
+    assert 0.1 < ours["overall"] < 5
+
+
+def test_dtu_protocol_agrees_with_slow_reference_mesh():
+    rng = np.random.default_rng(5)
+    _, stl, mask, bb, res, plane = dtu_like(rng, n_stl=800)
+    # A coarse triangulated patch of the surface: 3x3 quads over [4, 16]^2.
+    xs = np.linspace(4, 16, 4)
+    gx, gy = np.meshgrid(xs, xs, indexing="ij")
+    v = np.c_[gx.ravel(), gy.ravel(), np.sin(gx.ravel() / 3) + 0.5 * np.cos(gy.ravel() / 4)]
+    f = []
+    for i in range(3):
+        for j in range(3):
+            a, b, c, d = i * 4 + j, i * 4 + j + 1, (i + 1) * 4 + j, (i + 1) * 4 + j + 1
+            f += [[a, b, d], [a, d, c]]
+    f = np.array(f)
+    obs = ObsMask(mask.astype(bool), bb.astype(np.float32), float(res))
+    ours = dtu_chamfer_arrays(v, stl, obs, plane, mode="mesh", faces=f, seed=3,
+                              downsample_density=0.5)
+    ref = slow_dtu(v, stl, mask, bb, res, plane, seed=3, mode="mesh", faces=f, density=0.5)
+    for key, want in zip(("accuracy", "completeness", "overall"), ref, strict=True):
+        assert ours[key] == pytest.approx(want, rel=0.01)
