@@ -123,16 +123,30 @@ def _mlp(d_in: int, width: int, layers: int, d_out: int) -> nn.Sequential:
 
 
 def _grid_shape(extent: Tensor, resolution: int) -> tuple[int, int, int]:
-    """(Z, Y, X) node counts with about cubic cells; extent: (3,) box size (x, y, z)."""
+    """(Z, Y, X) node counts for a box of size ``extent`` (3,) (x, y, z) at ``resolution`` nodes
+    along its longest side; with a box from `_snap_bounds` the cells are exactly cubic."""
     n = [max(2, int(round((resolution - 1) * float(e) / float(extent.max()))) + 1) for e in extent]
     return (n[2], n[1], n[0])
+
+
+def _snap_bounds(bounds: Tensor, resolution: int) -> Tensor:
+    """Grow the shorter sides of a (2, 3) box symmetrically (by less than one cell) so that a
+    grid with ``resolution`` nodes along the longest side has cubic cells. Then every
+    ``upsample`` to k (resolution - 1) + 1 nodes refines every axis exactly."""
+    extent = bounds[1] - bounds[0]
+    h = float(extent.max()) / (resolution - 1)
+    cells = torch.clamp(torch.ceil(extent / h - 1e-4), min=1)
+    centre = bounds.mean(0)
+    half = cells * h / 2
+    return torch.stack([centre - half, centre + half])
 
 
 class GridSDFField(SurfaceModel):
     """Dense SDF grid + multi-level feature grid + small colour MLP (the `fast` preset's field).
 
     Args:
-        bounds: (2, 3) [[x0, y0, z0], [x1, y1, z1]] the grid's box in the unit frame.
+        bounds: (2, 3) [[x0, y0, z0], [x1, y1, z1]] the grid's box in the unit frame; the shorter
+            sides grow by less than one cell so that cells are cubic (see ``field.bounds``).
         config: `GridFieldConfig`; defaults if None.
 
     Example:
@@ -154,10 +168,11 @@ class GridSDFField(SurfaceModel):
         if cfg.resolution < 3:
             raise ValueError(f"GridSDFField: resolution must be >= 3, got {cfg.resolution}")
         self.radius = float(cfg.radius)
-        self.register_buffer("bounds", bounds.clone())
+        # The box grows by < 1 cell on its shorter sides so that cells are cubic.
+        self.register_buffer("bounds", _snap_bounds(bounds, cfg.resolution))
         self.resolution = int(cfg.resolution)
 
-        shape = _grid_shape(bounds[1] - bounds[0], self.resolution)
+        shape = _grid_shape(self.bounds[1] - self.bounds[0], self.resolution)
         self.sdf_grid = nn.Parameter(self._sphere_grid(shape))
         self.feature_grids = nn.ParameterList(
             [
@@ -252,7 +267,7 @@ class GridSDFField(SurfaceModel):
         so its scale does not change with `upsample`; zero for planar SDFs, hence compatible with
         the eikonal term. ``n_samples`` random interior nodes (None = all).
         """
-        # Per-axis spacings differ only by rounding; the mean cell converts to unit-frame units.
+        # Cells are cubic (_snap_bounds) up to rounding after a non-integer upsample factor.
         return laplacian_loss(self.sdf_grid, n_samples) / float(self.cell_size.mean()) ** 4
 
     def feature_tv_loss(self) -> Tensor:
