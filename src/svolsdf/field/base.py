@@ -20,8 +20,15 @@ class SurfaceModel(nn.Module):
         """x: (N, 3) unit-frame points -> (N,) signed distances (clamped to the sphere)."""
         raise NotImplementedError
 
-    def sdf_and_grad(self, x: Tensor, create_graph: bool = True) -> tuple[Tensor, Tensor, Tensor]:
-        """x: (N, 3) -> sdf (N,), gradient (N, 3), feature (N, F)."""
+    def sdf_and_grad(
+        self, x: Tensor, create_graph: bool = True, clamp: bool = True
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """x: (N, 3) -> sdf (N,), gradient (N, 3), feature (N, F).
+
+        ``clamp=False`` asks for the raw field without the bounding-sphere clamp (the eikonal
+        loss uses it, METHOD.md 4.5); models without a clamp ignore it. The gradient must be
+        returned even when called under ``torch.no_grad()`` (render/ relies on it).
+        """
         raise NotImplementedError
 
     def colour(self, x: Tensor, view_dir: Tensor, normal: Tensor, feature: Tensor) -> Tensor:
