@@ -136,8 +136,9 @@ def _coarse_to_fine_grid(sdf_fn, b, n, step, margin, chunk, device, dtype, progr
 
     near = np.clip(np.rint(i / step).astype(np.int64), 0, nc)
     fill = np.float32(margin * diag)
-    grid = np.where(coarse[np.ix_(near, near, near)] > 0, fill, -fill).astype(np.float32)
+    signed = np.where(coarse > 0, fill, -fill).astype(np.float32)
     del corners
+    grid = signed[np.ix_(near, near, near)]  # the only resolution^3 float array
 
     idx = np.nonzero(fine_active)
     n_act = len(idx[0])
