@@ -42,6 +42,45 @@ def _root(
 # Each command lives in its own section below; keep sections independent.
 
 
+# --------------------------------------------------------------------------- info
+def _parse_views(text: str | None) -> list[int] | None:
+    """'25,22,28' or '25 22 28' -> [25, 22, 28]; None -> None."""
+    if text is None:
+        return None
+    out = []
+    for tok in text.replace(",", " ").split():
+        try:
+            out.append(int(tok))
+        except ValueError:
+            raise InputError(f"--views: '{tok}' is not a view id (give integers, e.g. "
+                             f"--views 25,22,28)") from None
+    return out
+
+
+@app.command("info")
+def info(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (IDR/NeuS, DTU raw, MVSNet, "
+                                               "COLMAP or transforms.json).")],
+    views: Annotated[str | None, typer.Option(
+        "--views", help="View ids to keep, in order, e.g. '25,22,28' (default: all).")] = None,
+    sheet: Annotated[Path | None, typer.Option(
+        "--sheet", help="Also write a contact sheet of the views with masks overlaid (PNG).")
+    ] = None,
+    lighting: Annotated[str, typer.Option(
+        "--lighting", help="DTU raw lighting index 0..6 or 'max'.")] = "3",
+) -> None:
+    """Summarize a scene: format, views, image size, units, depth ranges, pairs, normalization."""
+    from svolsdf.scene.info import contact_sheet, describe_scene
+    from svolsdf.scene.loaders import load_scene
+
+    light: int | str = int(lighting) if lighting.isdigit() else lighting
+    s = load_scene(scene, views=_parse_views(views), load_images=False, lighting=light)
+    typer.echo(describe_scene(s))
+    if sheet is not None:
+        out = contact_sheet(s, sheet)
+        typer.echo(f"contact sheet {out}")
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point (``svolsdf``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
