@@ -44,5 +44,7 @@ class PositionalEncoding(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """x: (..., d_in) -> (..., out_dim)."""
         if x.shape[-1] != self.d_in:
-            raise ValueError(f"PositionalEncoding: expected (..., {self.d_in}), got {tuple(x.shape)}")
+            raise ValueError(
+                f"PositionalEncoding: expected (..., {self.d_in}), got {tuple(x.shape)}"
+            )
         return positional_encoding(x, self.multires)

@@ -166,7 +166,8 @@ class IDRRenderingNetwork(nn.Module):
         dims = [d_in] + [d_hidden] * n_layers + [3]
         self.d_in = d_in
         self.layers = nn.ModuleList(
-            _maybe_wn(nn.Linear(dims[i], dims[i + 1]), use_weight_norm) for i in range(len(dims) - 1)
+            _maybe_wn(nn.Linear(dims[i], dims[i + 1]), use_weight_norm)
+            for i in range(len(dims) - 1)
         )
 
     def forward(self, x: Tensor, view_dir: Tensor, normal: Tensor, feature: Tensor) -> Tensor:

@@ -120,7 +120,9 @@ def rays_from_cameras(
     view_t = (torch.full((R,), view, dtype=torch.long, device=device) if isinstance(view, int)
               else view.to(device=device, dtype=torch.long))
     if view_t.shape != (R,):
-        raise ValueError(f"rays_from_cameras: view must be (R,) = ({R},), got {tuple(view_t.shape)}")
+        raise ValueError(
+            f"rays_from_cameras: view must be (R,) = ({R},), got {tuple(view_t.shape)}"
+        )
     K = cameras.K[view_t]
     w2c = cameras.w2c[view_t]
     uvh = torch.cat([uv.to(K.dtype), torch.ones_like(uv[:, :1], dtype=K.dtype)], dim=-1)

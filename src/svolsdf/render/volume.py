@@ -6,8 +6,8 @@ sampler returning sorted distances ``z`` (R, S). No Python loops over rays or sa
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -90,7 +90,8 @@ def render_rays(
         rays: R rays (unit frame).
         z: (R, S) sorted distances.
         background: optional callable ``background(rays, training) -> (rgb (R, 3),
-            sum_k w_k t_k (R,), sum_k w_k (R,))`` with t_k background ray distances (see :class:`svolsdf.field.background.NeRFPlusPlusBackground`).
+            sum_k w_k t_k (R,), sum_k w_k (R,))`` with t_k background ray distances
+            (see :class:`svolsdf.field.background.NeRFPlusPlusBackground`).
         bounded_last: see above (implied by ``background``).
         create_graph: keep the SDF gradient differentiable (default ``model.training``).
 
