@@ -81,6 +81,53 @@ def info(
         typer.echo(f"contact sheet {out}")
 
 
+# --------------------------------------------------------------------------- evaluate
+@app.command("evaluate")
+def evaluate(
+    out: Annotated[Path, typer.Argument(help="Run folder (points.ply, mesh.ply, renders/, ...).")],
+    gt_points: Annotated[Path | None, typer.Option(
+        "--gt-points", help="Ground-truth points (.ply or (N,3) .npy) for the generic Chamfer "
+                            "and F-score.")] = None,
+    dtu_gt: Annotated[Path | None, typer.Option(
+        "--dtu-gt", help="DTU ground-truth root (ObsMask/, Points/stl/): DTU Chamfer protocol."
+    )] = None,
+    scan: Annotated[int | None, typer.Option(
+        "--scan", help="DTU scan number (default: from the scene).")] = None,
+    scene: Annotated[Path | None, typer.Option(
+        "--scene", help="Scene folder with the ground-truth images (default: from "
+                        "OUT/config.yaml).")] = None,
+    views: Annotated[str | None, typer.Option(
+        "--views", help="View ids to evaluate, e.g. '1,2,9' (default: every "
+                        "renders/<id>.png).")] = None,
+    threshold: Annotated[float | None, typer.Option(
+        "--threshold", help="F-score threshold in world units (default: 1% of the ground "
+                            "truth's bounding-box diagonal).")] = None,
+    lpips_net: Annotated[str, typer.Option(
+        "--lpips-net", help="LPIPS backbone: vgg (the paper's) or alex.")] = "vgg",
+    lpips_weights: Annotated[Path | None, typer.Option(
+        "--lpips-weights", help="LPIPS weights file or folder (default: shared/weights/lpips)."
+    )] = None,
+    ssim_data_range: Annotated[float, typer.Option(
+        "--ssim-data-range", help="SSIM data range; 2.0 reproduces the released code.")] = 1.0,
+    no_report: Annotated[bool, typer.Option(
+        "--no-report", help="Write metrics.json only.")] = False,
+) -> None:
+    """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+
+    cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
+                         views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
+                         lpips_weights=lpips_weights, ssim_data_range=ssim_data_range,
+                         report=not no_report)
+    m = evaluate_run(cfg)
+    c, im = m["chamfer"], m["images"]
+    typer.echo(f"chamfer acc {c['accuracy']} comp {c['completeness']} overall {c['overall']}; "
+               f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
+               f"lpips {im['lpips']['mean']}")
+    typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
+                                                   f" and {out / 'report.html'}"))
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point (``svolsdf``)."""
     argv = list(sys.argv[1:] if argv is None else argv)

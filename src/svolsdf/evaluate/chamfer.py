@@ -350,7 +350,7 @@ def obs_mask_filter(points: np.ndarray, obs: ObsMask, patch: float = 60.0
 def dtu_chamfer_arrays(points: np.ndarray, stl: np.ndarray, obs: ObsMask, plane: np.ndarray, *,
                        mode: str = "pcd", faces: np.ndarray | None = None, seed: int | None = 0,
                        downsample_density: float = 0.2, patch_size: float = 60.0,
-                       max_dist: float = 20.0) -> dict:
+                       max_dist: float = 20.0, fscore_threshold: float | None = None) -> dict:
     """The DTU protocol (METHOD.md 8.1) on arrays already in memory.
 
     Args:
@@ -365,6 +365,9 @@ def dtu_chamfer_arrays(points: np.ndarray, stl: np.ndarray, obs: ObsMask, plane:
         downsample_density: greedy downsampling radius and mesh sampling spacing (0.2 mm).
         patch_size: bounding-box margin (60 mm; the upper margin is twice it).
         max_dist: distances at or above it are left out of both means (20 mm).
+        fscore_threshold: if given, also ``precision`` (observed prediction points within it of
+            the STL), ``recall`` (STL points above the plane within it of data_in) and
+            ``fscore``, counting all points (not part of the DTU protocol).
 
     Returns:
         dict with float ``accuracy`` (prediction -> STL), ``completeness`` (STL above the plane ->
@@ -389,15 +392,22 @@ def dtu_chamfer_arrays(points: np.ndarray, stl: np.ndarray, obs: ObsMask, plane:
     t1 = time.perf_counter()
     in_bb, in_obs = obs_mask_filter(data, obs, patch_size)
     data_in, data_in_obs = data[in_bb], data[in_obs]
-    d2s = nn_distances(data_in_obs, stl, upper_bound=max_dist)
+    ub = max(max_dist, fscore_threshold or 0.0)
+    d2s = nn_distances(data_in_obs, stl, upper_bound=ub)
     above = stl @ plane[:3] + plane[3] > 0
-    s2d = nn_distances(stl[above], data_in, upper_bound=max_dist)
+    s2d = nn_distances(stl[above], data_in, upper_bound=ub)
     acc = _mean_below(d2s, max_dist)
     comp = _mean_below(s2d, max_dist)
+    out = {"accuracy": acc, "completeness": comp, "overall": (acc + comp) / 2}
+    if fscore_threshold is not None:
+        prec = float((d2s < fscore_threshold).mean()) if len(d2s) else float("nan")
+        rec = float((s2d < fscore_threshold).mean()) if len(s2d) else float("nan")
+        out.update(precision=prec, recall=rec,
+                   fscore=2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0)
     log.debug("DTU chamfer: %d -> %d points after downsampling (%.1fs), %d in BB, %d observed, "
               "%d STL above plane; total %.1fs", len(points), len(data), t1 - t0, len(data_in),
               len(data_in_obs), int(above.sum()), time.perf_counter() - t0)
-    return {"accuracy": acc, "completeness": comp, "overall": (acc + comp) / 2}
+    return out
 
 
 def dtu_chamfer(points: np.ndarray, dtu_dir: str | Path, scan: int, mode: str = "pcd",

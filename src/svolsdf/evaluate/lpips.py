@@ -152,8 +152,15 @@ class LPIPS(nn.Module):
         total = torch.zeros(b, dtype=h.dtype, device=h.device)
         start = 0
         for k, end in enumerate(_TAPS[self.net]):
-            h = self.features[start:end](h)
+            try:
+                h = self.features[start:end](h)
+            except RuntimeError as e:  # pooling an empty map
+                raise InputError(f"LPIPS-{self.net}: a {tuple(x.shape[-2:])} image is too small "
+                                 f"for the backbone (at layer {k}: {e})") from None
             start = end
+            if h.shape[-1] == 0 or h.shape[-2] == 0:
+                raise InputError(f"LPIPS-{self.net}: a {tuple(x.shape[-2:])} image is too small "
+                                 f"for the backbone (layer {k} is empty)")
             f = h / (h.pow(2).sum(dim=1, keepdim=True).sqrt() + 1e-10)
             d = (f[:b] - f[b:]) ** 2
             total = total + getattr(self, f"lin{k}")(d).mean(dim=(1, 2, 3))

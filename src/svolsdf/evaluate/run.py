@@ -1,0 +1,358 @@
+"""``svolsdf evaluate OUT``: metrics of a finished run and its HTML report.
+
+Reads from the run folder OUT:
+    points.ply          the fused point cloud (world units)
+    mesh.ply            the mesh, if present
+    renders/<id>.png    volume-rendered novel views; renders_ibr/<id>.png image-based renders
+    depth/*.png, normals/*.png   previews shown in the report
+    config.yaml         names the scene (``scene: PATH`` or ``scene: {path: PATH, views: [...]}``)
+    timing.json         stage timings, copied into the metrics
+
+Writes OUT/metrics.json with fixed keys (null when not computable)::
+
+    chamfer: {accuracy, completeness, overall, protocol, source}
+    chamfer_mesh: {accuracy, completeness, overall, protocol, source}
+    fscore, fscore_threshold, precision, recall
+    images:     {psnr: {mean, per_view}, ssim: {mean, per_view}, lpips: {mean, per_view}}
+    images_ibr: the same for renders_ibr/
+    timing: {..timing.json.., evaluate_seconds}
+    settings: what was evaluated against what
+
+and OUT/report.html (`svolsdf.evaluate.report`).
+
+Geometry: with ``dtu_gt`` the DTU protocol (METHOD.md 8.1), otherwise the generic two-way Chamfer
+against ``gt_points``. The F-score threshold defaults to 1% of the ground truth's bounding-box
+diagonal (DTU: of the STL points above the plane), a scale-free choice; pass ``threshold`` for a
+fixed one. In DTU mode precision / recall use the protocol's point sets (observed prediction
+points; STL points above the plane) with all distances counted.
+
+Images (METHOD.md 8.3): ground truth is the scene's image at the render's size (bicubic), masks
+resized and thresholded at 0.5; PSNR over masked pixels, SSIM and LPIPS (VGG by default) on images
+composited onto white.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from svolsdf.errors import InputError
+from svolsdf.evaluate import chamfer as ch
+from svolsdf.evaluate.images import masked_psnr, ssim
+from svolsdf.evaluate.report import ViewImages, write_report
+
+__all__ = ["EvaluateConfig", "evaluate_run", "load_gt_points"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvaluateConfig:
+    """Options of ``svolsdf evaluate``."""
+
+    out: Path
+    """The run folder (holds points.ply, renders/, ...)."""
+    gt_points: Path | None = None
+    """Ground-truth points for the generic Chamfer: a PLY (vertices) or an (N, 3) .npy file."""
+    dtu_gt: Path | None = None
+    """DTU ground-truth root (ObsMask/, Points/stl/); selects the DTU protocol."""
+    scan: int | None = None
+    """DTU scan number (default: from the scene)."""
+    scene: Path | None = None
+    """Scene folder for ground-truth images (default: from OUT/config.yaml)."""
+    views: list[int] | None = None
+    """View ids to evaluate (default: every renders/<id>.png)."""
+    threshold: float | None = None
+    """F-score threshold in world units (default: 1% of the ground truth's bbox diagonal)."""
+    max_dist: float | None = None
+    """Generic Chamfer cut-off (default none; the DTU protocol always uses 20 mm)."""
+    lpips_net: str = "vgg"
+    """LPIPS backbone, 'vgg' (the paper's) or 'alex'."""
+    lpips_weights: Path | None = None
+    """LPIPS weights file or folder (default: shared/weights/lpips)."""
+    ssim_data_range: float = 1.0
+    """SSIM data range; 2.0 reproduces the released code's numbers (METHOD.md 8.3)."""
+    masks: bool = True
+    """Use the scene's object masks for image metrics when it has them."""
+    seed: int = 0
+    """Seed of the DTU protocol's random shuffle."""
+    report: bool = True
+    """Also write OUT/report.html."""
+    extra: dict = field(default_factory=dict)
+    """Free-form facts stored under ``settings``."""
+
+
+def load_gt_points(path: str | Path) -> np.ndarray:
+    """(N, 3) float64 ground-truth points from a .ply or .npy file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: ground-truth points file does not exist")
+    if path.suffix.lower() == ".npy":
+        try:
+            a = np.load(path)
+        except Exception as e:
+            raise InputError(f"{path}: cannot read as .npy ({e})") from None
+        if a.ndim != 2 or a.shape[1] < 3:
+            raise InputError(f"{path}: expected an (N, 3) array, got shape {a.shape}")
+        return a[:, :3].astype(np.float64)
+    from svolsdf.io.ply import read_ply
+
+    return read_ply(path)["points"]
+
+
+def _read_config(out: Path) -> dict:
+    p = out / "config.yaml"
+    if not p.is_file():
+        return {}
+    import yaml
+
+    try:
+        return yaml.safe_load(p.read_text()) or {}
+    except Exception as e:
+        raise InputError(f"{p}: not valid YAML ({e})") from None
+
+
+def _scene_info(cfg: dict) -> tuple[Path | None, list[int] | None]:
+    """Scene path and input view ids named by config.yaml, if any."""
+    s = cfg.get("scene")
+    path = views = None
+    if isinstance(s, str):
+        path = s
+    elif isinstance(s, dict):
+        path = s.get("path") or s.get("dir")
+        views = s.get("views")
+    path = path or cfg.get("scene_path")
+    views = views or cfg.get("views") or cfg.get("input_views")
+    if isinstance(views, str):
+        views = [int(t) for t in views.replace(",", " ").split()]
+    return (Path(path) if path else None), ([int(v) for v in views] if views else None)
+
+
+def _render_files(folder: Path, views: list[int] | None) -> dict[int, Path]:
+    if not folder.is_dir():
+        return {}
+    files = {int(p.stem): p for p in folder.glob("*.png") if re.fullmatch(r"\d+", p.stem)}
+    if views is not None:
+        files = {v: files[v] for v in views if v in files}
+    return dict(sorted(files.items()))
+
+
+def _empty_images() -> dict:
+    return {k: {"mean": None, "per_view": {}} for k in ("psnr", "ssim", "lpips")}
+
+
+def _finite_or_none(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _chamfer_block(res: dict | None, protocol: str | None, source: str | None) -> dict:
+    res = res or {}
+    return {"accuracy": _finite_or_none(res.get("accuracy")),
+            "completeness": _finite_or_none(res.get("completeness")),
+            "overall": _finite_or_none(res.get("overall")),
+            "protocol": protocol, "source": source}
+
+
+def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict,
+              notes: list[str]) -> None:
+    if cfg.dtu_gt is not None:
+        if scan is None:
+            raise InputError("--dtu-gt needs --scan N (the scene does not name its DTU scan)")
+        files = ch.find_dtu_files(cfg.dtu_gt, scan)
+        obs = ch.load_obs_mask(files.obs_mask)
+        plane = ch.load_plane(files.plane)
+        from svolsdf.io.ply import read_ply
+
+        stl = read_ply(files.stl)["points"]
+        above = stl @ plane[:3] + plane[3] > 0
+        thr = cfg.threshold or _diag(stl[above]) * 0.01
+        metrics["settings"]["dtu"] = {"scan": scan, "obs_mask": str(files.obs_mask),
+                                      "plane": str(files.plane), "stl": str(files.stl)}
+        if points is not None:
+            r = ch.dtu_chamfer_arrays(points[0], stl, obs, plane, seed=cfg.seed,
+                                      fscore_threshold=thr)
+            metrics["chamfer"] = _chamfer_block(r, "dtu", "points.ply")
+            _put_fscore(metrics, r, thr)
+        if mesh is not None:
+            r = ch.dtu_chamfer_arrays(mesh[0], stl, obs, plane, mode="mesh", faces=mesh[1],
+                                      seed=cfg.seed)
+            metrics["chamfer_mesh"] = _chamfer_block(r, "dtu-mesh", "mesh.ply")
+    elif cfg.gt_points is not None:
+        gt = load_gt_points(cfg.gt_points)
+        thr = cfg.threshold or _diag(gt) * 0.01
+        metrics["settings"]["gt_points"] = str(cfg.gt_points)
+        if points is not None and len(points[0]):
+            r = ch.chamfer_fscore(points[0], gt, thr, max_dist=cfg.max_dist)
+            metrics["chamfer"] = _chamfer_block(r, "generic", "points.ply")
+            _put_fscore(metrics, r, thr)
+        if mesh is not None:
+            surf = ch.sample_mesh_surface(mesh[0], mesh[1], density=_diag(gt) / 1000)
+            r = ch.chamfer_fscore(surf, gt, thr, max_dist=cfg.max_dist)
+            metrics["chamfer_mesh"] = _chamfer_block(r, "generic-mesh", "mesh.ply")
+    else:
+        notes.append("No ground-truth geometry given (--gt-points or --dtu-gt): Chamfer and "
+                     "F-score are null.")
+
+
+def _put_fscore(metrics: dict, r: dict, thr: float) -> None:
+    metrics["fscore"] = _finite_or_none(r.get("fscore"))
+    metrics["fscore_threshold"] = float(thr)
+    metrics["precision"] = _finite_or_none(r.get("precision"))
+    metrics["recall"] = _finite_or_none(r.get("recall"))
+
+
+def _diag(p: np.ndarray) -> float:
+    if len(p) == 0:
+        raise InputError("ground truth has no points")
+    return float(np.linalg.norm(p.max(0) - p.min(0)))
+
+
+def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str]
+            ) -> tuple[list[ViewImages], object]:
+    """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene."""
+    from svolsdf.io.images import read_image
+
+    sets = {"images": _render_files(cfg.out / "renders", cfg.views),
+            "images_ibr": _render_files(cfg.out / "renders_ibr", cfg.views)}
+    if not any(sets.values()):
+        notes.append("No renders (renders/<view id>.png): image metrics are null.")
+        return [], None
+    if scene_path is None:
+        notes.append("No scene (config.yaml or --scene): image metrics are null.")
+        return [], None
+    from svolsdf.scene.loaders import load_scene
+
+    ids = sorted({v for s in sets.values() for v in s})
+    first = read_image(next(iter(next(s for s in sets.values() if s).values())))
+    h, w = first.shape[-2:]
+    scene = load_scene(scene_path, views=ids, image_size=(w, h), masks=cfg.masks)
+    metrics["settings"]["scene"] = str(scene_path)
+    metrics["settings"]["image_size"] = [int(w), int(h)]
+    metrics["settings"]["masks"] = scene.masks is not None
+    from svolsdf.evaluate.lpips import LPIPS, lpips_distance
+
+    lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
+    metrics["settings"]["lpips_net"] = cfg.lpips_net
+    metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
+    views: list[ViewImages] = []
+    for key, files in sets.items():
+        block = _empty_images()
+        for vid, path in files.items():
+            pred = read_image(path)
+            if pred.shape[-2:] != (h, w):
+                raise InputError(f"{path} is {pred.shape[-1]}x{pred.shape[-2]} but "
+                                 f"{next(iter(files.values()))} is {w}x{h}; renders must share "
+                                 "one size")
+            k = scene.index(vid)
+            gt = scene.images[k]
+            mask = scene.masks[k] if scene.masks is not None else None
+            vals = {"psnr": masked_psnr(pred, gt, mask),
+                    "ssim": ssim(pred, gt, mask, data_range=cfg.ssim_data_range),
+                    "lpips": lpips_distance(pred, gt, lp, mask)}
+            for m, v in vals.items():
+                block[m]["per_view"][str(vid)] = _finite_or_none(v)
+            views.append(ViewImages(vid, pred, gt, mask, vals,
+                                    "volume" if key == "images" else "ibr"))
+        for m in block:
+            vs = [v for v in block[m]["per_view"].values() if v is not None]
+            block[m]["mean"] = float(np.mean(vs)) if vs else None
+        metrics[key] = block
+    return views, scene
+
+
+def evaluate_run(cfg: EvaluateConfig) -> dict:
+    """Compute OUT/metrics.json (and OUT/report.html) for a run folder.
+
+    Args:
+        cfg: `EvaluateConfig`.
+
+    Returns:
+        the metrics dict that was written.
+
+    Raises:
+        InputError: a missing folder or ground-truth file, unreadable inputs.
+    """
+    t0 = time.perf_counter()
+    out = Path(cfg.out)
+    if not out.is_dir():
+        raise InputError(f"{out}: run folder does not exist")
+    from svolsdf.io.ply import read_ply
+
+    run_cfg = _read_config(out)
+    scene_path, input_views = _scene_info(run_cfg)
+    if cfg.scene is not None:
+        scene_path = Path(cfg.scene)
+    notes: list[str] = []
+    metrics: dict = {
+        "chamfer": _chamfer_block(None, None, None),
+        "chamfer_mesh": _chamfer_block(None, None, None),
+        "fscore": None, "fscore_threshold": None, "precision": None, "recall": None,
+        "images": _empty_images(), "images_ibr": _empty_images(),
+        "timing": {}, "settings": dict(cfg.extra),
+    }
+    points = mesh = None
+    if (out / "points.ply").is_file():
+        d = read_ply(out / "points.ply")
+        points = (d["points"], d["colors"])
+    else:
+        notes.append("No points.ply in the run folder.")
+    if (out / "mesh.ply").is_file():
+        d = read_ply(out / "mesh.ply")
+        if d["faces"] is not None and len(d["faces"]):
+            mesh = (d["points"], d["faces"])
+
+    views, scene = _images(cfg, scene_path, metrics, notes)
+    scan = cfg.scan
+    if scan is None and scene is not None and scene.extras.get("scan") is not None:
+        scan = int(scene.extras["scan"])
+    if scan is None and scene_path is not None:
+        m = re.search(r"scan(\d+)", str(scene_path))
+        scan = int(m.group(1)) if m else None
+    t_geo = time.perf_counter()
+    _geometry(cfg, scan, points, mesh, metrics, notes)
+    log.info("geometry metrics in %.1fs", time.perf_counter() - t_geo)
+
+    tj = out / "timing.json"
+    if tj.is_file():
+        try:
+            metrics["timing"] = dict(json.loads(tj.read_text()))
+        except (ValueError, TypeError) as e:
+            raise InputError(f"{tj}: not a JSON object ({e})") from None
+    metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
+    _write_json(out / "metrics.json", metrics)
+
+    if cfg.report:
+        inputs = []
+        if scene_path is not None:
+            ids = input_views or sorted(int(p.stem) for p in (out / "depth").glob("*.png")
+                                        if re.fullmatch(r"\d+", p.stem))
+            if ids:
+                try:
+                    from svolsdf.scene.loaders import load_scene
+
+                    s = load_scene(scene_path, views=ids, masks=False)
+                    inputs = list(zip(s.view_ids, s.images, strict=True))
+                except InputError as e:
+                    notes.append(f"Inputs not shown: {e}")
+        write_report(out, metrics, views, inputs, points, mesh,
+                     title=f"svolsdf run {out.resolve().name}", notes=notes)
+        metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
+        _write_json(out / "metrics.json", metrics)
+    return metrics
+
+
+def _write_json(path: Path, obj: dict) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(obj, indent=2, allow_nan=False))
+    tmp.replace(path)
+

@@ -1,0 +1,120 @@
+"""End-to-end test of `svolsdf evaluate` on a fake run folder built in tmp_path."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from conftest import shared_path
+from svolsdf.cli import main
+from svolsdf.errors import InputError
+from svolsdf.evaluate.images import masked_psnr
+from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+from svolsdf.io.ply import write_mesh_ply, write_points_ply
+from svolsdf.scene.loaders import load_scene
+
+W, H = 48, 40
+
+
+def _scene(root):
+    """A three-view IDR scene with masks (random pixels; cameras only need to be valid)."""
+    rng = np.random.default_rng(0)
+    (root / "image").mkdir(parents=True)
+    (root / "mask").mkdir()
+    cams = {}
+    for i in range(3):
+        Image.fromarray((rng.random((H, W, 3)) * 255).astype(np.uint8)).save(
+            root / "image" / f"{i:06d}.png")
+        m = np.zeros((H, W), np.uint8)
+        m[6:34, 8:40] = 255
+        Image.fromarray(m).save(root / "mask" / f"{i:03d}.png")
+        K = np.array([[60.0, 0, 24], [0, 60, 20], [0, 0, 1]])
+        P = np.eye(4)
+        P[:3] = K @ np.c_[np.eye(3), [i * 10.0, 0, 500]]
+        cams[f"world_mat_{i}"] = P
+        cams[f"scale_mat_{i}"] = np.diag([100.0, 100, 100, 1])
+    np.savez(root / "cameras.npz", **cams)
+    return root
+
+
+def _run(tmp_path):
+    scene = _scene(tmp_path / "scene")
+    out = tmp_path / "out"
+    for d in ("renders", "renders_ibr", "depth", "normals"):
+        (out / d).mkdir(parents=True)
+    (out / "config.yaml").write_text(f"scene:\n  path: {scene}\n  views: [0]\n")
+    (out / "timing.json").write_text(json.dumps({"optimize": 12.5, "mvs": 3.0}))
+    g = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), [0.0]), -1).reshape(-1, 3)
+    np.save(tmp_path / "gt.npy", g)
+    write_points_ply(out / "points.ply", g + [0, 0, 0.5],
+                     rgb=np.full((len(g), 3), 200, np.uint8))
+    v = np.array([[0, 0, 0], [9, 0, 0], [0, 9, 0], [9, 9, 0]], float)
+    write_mesh_ply(out / "mesh.ply", v, np.array([[0, 1, 3], [0, 3, 2]]))
+    gts = load_scene(scene, views=[1, 2])
+    rng = np.random.default_rng(1)
+    for k, vid in enumerate((1, 2)):
+        pred = (gts.images[k] + 0.05 * torch.from_numpy(rng.standard_normal((3, H, W)))).clamp(
+            0, 1)
+        a = (pred.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+        Image.fromarray(a).save(out / "renders" / f"{vid}.png")
+        Image.fromarray(a).save(out / "renders_ibr" / f"{vid}.png")
+    Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(out / "depth" / "0.png")
+    Image.fromarray(np.full((H, W, 3), 128, np.uint8)).save(out / "normals" / "0.png")
+    return out, tmp_path / "gt.npy", scene
+
+
+def test_evaluate_writes_metrics_and_report(tmp_path):
+    out, gt, scene = _run(tmp_path)
+    m = evaluate_run(EvaluateConfig(out=out, gt_points=gt, threshold=0.6, lpips_net="alex",
+                                    lpips_weights=shared_path("weights", "lpips")))
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert on_disk == m
+    assert set(m["chamfer"]) >= {"accuracy", "completeness", "overall"}
+    assert m["chamfer"]["accuracy"] == pytest.approx(0.5)
+    assert m["chamfer"]["overall"] == pytest.approx(0.5)
+    assert m["fscore"] == 1.0 and m["fscore_threshold"] == 0.6
+    assert m["chamfer_mesh"]["protocol"] == "generic-mesh"
+    assert m["chamfer_mesh"]["overall"] < 0.2
+    # Image metrics: per view, against the masked ground truth.
+    gts = load_scene(scene, views=[1, 2])
+    for k, vid in enumerate((1, 2)):
+        pred = torch.from_numpy(np.array(Image.open(out / "renders" / f"{vid}.png"),
+                                         np.float32) / 255).permute(2, 0, 1)
+        want = masked_psnr(pred, gts.images[k], gts.masks[k])
+        assert m["images"]["psnr"]["per_view"][str(vid)] == pytest.approx(want, rel=1e-6)
+    for key in ("psnr", "ssim", "lpips"):
+        blk = m["images"][key]
+        assert set(blk["per_view"]) == {"1", "2"}
+        assert blk["mean"] == pytest.approx(np.mean(list(blk["per_view"].values())))
+        assert m["images_ibr"][key]["mean"] == pytest.approx(blk["mean"])
+    assert 0 < m["images"]["ssim"]["mean"] < 1 and m["images"]["lpips"]["mean"] > 0
+    assert m["timing"]["optimize"] == 12.5 and m["timing"]["evaluate_seconds"] > 0
+    page = (out / "report.html").read_text()
+    assert '<table id="metrics">' in page and "Chamfer overall" in page
+    assert "http://" not in page and "https://" not in page and "src=\"data:image/png;base64," \
+        in page
+    for section in ("Inputs", "Depth maps", "Normal maps", "Point cloud", "Mesh", "Novel views"):
+        assert f"<h2>{section}" in page
+
+
+def test_evaluate_without_ground_truth_gives_nulls(tmp_path):
+    out = tmp_path / "empty_run"
+    out.mkdir()
+    m = evaluate_run(EvaluateConfig(out=out, report=False))
+    assert m["chamfer"]["overall"] is None and m["fscore"] is None
+    assert m["images"]["psnr"] == {"mean": None, "per_view": {}}
+    assert m["images"]["lpips"]["mean"] is None and "evaluate_seconds" in m["timing"]
+    assert not (out / "report.html").exists()
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", str(tmp_path / "nope")])
+    assert e.value.code == 2
+    assert "run folder does not exist" in capsys.readouterr().err
+    with pytest.raises(InputError, match="ObsMask9_10.mat"):
+        evaluate_run(EvaluateConfig(out=tmp_path, dtu_gt=tmp_path, scan=9, report=False))
