@@ -116,11 +116,20 @@ def write_mesh_ply(path, vertices, faces, vertex_colors=None) -> Path:
     nv = len(v_el.data)
     if f.size and (f.min() < 0 or f.max() >= nv):
         raise ValueError(f"faces index vertices outside [0, {nv})")
-    fdata = np.empty(f.shape[0], dtype=[("vertex_indices", "i4", (3,))])
-    fdata["vertex_indices"] = f.astype(np.int32)
-    f_el = PlyElement.describe(fdata, "face")
-    with atomic_path(path) as tmp:
-        PlyData([v_el, f_el], text=False, byte_order="<").write(str(tmp))
+    # Written by hand: plyfile serializes list properties row by row in Python (slow).
+    vdata = v_el.data
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {nv}"]
+    ply_type = {"f4": "float", "u1": "uchar"}
+    for name in vdata.dtype.names:
+        header.append(f"property {ply_type[vdata.dtype[name].str[1:]]} {name}")
+    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
+    frec = np.empty(len(f), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    frec["n"] = 3
+    frec["v"] = f.astype(np.int32)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vdata.astype(vdata.dtype.newbyteorder("<")).tobytes())
+        fh.write(frec.tobytes())
     return path
 
 
