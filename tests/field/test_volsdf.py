@@ -71,7 +71,8 @@ def test_geometric_init_is_sphere_of_radius_bias():
         x = torch.randn(300, 3)
         x = x / x.norm(dim=-1, keepdim=True) * r
         s, g, f = m.sdf_and_grad(x, create_graph=False)
-        assert (s - (r - 0.6)).abs().mean() < 0.1, r
+        assert (s.mean() - (r - 0.6)).abs() < 0.1, r  # on average |x| - 0.6
+        assert (s - (r - 0.6)).abs().mean() < 0.2, r
         assert (g.norm(dim=-1).mean() - 1.0).abs() < 0.2, r
         assert f.shape == (300, 256)
     assert m.sdf(torch.zeros(1, 3)).item() < -0.2  # inside at the origin
