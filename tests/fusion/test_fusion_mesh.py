@@ -16,6 +16,7 @@ from svolsdf.fusion.mesh import (
     cull_by_masks,
     extract_mesh,
     largest_component,
+    model_colour_fn,
     save_mesh,
     submesh,
     to_world,
@@ -154,6 +155,28 @@ def test_colors_from_fn():
     n = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1)
     col = colors_from_fn(v, n, lambda p, nn: (nn + 1) / 2, chunk=3)
     torch.testing.assert_close(col, ((n + 1) / 2 * 255).round().to(torch.uint8))
+
+
+class ToyModel:
+    """A sphere field whose gradient needs autograd; colour = view direction mapped to [0, 1]."""
+
+    def sdf_and_grad(self, x, create_graph=True):
+        x = x.detach().requires_grad_(True)
+        sdf = x.norm(dim=-1) - 0.5
+        (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=create_graph)
+        return sdf, grad, x * 2
+
+    def colour(self, x, view_dir, normal, feature):
+        assert torch.allclose(normal, torch.nn.functional.normalize(x, dim=-1), atol=1e-5)
+        return (view_dir + 1) / 2
+
+
+def test_model_colour_fn_under_no_grad():
+    v, f = extract_mesh(sphere_sdf(r=0.5), bounds=1.0, resolution=16)
+    n = vertex_normals(v, f)
+    with torch.no_grad():
+        col = colors_from_fn(v, n, model_colour_fn(ToyModel()), chunk=100)
+    torch.testing.assert_close(col, ((-n + 1) / 2 * 255).round().to(torch.uint8))
 
 
 def test_cull_by_frusta_and_masks():

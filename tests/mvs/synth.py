@@ -54,7 +54,7 @@ def texture(points: torch.Tensor, n: int = 48, seed: int = 3, fmin=3.0, fmax=25.
     amp = 1.0 / freq.sqrt()
     arg = (points.double() @ (dirs * freq[:, None]).T)[:, :, None] + phase  # (N, n, 3)
     c = (amp[None, :, None] * torch.sin(arg)).sum(1)
-    c = c / amp.sum() * 2.0
+    c = c / amp.sum() * 8.0
     return (0.5 + 0.5 * torch.tanh(c)).float()
 
 

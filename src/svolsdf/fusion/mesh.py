@@ -38,6 +38,7 @@ __all__ = [
     "cull_by_masks",
     "extract_mesh",
     "largest_component",
+    "model_colour_fn",
     "save_mesh",
     "submesh",
     "to_world",
@@ -161,7 +162,7 @@ def extract_mesh(
     chunk: int = 1 << 16,
     level: float = 0.0,
     coarse_to_fine: bool = False,
-    coarse_step: int = 8,
+    coarse_step: int = 4,
     margin: float = 1.5,
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float32,
@@ -313,7 +314,6 @@ def vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:
 # colours
 
 
-@torch.no_grad()
 def colors_from_fn(
     points: Tensor,
     normals: Tensor,
@@ -324,10 +324,12 @@ def colors_from_fn(
     """Vertex colours from a colour callable, e.g. the colour network seen along -normal.
 
     Args:
-        points: (N, 3) in the frame ``colour_fn`` expects (the unit frame for the field).
+        points: (N, 3) in the frame ``colour_fn`` expects (the unit frame for the field, so call
+            this before `to_world`).
         normals: (N, 3) unit normals.
-        colour_fn: (points (n, 3), normals (n, 3)) -> (n, 3) rgb in [0, 1].
+        colour_fn: (points (n, 3), normals (n, 3)) -> (n, 3) rgb in [0, 1]; see `model_colour_fn`.
         chunk: points per call.
+        device: where ``colour_fn`` receives its inputs.
 
     Returns:
         (N, 3) uint8.
@@ -336,10 +338,28 @@ def colors_from_fn(
     for s in range(0, len(points), chunk):
         p = points[s : s + chunk].to(device=device, dtype=torch.float32)
         n = normals[s : s + chunk].to(device=device, dtype=torch.float32)
-        out.append(colour_fn(p, n).float().cpu())
+        out.append(colour_fn(p, n).detach().float().cpu())
     if not out:
         return torch.zeros(0, 3, dtype=torch.uint8)
     return (torch.cat(out).clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def model_colour_fn(model) -> Callable[[Tensor, Tensor], Tensor]:
+    """A ``colour_fn`` for `colors_from_fn` from a `SurfaceModel` (unit frame).
+
+    The colour network sees each vertex along its inward normal (view direction = -normal), with
+    the SDF gradient as its normal input and the SDF feature (ARCHITECTURE.md, `SurfaceModel`).
+    Gradients are computed (the field's normal may need autograd) but not kept.
+    """
+
+    def fn(points: Tensor, normals: Tensor) -> Tensor:
+        with torch.enable_grad():
+            _, grad, feature = model.sdf_and_grad(points, create_graph=False)
+        grad = torch.nn.functional.normalize(grad.detach(), dim=-1)
+        with torch.no_grad():
+            return model.colour(points, -normals, grad, feature.detach())
+
+    return fn
 
 
 def _sample(img: Tensor, uv: Tensor, mode: str = "bilinear") -> Tensor:

@@ -1,0 +1,263 @@
+"""Dataclass configs for a reconstruction run, the named presets, and YAML round trips.
+
+One `Config` describes a whole run. `svolsdf reconstruct` maps its options onto it and writes it as
+OUT/config.yaml, which can be passed back with ``--config`` to rerun. Presets (ARCHITECTURE.md
+"Presets"): ``paper`` reproduces METHOD.md's constants; ``fast`` (the default) keeps the prior and
+the losses and changes the field, the sampling and the schedule.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import asdict, dataclass, fields
+from dataclasses import field as dc_field
+from pathlib import Path
+from typing import Any, Optional
+
+import yaml
+
+from svolsdf.errors import InputError
+
+__all__ = [
+    "Config",
+    "SceneConfig",
+    "MVSConfig",
+    "FieldConfig",
+    "TrainConfig",
+    "OutputConfig",
+    "preset",
+    "PRESETS",
+    "load_config",
+    "save_config",
+    "apply_overrides",
+]
+
+#: DTU protocol input views (METHOD.md 1.4): the first num_view of this list.
+DTU_TRAIN_IDS = [25, 22, 28, 40, 44, 48, 0, 8, 13]
+#: DTU views never used for testing (METHOD.md 1.4).
+DTU_EXCLUDED_IDS = [3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 36, 37, 38, 39]
+
+
+@dataclass
+class SceneConfig:
+    path: str = ""
+    """Scene folder (any format `load_scene` reads)."""
+    views: Optional[list[int]] = None
+    """Input view ids; default: DTU's 25 22 28 on 49-view DTU scans, else a central view and its
+    two best source views."""
+    num_views: int = 3
+    """Number of input views when ``views`` is not given."""
+    image_size: Optional[list[int]] = None
+    """Working size [W, H] for the field; default: 768 wide (4:3 -> 768x576), never upsampled."""
+    lighting: int = 3
+    """DTU raw layout only: the lighting index of the rectified images."""
+
+
+@dataclass
+class MVSConfig:
+    backbone: str = "planesweep"
+    """planesweep (training-free, default) | casmvsnet (needs --weights) | patchmatchnet."""
+    weights: Optional[str] = None
+    """Weights file for learned backbones."""
+    ndepths: list[int] = dc_field(default_factory=lambda: [192, 32, 8])
+    """Hypotheses per cascade stage (METHOD.md 0)."""
+    width: str = "paper"
+    """Finer-stage search width: paper (half the default CasMVSNet width) | released (METHOD.md 2.5)."""
+    inverse_depth: bool = False
+    """Stage-1 planes uniform in inverse depth (unbounded scenes; METHOD.md 2.5, 9.1)."""
+
+
+@dataclass
+class FieldConfig:
+    kind: str = "grid"
+    """grid (the fast preset's multi-resolution grid field) | mlp (the paper's VolSDF 8x256 MLP)."""
+    mlp_depth: int = 8
+    """mlp: hidden layers of the SDF MLP (METHOD.md 5.2)."""
+    mlp_width: int = 256
+    """mlp: hidden width of the SDF and colour MLPs."""
+    background: bool = False
+    """Add the NeRF++ inverted-sphere background model (unbounded scenes, METHOD.md 5.5)."""
+    grid_resolution: int = 128
+    """grid: final resolution of the dense SDF grid."""
+    grid_start_resolution: int = 64
+    """grid: resolution at the start (coarse to fine)."""
+
+
+@dataclass
+class TrainConfig:
+    mode: str = "svolsdf"
+    """svolsdf (MVS prior + losses) | volsdf (the same model without the prior) | mvs-only."""
+    ablation: Optional[str] = None
+    """None | soft-consistency-only | mse | no-prob-volume | ce (paper ablations)."""
+    steps: int = 3000
+    """Optimization steps."""
+    rays: int = 512
+    """Rays per step, from one random input view (METHOD.md 4.6)."""
+    lr: float = 5e-4
+    """Adam learning rate for networks (constant, METHOD.md 4.6)."""
+    lr_grid: float = 1e-2
+    """grid field: learning rate of the grid parameters."""
+    grad_clip: float = 1.0
+    """Global-norm gradient clipping (0 = off)."""
+    eikonal_weight: float = 0.1
+    rgb_weight: float = 1.0
+    mvs_weight: float = 1.0
+    sparse_weight: float = 1.0
+    smooth_weight: float = 0.0
+    """grid field: weight of the grid smoothness regularizer (not in the paper)."""
+    gce_q: float = 0.5
+    """GCE exponent q (METHOD.md 4.2); 0 gives cross-entropy."""
+    gce_form: str = "paper"
+    """paper: P'(1 - w^q)/q | released: -P' sg(w)^q log w (same gradient; METHOD.md 9.2.4)."""
+    sparse_norm: str = "unsupervised"
+    """unsupervised: divide by |Q| (paper) | all: divide by all rays (released; METHOD.md 9.2.5)."""
+    sparse_decay: bool = False
+    """Released code's linear decay of the sparsity weight over the warm-up (METHOD.md 4.3)."""
+    anneal_rgb: int = 200
+    """Warm-up steps with the Gaussian-smoothed RGB target and the sparsity loss (METHOD.md 4.4)."""
+    warmup_mask_supervised: bool = False
+    """Released code: no RGB loss on MVS-supervised rays during the warm-up (METHOD.md 9.2.6)."""
+    sampler: str = "mvs"
+    """mvs: samples where P' and the current surface are (fast) | error_bounded (METHOD.md 5.4)."""
+    samples_uniform: int = 32
+    """mvs sampler: stratified samples along the ray."""
+    samples_fine: int = 48
+    """mvs sampler: importance samples from P' and the current weights."""
+    beta_min: float = 0.0
+    """Lower bound on the Laplace beta (0 = learnable only, as the paper)."""
+    checkpoint_every: int = 500
+    """Save a checkpoint every N steps (resume after a kill)."""
+    seed: int = 0
+    """Random seed."""
+
+
+@dataclass
+class OutputConfig:
+    mesh_resolution: int = 256
+    """Marching-cubes grid resolution in the unit frame."""
+    mesh_format: str = "ply"
+    """ply | obj."""
+    fusion_dist: float = 1.0
+    """Fusion: reprojection distance threshold in pixels (METHOD.md 6.3)."""
+    fusion_rel: float = 0.01
+    """Fusion: relative depth difference threshold (METHOD.md 6.3)."""
+    fusion_views: int = 1
+    """Fusion: minimum number of consistent source views (METHOD.md 6.3)."""
+    fusion_conf: float = 0.0
+    """Fusion: photometric confidence threshold (0 = off, as released; METHOD.md 9.2.9)."""
+    use_masks: bool = True
+    """Apply (dilated) object masks when the scene has them (METHOD.md 6.3)."""
+    low_weight_rule: str = "max"
+    """Rendered-depth pixels with weight < 0.2: max (the map's maximum depth, released) |
+    mvs (keep the stage-1 MVS depth)."""
+    finer_stage_optimization: bool = False
+    """Paper option: also optimize the field at stages 2 and 3 (METHOD.md 9.2.13). Unsupported in
+    the released code."""
+
+
+@dataclass
+class Config:
+    preset: str = "fast"
+    """fast (default; minutes on a CPU) | paper (METHOD.md constants; a GPU)."""
+    device: str = "auto"
+    """auto | cpu | cuda."""
+    scene: SceneConfig = dc_field(default_factory=SceneConfig)
+    mvs: MVSConfig = dc_field(default_factory=MVSConfig)
+    field: FieldConfig = dc_field(default_factory=FieldConfig)
+    train: TrainConfig = dc_field(default_factory=TrainConfig)
+    output: OutputConfig = dc_field(default_factory=OutputConfig)
+
+
+def _paper() -> Config:
+    c = Config(preset="paper")
+    c.field = FieldConfig(kind="mlp")
+    c.train = TrainConfig(steps=100_000, sampler="error_bounded", lr=5e-4, checkpoint_every=5000)
+    c.mvs = MVSConfig(backbone="planesweep", width="paper")
+    c.output = OutputConfig(mesh_resolution=512)
+    return c
+
+
+def _fast() -> Config:
+    return Config(preset="fast")
+
+
+PRESETS = {"fast": _fast, "paper": _paper}
+
+
+def preset(name: str) -> Config:
+    """A fresh `Config` of the named preset."""
+    if name not in PRESETS:
+        raise InputError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
+    return PRESETS[name]()
+
+
+def _from_dict(cls, data: dict, where: str):
+    obj = cls()
+    names = {f.name: f for f in fields(cls)}
+    for k, v in data.items():
+        if k not in names:
+            raise InputError(f"{where}: unknown key {k!r} (known: {', '.join(names)})")
+        cur = getattr(obj, k)
+        if dataclasses.is_dataclass(cur):
+            if not isinstance(v, dict):
+                raise InputError(f"{where}: {k} must be a mapping")
+            setattr(obj, k, _from_dict(type(cur), v, f"{where}.{k}"))
+        else:
+            setattr(obj, k, v)
+    return obj
+
+
+def config_from_dict(data: dict, where: str = "config") -> Config:
+    """A `Config` from a nested dict; unknown keys raise InputError naming them."""
+    base = preset(data.get("preset", "fast"))
+    merged = _merge(asdict(base), data)
+    return _from_dict(Config, merged, where)
+
+
+def _merge(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(path: str | Path) -> Config:
+    """Read a YAML config (as written by `save_config`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise InputError(f"{path}: not valid YAML ({e.__class__.__name__})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a mapping at the top level")
+    return config_from_dict(data, where=str(path))
+
+
+def save_config(cfg: Config, path: str | Path) -> None:
+    """Write ``cfg`` as YAML atomically."""
+    import os
+
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
+    os.replace(tmp, path)
+
+
+def apply_overrides(cfg: Config, overrides: dict[str, Any]) -> Config:
+    """Set dotted keys (``{"train.steps": 100}``); None values are skipped."""
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        obj = cfg
+        parts = key.split(".")
+        for p in parts[:-1]:
+            obj = getattr(obj, p)
+        if not hasattr(obj, parts[-1]):
+            raise InputError(f"unknown config key {key!r}")
+        setattr(obj, parts[-1], value)
+    return cfg

@@ -1,0 +1,439 @@
+"""A training-free plane-sweep backbone: the default `MVSBackbone`.
+
+Per reference view and stage k (1/4, 1/2 and full working size for k = 1, 2, 3; 192, 32 and 8
+hypotheses, METHOD.md 2.5):
+
+1. Hypotheses (`svolsdf.mvs.hypotheses`): planes over the view's depth range at stage 1, per-pixel
+   ranges centred on the upsampled previous depth (or a guide depth, METHOD.md 6.1) later.
+2. Matching cost per source view: 1 - ZNCC of the reference and the warped source image
+   (`svolsdf.mvs.warping.homo_warp`, per-pixel homographies) over a square window on grayscale,
+   optionally also on the image gradients. ZNCC is invariant to per-window gain and offset, so
+   exposure differences between views do not matter.
+3. Aggregation over sources, robust to a source that does not see the point: the mean of the best
+   ``ceil(keep_fraction * n_valid)`` costs among the sources where the point projects inside the
+   image (out-of-image samples are missing, not bad matches). With 2 sources this is their minimum.
+4. Cost aggregation: an edge-aware guided filter (He et al. 2013) of every cost slice, guided by
+   the reference image, so the support follows intensity edges of real objects instead of
+   bleeding across depth discontinuities; ``filter="box"`` is the plain box baseline.
+5. Probabilities: softmax over D of -cost / T (METHOD.md 2.4 replaces the network's regularized
+   cost by -cost / T). T is calibrated from the cost statistics of each volume (``temperature``
+   None): with g the median over pixels of (median_D cost - min_D cost), T = g / (ln D + m),
+   ``m = temperature_margin``. At a typical pixel the D/2 hypotheses at the median cost then keep
+   about D/2 · e^-(ln D + m) = e^-m / 2 of the mass (m = 2: ~7 %), so the distribution is peaked
+   where the matching is distinctive and spread where it is not.
+6. depth = expectation, confidence = 4-bin sum (METHOD.md 2.4).
+
+Everything is vectorized in torch; warps, windows and filters are computed in chunks over depth.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from svolsdf.errors import InputError
+from svolsdf.mvs.backbone import (
+    MVSBackbone,
+    check_depth_ranges,
+    register_backbone,
+    stage_size,
+    upsample_depth,
+    volume_from_prob,
+)
+from svolsdf.mvs.hypotheses import stage_hypotheses
+from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.mvs.warping import homo_warp
+from svolsdf.scene.scene import Scene
+
+__all__ = [
+    "PlaneSweepConfig",
+    "PlaneSweepBackbone",
+    "box_filter",
+    "guided_filter",
+    "zncc_cost",
+    "aggregate_sources",
+    "sgm_aggregate",
+    "calibrate_temperature",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PlaneSweepConfig:
+    """Configuration of the plane-sweep backbone."""
+
+    num_depths: tuple[int, int, int] = (192, 32, 8)
+    """Hypotheses per stage (METHOD.md 2.5)."""
+    width: str = "paper"
+    """Finer-stage search width: "paper" (half the CasMVSNet default) or "released" (r = 0.5);
+    see `svolsdf.mvs.hypotheses`."""
+    inverse_depth: bool = False
+    """Space stage-1 planes uniformly in inverse depth (unbounded scenes)."""
+    window: tuple[int, int, int] = (7, 7, 7)
+    """ZNCC window side (odd, pixels at the stage's resolution) per stage."""
+    gradient_weight: float = 0.0
+    """Weight of the ZNCC cost on x/y image gradients, added to the grayscale cost (0 = off)."""
+    keep_fraction: float = 0.5
+    """Fraction of the valid sources whose best costs are averaged (robustness to occlusion)."""
+    filter: str = "guided"
+    """Cost aggregation per slice: "guided" (edge-aware), "box", or "none"."""
+    sgm: tuple[bool, bool, bool] = (True, True, True)
+    """Per stage: semi-global aggregation (4 directions) after the filter."""
+    sgm_p1: float = 0.03
+    """SGM penalty for a change of one hypothesis (cost units, cost in [0, 2])."""
+    sgm_p2: float = 0.3
+    """SGM penalty for larger jumps away from intensity edges."""
+    sgm_sigma: float = 0.04
+    """Intensity difference (on [0, 1]) over which the SGM jump penalty drops from P2 to P1."""
+    filter_radius: tuple[int, int, int] = (4, 4, 4)
+    """Radius of the aggregation filter per stage (pixels at the stage's resolution)."""
+    filter_eps: float = 1e-3
+    """Guided-filter regularizer (on [0, 1] grayscale; larger = closer to a box filter)."""
+    missing_cost: float = 1.0
+    """Cost where no source sees the hypothesis (1 - ZNCC of unrelated patches)."""
+    temperature: float | None = None
+    """Softmax temperature; None calibrates it per volume from the costs (module docstring)."""
+    temperature_margin: float = 2.0
+    """m in T = g / (ln D + m); larger = more peaked."""
+    depth_chunk: int = 24
+    """Hypotheses processed at once (memory)."""
+    zncc_eps: float = 1e-5
+    """Added to each window variance in ZNCC's denominator, ~ the squared image noise on [0, 1]
+    (a flat patch gets cost ~1 instead of matching noise)."""
+    min_depth_ratio: float = 0.05
+    """Finer-stage hypotheses are clamped to >= this fraction of the view's near depth."""
+    extra: dict = field(default_factory=dict)
+    """Unused; room for experiments without changing the signature."""
+
+
+# --------------------------------------------------------------------------- filters
+def box_filter(x: Tensor, radius: int) -> Tensor:
+    """Mean over a (2r+1)^2 window, shrinking at the borders (separable).
+
+    Args:
+        x: (N, C, H, W).
+        radius: r >= 0.
+
+    Returns:
+        (N, C, H, W).
+    """
+    if radius <= 0:
+        return x
+    k = 2 * radius + 1
+    x = F.avg_pool2d(x, (1, k), stride=1, padding=(0, radius), count_include_pad=False)
+    return F.avg_pool2d(x, (k, 1), stride=1, padding=(radius, 0), count_include_pad=False)
+
+
+def guided_filter(guide: Tensor, p: Tensor, radius: int, eps: float,
+                  guide_stats: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """Gray-guided filter of each channel of ``p`` (He, Sun, Tang, TPAMI 2013, Alg. 1).
+
+    a = cov(I, p) / (var(I) + eps), b = mean(p) - a mean(I), q = mean(a) I + mean(b).
+
+    Args:
+        guide: (1, 1, H, W) guide image I.
+        p: (1, C, H, W) inputs (e.g. cost slices).
+        radius: window radius.
+        eps: regularizer.
+        guide_stats: optional precomputed (mean(I), var(I)), each (1, 1, H, W).
+
+    Returns:
+        (1, C, H, W) filtered.
+    """
+    if guide_stats is None:
+        mI = box_filter(guide, radius)
+        vI = box_filter(guide * guide, radius) - mI * mI
+    else:
+        mI, vI = guide_stats
+    mp = box_filter(p, radius)
+    cov = box_filter(guide * p, radius) - mI * mp
+    a = cov / (vI + eps)
+    b = mp - a * mI
+    return box_filter(a, radius) * guide + box_filter(b, radius)
+
+
+def zncc_cost(ref: Tensor, warped: Tensor, radius: int, eps: float,
+              ref_stats: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """1 - windowed zero-mean normalized cross-correlation, in [0, 2].
+
+    ZNCC = cov(R, S) / sqrt((var R + eps)(var S + eps)) over a (2 radius + 1)^2 window.
+
+    Args:
+        ref: (1, 1, H, W) reference image.
+        warped: (1, D, H, W) source image warped to each hypothesis.
+        radius: window radius.
+        eps: added to var(ref) and var(src) in the denominator.
+        ref_stats: optional precomputed (mean(ref), var(ref)).
+
+    Returns:
+        (1, D, H, W) cost.
+    """
+    if ref_stats is None:
+        mR = box_filter(ref, radius)
+        vR = (box_filter(ref * ref, radius) - mR * mR).clamp_min(0)
+    else:
+        mR, vR = ref_stats
+    mS = box_filter(warped, radius)
+    vS = (box_filter(warped * warped, radius) - mS * mS).clamp_min(0)
+    cross = box_filter(warped * ref, radius) - mR * mS
+    ncc = cross / torch.sqrt((vR + eps) * (vS + eps))
+    return 1.0 - ncc.clamp(-1, 1)
+
+
+def sgm_aggregate(cost: Tensor, guide: Tensor, p1: float, p2: float, sigma: float) -> Tensor:
+    """Semi-global aggregation of a cost volume along 4 scanline directions (Hirschmüller 2008).
+
+    Along each direction r: L_r(x, k) = C(x, k) + min(L_r(x-r, k), L_r(x-r, k±1) + P1,
+    min_j L_r(x-r, j) + P2(x)) - min_j L_r(x-r, j), with an edge-aware
+    P2(x) = P1 + (P2 - P1) exp(-|I(x) - I(x-r)| / sigma) so that depth may jump at intensity
+    edges. The result is the mean of the 4 directions, on the scale of ``cost``. Neighbouring
+    hypotheses k are neighbouring depths of the per-pixel hypothesis lists.
+
+    Args:
+        cost: (D, H, W) matching cost.
+        guide: (H, W) grayscale reference image.
+        p1, p2: penalties for a change of 1 and of more than 1 hypothesis.
+        sigma: intensity scale of the edge-aware P2.
+
+    Returns:
+        (D, H, W) aggregated cost.
+    """
+    D, H, W = cost.shape
+    total = torch.zeros_like(cost)
+    for dim in (2, 1):  # along W (rows of columns), then along H
+        n = cost.shape[dim]
+        c = cost.movedim(dim, 0)  # (n, D, other)
+        g = guide.movedim(dim - 1, 0)  # (n, other)
+        dg = (g[1:] - g[:-1]).abs()
+        pen2 = p1 + (p2 - p1) * torch.exp(-dg / sigma)  # (n-1, other)
+        acc = torch.empty_like(c)
+        for reverse in (False, True):
+            order = range(n - 1, -1, -1) if reverse else range(n)
+            prev = None
+            for i in order:
+                if prev is None:
+                    cur = c[i].clone()
+                else:
+                    j = i + 1 if reverse else i - 1
+                    m = prev.min(dim=0, keepdim=True).values
+                    best = torch.minimum(prev, m + pen2[min(i, j)][None])
+                    best[1:] = torch.minimum(best[1:], prev[:-1] + p1)
+                    best[:-1] = torch.minimum(best[:-1], prev[1:] + p1)
+                    cur = c[i] + best - m
+                if reverse:
+                    acc[i] += cur
+                else:
+                    acc[i] = cur
+                prev = cur
+        total += acc.movedim(0, dim)
+    return total / 4
+
+
+def aggregate_sources(costs: Tensor, valid: Tensor, keep_fraction: float,
+                      missing_cost: float) -> Tensor:
+    """Mean of the best ceil(keep_fraction · n_valid) costs over the valid sources.
+
+    Args:
+        costs: (S, D, H, W) per-source costs.
+        valid: (S, D, H, W) bool, the hypothesis projects inside source s.
+        keep_fraction: in (0, 1].
+        missing_cost: the result where no source is valid.
+
+    Returns:
+        (D, H, W) aggregated cost.
+    """
+    S = costs.shape[0]
+    if S == 1:
+        return torch.where(valid[0], costs[0], torch.full_like(costs[0], missing_cost))
+    big = torch.finfo(costs.dtype).max / 4
+    c = torch.where(valid, costs, torch.full_like(costs, big))
+    c, _ = torch.sort(c, dim=0)
+    n_valid = valid.sum(0)
+    k = torch.ceil(keep_fraction * n_valid.to(costs.dtype)).clamp_min(1).long()  # (D, H, W)
+    c = torch.where(c >= big, torch.zeros_like(c), c)
+    csum = torch.cumsum(c, dim=0)
+    best = torch.gather(csum, 0, (k - 1)[None])[0] / k.to(costs.dtype)
+    return torch.where(n_valid > 0, best, torch.full_like(best, missing_cost))
+
+
+def calibrate_temperature(cost: Tensor, margin: float, mask: Tensor | None = None) -> float:
+    """T = median_pixels(median_D cost - min_D cost) / (ln D + margin) (module docstring, step 5).
+
+    Args:
+        cost: (D, H, W) aggregated cost.
+        margin: m.
+        mask: optional (H, W) bool pixels to take the statistics over.
+
+    Returns:
+        T > 0.
+    """
+    D = cost.shape[0]
+    gap = cost.median(dim=0).values - cost.min(dim=0).values
+    if mask is not None and mask.any():
+        gap = gap[mask]
+    g = float(gap.median()) if gap.numel() else 0.0
+    return max(g, 1e-3) / (math.log(D) + margin)
+
+
+# --------------------------------------------------------------------------- backbone
+def _gray(images: Tensor) -> Tensor:
+    """(V, 3, H, W) RGB -> (V, 1, H, W) luma."""
+    w = torch.tensor([0.299, 0.587, 0.114], dtype=images.dtype, device=images.device)
+    return (images * w.view(1, 3, 1, 1)).sum(1, keepdim=True)
+
+
+def _gradients(gray: Tensor) -> Tensor:
+    """(V, 1, H, W) -> (V, 2, H, W) central differences (x, y), replicate border."""
+    p = F.pad(gray, (1, 1, 1, 1), mode="replicate")
+    gx = 0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2])
+    gy = 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])
+    return torch.cat([gx, gy], dim=1)
+
+
+@register_backbone("planesweep")
+class PlaneSweepBackbone(MVSBackbone):
+    """Training-free plane sweep with ZNCC, guided-filter aggregation and a calibrated softmax.
+
+    See the module docstring for the method. ``PlaneSweepBackbone(**fields)`` takes the fields of
+    `PlaneSweepConfig`, or ``config=PlaneSweepConfig(...)``.
+    """
+
+    name = "planesweep"
+
+    def __init__(self, config: PlaneSweepConfig | None = None, **fields) -> None:
+        if config is None:
+            try:
+                config = PlaneSweepConfig(**fields)
+            except TypeError as e:
+                raise InputError(f"planesweep backbone: {e}") from None
+        elif fields:
+            raise InputError("planesweep backbone: pass either config or fields, not both")
+        if config.filter not in ("guided", "box", "none"):
+            raise InputError(f"planesweep: filter must be guided, box or none, got {config.filter}")
+        self.cfg = config
+        self._cache: dict = {}
+
+    # ------------------------------------------------------------------ inputs
+    def _stage_inputs(self, scene: Scene, k: int) -> tuple[Tensor, Tensor, object]:
+        """(V,C,Hk,Wk) matching channels, (V,1,Hk,Wk) guide gray, cameras at stage k."""
+        if scene.images is None:
+            raise InputError(f"{scene.path}: the scene was loaded without images")
+        W, H = stage_size(k, scene.width, scene.height)
+        key = (id(scene), id(scene.images), k)
+        if key in self._cache:
+            return self._cache[key]
+        imgs = scene.images.float()
+        if (W, H) != (scene.width, scene.height):
+            imgs = F.interpolate(imgs, size=(H, W), mode="bilinear", align_corners=False,
+                                 antialias=True)
+        gray = _gray(imgs)
+        chans = gray
+        if self.cfg.gradient_weight > 0:
+            chans = torch.cat([gray, _gradients(gray)], dim=1)
+        cams = scene.cameras.resize(W, H)
+        self._cache = {key: (chans, gray, cams)}  # keep only the latest stage
+        return chans, gray, cams
+
+    def _centre(self, k: int, vid: int, W: int, H: int, guide_depth, prev) -> Tensor:
+        if guide_depth is not None and vid in guide_depth:
+            g = torch.as_tensor(guide_depth[vid]).float()
+            if g.ndim == 3 and g.shape[0] == 1:
+                g = g[0]
+            if g.ndim != 2:
+                raise InputError(
+                    f"guide depth of view {vid} must be (H, W), got {tuple(g.shape)}")
+            return upsample_depth(g, W, H)
+        if prev is None or vid not in prev:
+            raise InputError(
+                f"stage {k} of view {vid} needs the previous stage's volume or a guide depth")
+        return upsample_depth(prev[vid].depth.float(), W, H)
+
+    # ------------------------------------------------------------------ stage
+    def stage(
+        self,
+        k: int,
+        scene: Scene,
+        ref_ids: list[int] | None = None,
+        guide_depth: dict[int, Tensor] | None = None,
+        prev: dict[int, ProbabilityVolume] | None = None,
+    ) -> list[ProbabilityVolume]:
+        """Run stage ``k`` (see `MVSBackbone.stage`); volumes at 1/2^(3-k) of the working size."""
+        if not 1 <= k <= 3:
+            raise ValueError(f"stage must be 1, 2 or 3, got {k}")
+        ref_ids = list(scene.view_ids if ref_ids is None else ref_ids)
+        check_depth_ranges(scene, ref_ids)
+        if len(scene) < 2:
+            raise InputError(f"{scene.path}: plane sweep needs at least 2 views, got {len(scene)}")
+        chans, gray, cams = self._stage_inputs(scene, k)
+        out = []
+        for vid in ref_ids:
+            r = scene.index(vid)
+            near, far = (float(x) for x in scene.depth_range[r])
+            if k == 1:
+                depths = stage_hypotheses(1, near, far, cams.height, cams.width,
+                                          num_depths=self.cfg.num_depths[0],
+                                          inverse=self.cfg.inverse_depth).contiguous()
+            else:
+                centre = self._centre(k, vid, cams.width, cams.height, guide_depth, prev)
+                depths = stage_hypotheses(k, near, far, cams.height, cams.width, guide=centre,
+                                          num_depths=self.cfg.num_depths[k - 1],
+                                          width_mode=self.cfg.width)
+                depths = depths.clamp_min(self.cfg.min_depth_ratio * near)
+            src = [scene.index(s) for s in scene.source_views(vid)]
+            cost = self._cost_volume(k, r, src, chans, gray, cams, depths)
+            T = self.cfg.temperature
+            if T is None:
+                T = calibrate_temperature(cost, self.cfg.temperature_margin)
+            prob = torch.softmax(-cost / T, dim=0)
+            log.debug("planesweep stage %d view %d: T = %.4g", k, vid, T)
+            out.append(volume_from_prob(prob, depths, cams[r], vid, k,
+                                        inverse_depth=self.cfg.inverse_depth and k == 1))
+        return out
+
+    def _cost_volume(self, k, r, src, chans, gray, cams, depths) -> Tensor:
+        """(D, H, W) aggregated matching cost of reference index r over sources ``src``."""
+        cfg = self.cfg
+        D, H, W = depths.shape
+        rad = cfg.window[k - 1] // 2
+        frad = cfg.filter_radius[k - 1]
+        P = cams.proj.float()
+        ref = chans[r:r + 1]  # (1, C, H, W)
+        C = ref.shape[1]
+        ref_stats = []
+        for c in range(C):
+            m = box_filter(ref[:, c:c + 1], rad)
+            v = (box_filter(ref[:, c:c + 1] ** 2, rad) - m * m).clamp_min(0)
+            ref_stats.append((m, v))
+        g = gray[r:r + 1]
+        mI = box_filter(g, frad)
+        g_stats = (mI, box_filter(g * g, frad) - mI * mI)
+        cost = torch.empty(D, H, W, dtype=torch.float32, device=depths.device)
+        weights = [1.0] + [cfg.gradient_weight] * (C - 1)
+        for d0 in range(0, D, cfg.depth_chunk):
+            dh = depths[d0:d0 + cfg.depth_chunk][None]
+            per_src, valids = [], []
+            for s in src:
+                warped, valid = homo_warp(chans[s:s + 1], P[s:s + 1], P[r:r + 1], dh,
+                                          padding_mode="border")
+                c_s = 0.0
+                for c in range(C):
+                    c_s = c_s + weights[c] * zncc_cost(ref[:, c:c + 1], warped[:, c], rad,
+                                                       cfg.zncc_eps, ref_stats[c])
+                per_src.append(c_s[0] / sum(weights))
+                valids.append(valid[0])
+            agg = aggregate_sources(torch.stack(per_src), torch.stack(valids),
+                                    cfg.keep_fraction, cfg.missing_cost)
+            if cfg.filter == "guided":
+                agg = guided_filter(g, agg[None], frad, cfg.filter_eps, g_stats)[0]
+            elif cfg.filter == "box":
+                agg = box_filter(agg[None], frad)[0]
+            cost[d0:d0 + dh.shape[1]] = agg
+        if cfg.sgm[k - 1]:
+            cost = sgm_aggregate(cost, g[0, 0], cfg.sgm_p1, cfg.sgm_p2, cfg.sgm_sigma)
+        return cost

@@ -1,0 +1,356 @@
+"""The S-VolSDF optimization loop (METHOD.md 4): RGB + eikonal + GCE weight loss + sparsity loss.
+
+One step (METHOD.md 4.6): one random input view, ``rays`` random pixels, samples along the rays
+(error-bounded sampler, METHOD.md 5.4, or the MVS-guided sampler of the fast preset), volume
+rendering, the soft-consistency label P' at the same samples (METHOD.md 3), the losses of
+`svolsdf.optimize.losses`, Adam, global-norm clipping and a NaN-safe update. Checkpoints every N
+steps make a killed run resume where it stopped.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from svolsdf.config import TrainConfig
+from svolsdf.field.base import SurfaceModel
+from svolsdf.optimize import losses as L
+from svolsdf.render.rays import RayBundle, rays_from_cameras
+from svolsdf.render.volume import render_rays
+from svolsdf.scene.cameras import Cameras
+
+__all__ = ["Trainer", "TrainData"]
+
+log = logging.getLogger(__name__)
+
+ABLATIONS = (None, "soft-consistency-only", "mse", "no-prob-volume", "ce")
+
+
+@dataclass
+class TrainData:
+    """What the optimization sees of the scene, in the unit frame.
+
+    Attributes:
+        images: (V, 3, H, W) input views in [0, 1].
+        cameras: unit-frame `Cameras` of the V views (``Scene.cameras_unit``).
+        near_far: (V, 2) z-depth range per view in unit-frame units (rays are clipped to it,
+            padded), or None for the whole bounding sphere.
+        mvs_depth: (V, H, W) filtered MVS z-depth in unit-frame units (0 = none), used by the
+            "mse" and "no-prob-volume" ablations.
+    """
+
+    images: Tensor
+    cameras: Cameras
+    near_far: Tensor | None = None
+    mvs_depth: Tensor | None = None
+
+
+class Trainer:
+    """Fits a `SurfaceModel` to the input views under the MVS prior.
+
+    Args:
+        model: the field (unit frame).
+        data: `TrainData`.
+        cfg: `TrainConfig` (steps, rays, learning rates, loss weights, mode, ablation).
+        prior: `svolsdf.prior.MVSPrior` over the stage-1 volumes of the same views (same order),
+            or None (mode ``volsdf``).
+        sampler: ``sampler(model, rays, training) -> SamplerOutput``.
+        out_dir: where checkpoints and the loss log go (None: nowhere).
+        device: torch device.
+    """
+
+    def __init__(self, model: SurfaceModel, data: TrainData, cfg: TrainConfig, prior=None,
+                 sampler=None, out_dir: str | Path | None = None, device="cpu",
+                 grid_schedule: list[tuple[int, int]] | None = None):
+        if cfg.ablation not in ABLATIONS:
+            raise ValueError(f"unknown ablation {cfg.ablation!r} (choose from {ABLATIONS[1:]})")
+        if cfg.mode == "svolsdf" and prior is None and cfg.ablation not in ("mse",
+                                                                              "no-prob-volume"):
+            raise ValueError("mode svolsdf needs an MVS prior")
+        self.model = model.to(device)
+        self.device = torch.device(device)
+        self.cfg = cfg
+        self.prior = prior
+        self.sampler = sampler
+        self.images = data.images.to(self.device)
+        self.cameras = data.cameras.to(self.device, dtype=torch.float32)
+        self.near_far = None if data.near_far is None else data.near_far.to(self.device).float()
+        self.mvs_depth = None if data.mvs_depth is None else data.mvs_depth.to(self.device)
+        V, _, H, W = self.images.shape
+        self.V, self.H, self.W = V, H, W
+        self.smoothed = None
+        if cfg.mode == "svolsdf" and cfg.sparse_weight > 0 and cfg.anneal_rgb > 0:
+            # METHOD.md 4.4: heavily smoothed targets for the first anneal_rgb steps
+            self.smoothed = L.warmup_rgb_target(self.images)
+        self.grid_schedule = sorted(grid_schedule or [])
+        self.step = 0
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.generator = torch.Generator(device="cpu").manual_seed(cfg.seed)
+        self._build_optimizer()
+        self.history: list[dict] = []
+
+    # ------------------------------------------------------------------ setup
+    def _build_optimizer(self) -> None:
+        if hasattr(self.model, "param_groups"):
+            groups = self.model.param_groups(self.cfg.lr_grid, self.cfg.lr)
+        else:
+            groups = [{"params": list(self.model.parameters()), "lr": self.cfg.lr}]
+        # METHOD.md 4.6: Adam, default betas, constant learning rate
+        self.optimizer = torch.optim.Adam(groups)
+
+    def _maybe_grow_grid(self) -> None:
+        for at_step, res in self.grid_schedule:
+            if self.step == at_step and hasattr(self.model, "upsample") \
+                    and res > self.model.resolution:
+                self.model.upsample(res)
+                self._build_optimizer()
+                log.info("grid grown to %d at step %d", res, self.step)
+
+    # ------------------------------------------------------------------ rays
+    def sample_rays(self, n: int) -> tuple[RayBundle, Tensor, Tensor]:
+        """n random pixels of one random view (METHOD.md 4.6).
+
+        Returns:
+            rays (R,), pixel index (R,) long into H*W, view index () long.
+        """
+        t = int(torch.randint(self.V, (1,), generator=self.generator))
+        pix = torch.randperm(self.H * self.W, generator=self.generator)[:n].to(self.device)
+        uv = torch.stack([pix % self.W, pix // self.W], dim=-1).float()
+        rays = self.make_rays(t, uv)
+        return rays, pix, torch.tensor(t, device=self.device)
+
+    def make_rays(self, t: int, uv: Tensor) -> RayBundle:
+        """Rays of view t through pixels uv (R, 2), clipped to the view's depth range."""
+        radius = float(getattr(self.model, "radius", 3.0))
+        rays = rays_from_cameras(self.cameras, torch.full((uv.shape[0],), t, device=self.device),
+                                 uv, radius=radius, near=1e-4, far_mode="sphere")
+        if self.near_far is not None:
+            near = self.near_far[t, 0] / rays.cos
+            far = self.near_far[t, 1] / rays.cos
+            rays.near = torch.maximum(rays.near, near)
+            rays.far = torch.maximum(torch.minimum(rays.far, far), rays.near + 1e-3)
+        return rays
+
+    # ------------------------------------------------------------------ one step
+    def losses(self) -> dict[str, Tensor]:
+        """One batch -> dict of loss terms and "total" (METHOD.md 4.6)."""
+        cfg = self.cfg
+        model = self.model
+        rays, pix, t = self.sample_rays(cfg.rays)
+        s = self.sampler(model, rays, training=True)
+        out = render_rays(model, rays, s.z, create_graph=True)
+        R = len(rays)
+        target = self.images[t].reshape(3, -1)[:, pix].T  # (R, 3)
+        terms: dict[str, Tensor] = {}
+
+        # labels P' (METHOD.md 3) or an ablation's replacement
+        p_label = None
+        if cfg.mode == "svolsdf":
+            if cfg.ablation in ("mse", "no-prob-volume"):
+                mvs_d = self.mvs_depth[t].reshape(-1)[pix]
+                if cfg.ablation == "no-prob-volume":
+                    p_label = L.onehot_label(out.z, mvs_d, rays.cos)
+            else:
+                p_ref, p_src, _ = self.prior.lookup(out.points, rays.view)
+                p_label = p_ref * p_src  # P' = P_ref * sum_j P_src^j (METHOD.md 3)
+
+        warm = self.smoothed is not None and self.step < cfg.anneal_rgb
+        if warm:
+            # METHOD.md 4.4: smoothed target during the warm-up
+            tgt = self.smoothed[t].reshape(3, -1)[:, pix].T
+            mask = None
+            if p_label is not None:
+                rule = "released" if cfg.warmup_mask_supervised else "all"
+                mask = L.warmup_ray_mask(p_label, rule=rule)
+            terms["rgb"] = L.rgb_l1_loss(out.rgb, tgt, mask)
+        else:
+            terms["rgb"] = L.rgb_l1_loss(out.rgb, target)
+
+        # eikonal (METHOD.md 4.5): R uniform points in the box + one sample per ray
+        lo, hi = self._eikonal_box()
+        u = torch.rand(R, 3, device=self.device) * (hi - lo) + lo
+        eik_pts = out.points[torch.arange(R, device=self.device), s.eik_index.clamp_max(
+            out.points.shape[1] - 1)]
+        _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp())
+        g_all = torch.cat([g_u, out.grad[torch.arange(R, device=self.device),
+                                         s.eik_index.clamp_max(out.grad.shape[1] - 1)]], 0)
+        del eik_pts
+        terms["eikonal"] = L.eikonal_loss(g_all)
+
+        total = cfg.rgb_weight * terms["rgb"] + cfg.eikonal_weight * terms["eikonal"]
+        if cfg.mode == "svolsdf":
+            if cfg.ablation == "mse":
+                valid = mvs_d > 0
+                terms["mvs"] = L.depth_mse_loss(out.depth, mvs_d, valid)
+            else:
+                q = 0.0 if cfg.ablation == "ce" else cfg.gce_q
+                terms["mvs"] = L.gce_weight_loss(out.weights, p_label, q=q, form=cfg.gce_form)
+            total = total + cfg.mvs_weight * terms["mvs"]
+            if p_label is not None and cfg.sparse_weight > 0 and self.step < cfg.anneal_rgb:
+                w_sp = L.sparse_weight_at(self.step, cfg.sparse_weight, cfg.anneal_rgb,
+                                          "linear" if cfg.sparse_decay else "constant")
+                terms["sparse"] = L.sparse_loss(out.depth, p_label, normalize=cfg.sparse_norm)
+                total = total + w_sp * terms["sparse"]
+        if cfg.smooth_weight > 0 and hasattr(model, "smoothness_loss"):
+            terms["smooth"] = model.smoothness_loss()
+            total = total + cfg.smooth_weight * terms["smooth"]
+        terms["total"] = total
+        terms["psnr"] = -10.0 * torch.log10(((out.rgb.detach() - target) ** 2).mean() + 1e-10)
+        return terms
+
+    def _eikonal_box(self) -> tuple[Tensor, Tensor]:
+        b = getattr(self.model, "bounds", None)
+        if isinstance(b, Tensor) and b.shape == (2, 3):
+            return b[0].to(self.device), b[1].to(self.device)
+        r = float(getattr(self.model, "radius", 3.0))
+        return (torch.full((3,), -r, device=self.device), torch.full((3,), r, device=self.device))
+
+    def _noclamp(self) -> dict:
+        # METHOD.md 4.5: the eikonal term uses the raw field, without the sphere clamp
+        import inspect
+
+        sig = inspect.signature(self.model.sdf_and_grad)
+        return {"clamp": False} if "clamp" in sig.parameters else {}
+
+    def train_step(self) -> dict[str, Tensor]:
+        """One optimization step; returns the (detached) loss terms."""
+        self._maybe_grow_grid()
+        self.model.train()
+        self.optimizer.zero_grad(set_to_none=True)
+        terms = self.losses()
+        terms["total"].backward()
+        params = [p for p in self.model.parameters() if p.grad is not None]
+        # NaN-safe update (METHOD.md 9.2.8): zero every gradient if any is non-finite, without
+        # a host sync (the flag stays on the device).
+        finite = torch.stack([torch.isfinite(p.grad).all() for p in params]).all()
+        for p in params:
+            p.grad.nan_to_num_(0.0, 0.0, 0.0).mul_(finite)
+        if self.cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+        self.optimizer.step()
+        self.step += 1
+        return {k: v.detach() for k, v in terms.items()}
+
+    # ------------------------------------------------------------------ loop
+    def fit(self, steps: int | None = None, progress: bool = True, log_every: int = 10,
+            on_checkpoint=None) -> list[dict]:
+        """Run until ``steps`` (default cfg.steps) total steps, checkpointing as configured."""
+        from tqdm.auto import tqdm
+
+        steps = self.cfg.steps if steps is None else steps
+        bar = tqdm(total=steps, initial=self.step, disable=not progress, desc="optimize",
+                   dynamic_ncols=True)
+        t0 = time.perf_counter()
+        s0 = self.step
+        try:
+            while self.step < steps:
+                terms = self.train_step()
+                bar.update(1)
+                if self.step % log_every == 0 or self.step == steps:
+                    row = {"step": self.step, **{k: float(v) for k, v in terms.items()},
+                           "beta": float(self.model.beta)}
+                    rate = (self.step - s0) / max(time.perf_counter() - t0, 1e-9)
+                    row["steps_per_s"] = rate
+                    self.history.append(row)
+                    bar.set_postfix({k: f"{row[k]:.3g}" for k in
+                                     ("rgb", "eikonal", "mvs", "sparse", "psnr") if k in row}
+                                    | {"it/s": f"{rate:.2f}"})
+                    if not math.isfinite(row["total"]):
+                        log.warning("non-finite loss at step %d (update skipped)", self.step)
+                if self.out_dir is not None and self.cfg.checkpoint_every > 0 \
+                        and self.step % self.cfg.checkpoint_every == 0 and self.step < steps:
+                    self.save_checkpoint()
+                    if on_checkpoint is not None:
+                        on_checkpoint(self.step)
+        finally:
+            bar.close()
+            if self.out_dir is not None:
+                self.write_log()
+        return self.history
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoint_path(self) -> Path:
+        return self.out_dir / "checkpoint.pt"
+
+    def save_checkpoint(self, path: str | Path | None = None) -> Path:
+        """Write model, optimizer, step and RNG state atomically."""
+        path = Path(path) if path is not None else self.checkpoint_path()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        state = {
+            "model_state_dict": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "iter_step": self.step,
+            "grid_resolution": getattr(self.model, "resolution", None),
+            "generator": self.generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "history": self.history,
+        }
+        tmp = path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+        self.write_log()
+        return path
+
+    def load_checkpoint(self, path: str | Path | None = None) -> bool:
+        """Resume from a checkpoint if it exists; returns whether one was loaded."""
+        path = Path(path) if path is not None else self.checkpoint_path()
+        if not path.is_file():
+            return False
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        res = state.get("grid_resolution")
+        if res is not None and hasattr(self.model, "upsample") and res > self.model.resolution:
+            self.model.upsample(res)
+            self._build_optimizer()
+        self.model.load_state_dict(state["model_state_dict"])
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+        except ValueError:  # parameter groups changed (grid grown): fresh moments
+            log.info("optimizer state not restored (parameter groups changed)")
+        self.step = int(state["iter_step"])
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        self.history = list(state.get("history", []))
+        log.info("resumed from %s at step %d", path, self.step)
+        return True
+
+    def write_log(self) -> None:
+        """Loss curves as CSV (and a PNG plot) in out_dir."""
+        if not self.history or self.out_dir is None:
+            return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        keys = sorted({k for row in self.history for k in row}, key=lambda k: (k != "step", k))
+        tmp = self.out_dir / "losses.csv.tmp"
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys)
+            w.writeheader()
+            for row in self.history:
+                w.writerow(row)
+        os.replace(tmp, self.out_dir / "losses.csv")
+        try:
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+
+            fig, ax = plt.subplots(figsize=(7, 4))
+            steps = [r["step"] for r in self.history]
+            for k in ("total", "rgb", "eikonal", "mvs", "sparse"):
+                ys = [r.get(k) for r in self.history]
+                if any(y is not None for y in ys):
+                    ax.plot(steps, [y if y is not None else float("nan") for y in ys], label=k)
+            ax.set_yscale("log")
+            ax.set_xlabel("step")
+            ax.legend()
+            fig.tight_layout()
+            fig.savefig(self.out_dir / "losses.png", dpi=80)
+            plt.close(fig)
+        except Exception as e:  # plotting is a convenience; never fail a run on it
+            log.debug("loss plot failed: %s", e)

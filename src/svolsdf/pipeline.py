@@ -1,0 +1,661 @@
+"""The reconstruction pipeline: every stage in order, each result kept on disk, with resume.
+
+Stages (ARCHITECTURE.md "Data flow"; METHOD.md 0 and 6):
+
+1. ``mvs1``: stage-1 probability volumes of the input views (OUT/mvs/stage1/<id>.npz).
+2. ``field``: the S-VolSDF optimization (OUT/field/model.pt; checkpoints in OUT/field/).
+3. ``guide``: rendered z-depth of the input views, which replaces the stage-1 depth
+   (METHOD.md 6.1; OUT/field/render_depth/<id>.npy).
+4. ``mvs23``: stages 2 and 3 centred on that depth (OUT/mvs/stage{2,3}, OUT/depth/<id>.npy).
+5. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, METHOD.md 6.3).
+6. ``mesh``: marching cubes of the SDF (OUT/mesh.ply).
+
+A stage is skipped on a rerun when its marker in OUT/stages.json carries the same config hash;
+a changed config reruns that stage and everything after it. The optimization resumes from its
+last checkpoint after a kill. All files are written atomically.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import resource
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS, Config, save_config
+from svolsdf.errors import InputError
+from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.scene.scene import Scene
+
+__all__ = ["Pipeline", "default_views", "test_views", "working_size", "resolve_device"]
+
+log = logging.getLogger(__name__)
+
+STAGES = ("mvs1", "field", "guide", "mvs23", "fusion", "mesh")
+
+
+# --------------------------------------------------------------------------- scene choices
+def working_size(width: int, height: int, max_width: int = 768) -> tuple[int, int]:
+    """Default working size: ``max_width`` wide (never upsampled), height a multiple of 8."""
+    if width <= max_width:
+        return width - width % 8, height - height % 8
+    s = max_width / width
+    return max_width, max(8, int(round(height * s / 8)) * 8)
+
+
+def _is_dtu49(scene: Scene) -> bool:
+    return bool(scene.extras.get("dtu")) and set(range(49)) <= set(scene.view_ids)
+
+
+def default_views(scene: Scene, n: int = 3) -> list[int]:
+    """Input views: DTU's protocol (METHOD.md 1.4) on DTU scans, else a central view and its
+    n - 1 best source views (by the scene's pairs)."""
+    if _is_dtu49(scene):
+        return DTU_TRAIN_IDS[:n]
+    cams = scene.cameras
+    dirs = cams.view_dirs
+    mean = dirs.mean(0)
+    centre = int(torch.argmax(dirs @ mean))
+    ref = scene.view_ids[centre]
+    return [ref] + scene.source_views(ref)[: n - 1]
+
+
+def test_views(scene: Scene, inputs: list[int]) -> list[int]:
+    """Held-out views: DTU's 15-view exclusion protocol on DTU scans, else every other view."""
+    if _is_dtu49(scene):
+        return [v for v in range(49) if v not in DTU_TRAIN_IDS and v not in DTU_EXCLUDED_IDS]
+    return [v for v in scene.view_ids if v not in inputs]
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available")
+    if name not in ("cpu", "cuda"):
+        raise InputError(f"unknown device {name!r} (auto, cpu or cuda)")
+    return torch.device(name)
+
+
+def _hash(*parts) -> str:
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def _save_npy(path: Path, arr: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npy")
+    np.save(tmp, arr)
+    os.replace(tmp, path)
+
+
+def _peak_rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+
+
+# --------------------------------------------------------------------------- pipeline
+class Pipeline:
+    """Runs a `Config` into an output folder.
+
+    Args:
+        cfg: the run's configuration (``cfg.scene.path`` must be set).
+        out: the output folder (created; must not be a file).
+        progress: show progress bars.
+    """
+
+    def __init__(self, cfg: Config, out: str | Path, progress: bool = True):
+        self.cfg = cfg
+        self.out = Path(out)
+        if self.out.exists() and not self.out.is_dir():
+            raise InputError(f"{self.out}: output path exists and is not a folder")
+        if not cfg.scene.path:
+            raise InputError("no scene given (scene.path is empty)")
+        self.progress = progress
+        self.device = resolve_device(cfg.device)
+        self.timing: dict[str, dict] = {}
+        self._scene: Scene | None = None
+        self._volumes1: list[ProbabilityVolume] | None = None
+        self._model = None
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _state_path(self) -> Path:
+        return self.out / "stages.json"
+
+    def _state(self) -> dict:
+        p = self._state_path()
+        return json.loads(p.read_text()) if p.is_file() else {}
+
+    def _mark(self, stage: str, key: str) -> None:
+        st = self._state()
+        st[stage] = key
+        tmp = self._state_path().with_suffix(".tmp")
+        tmp.write_text(json.dumps(st, indent=1))
+        os.replace(tmp, self._state_path())
+
+    def _keys(self) -> dict[str, str]:
+        c = asdict(self.cfg)
+        k_mvs1 = _hash(c["scene"], c["mvs"], self.views)
+        k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
+        k_guide = _hash(k_field, c["output"]["low_weight_rule"])
+        k_mvs23 = _hash(k_guide, c["mvs"])
+        k_fusion = _hash(k_mvs23, {k: v for k, v in c["output"].items() if k.startswith("fusion")
+                                   or k == "use_masks"})
+        k_mesh = _hash(k_field, c["output"]["mesh_resolution"], c["output"]["mesh_format"])
+        return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
+                "fusion": k_fusion, "mesh": k_mesh}
+
+    def _done(self, stage: str) -> bool:
+        return self._state().get(stage) == self.keys[stage]
+
+    def _time(self, stage: str, t0: float, **extra) -> None:
+        self.timing[stage] = {"seconds": round(time.perf_counter() - t0, 3),
+                              "peak_memory_gb": round(_peak_rss_gb(), 3), **extra}
+        prev = {}
+        tp = self.out / "timing.json"
+        if tp.is_file():
+            prev = json.loads(tp.read_text())
+        prev.update(self.timing)
+        tmp = tp.with_suffix(".tmp")
+        tmp.write_text(json.dumps(prev, indent=1))
+        os.replace(tmp, tp)
+
+    # ------------------------------------------------------------------ scene
+    def load(self) -> Scene:
+        """The input views at the working size (images, masks, cameras)."""
+        if self._scene is not None:
+            return self._scene
+        from svolsdf.scene.loaders import load_scene
+
+        sc = self.cfg.scene
+        head = load_scene(sc.path, load_images=False, lighting=sc.lighting)
+        self.all_view_ids = list(head.view_ids)
+        views = list(sc.views) if sc.views else default_views(head, sc.num_views)
+        for v in views:
+            head.index(v)  # raises a clear error for unknown ids
+        if len(views) < 2:
+            raise InputError(f"need at least 2 input views, got {views}")
+        if sc.image_size:
+            size = tuple(int(x) for x in sc.image_size)
+        else:
+            size = working_size(head.width, head.height)
+        self.views = views
+        self.test_view_ids = test_views(head, views)
+        self._scene = load_scene(sc.path, views=views, image_size=size, lighting=sc.lighting)
+        return self._scene
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> dict:
+        """Run (or resume) every stage; returns a summary dict."""
+        t_all = time.perf_counter()
+        self.out.mkdir(parents=True, exist_ok=True)
+        self._setup_log()
+        scene = self.load()
+        self.keys = self._keys()
+        save_config(self.cfg, self.out / "config.yaml")
+        (self.out / "views.json").write_text(json.dumps(
+            {"inputs": self.views, "test": self.test_view_ids,
+             "size": [scene.width, scene.height], "scene": str(self.cfg.scene.path)}, indent=1))
+        log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s", scene.path, self.views,
+                 scene.width, scene.height, self.cfg.train.mode, self.cfg.preset)
+        mode = self.cfg.train.mode
+        if mode not in ("svolsdf", "volsdf", "mvs-only"):
+            raise InputError(f"unknown mode {mode!r} (svolsdf, volsdf or mvs-only)")
+        # stage keys chain their inputs: a changed config reruns that stage and the later ones
+        if mode in ("svolsdf", "mvs-only") or self.cfg.train.ablation:
+            self.stage_mvs1()
+        if mode in ("svolsdf", "volsdf") and self.cfg.train.ablation != "soft-consistency-only":
+            self.stage_field()
+        self.stage_guide()
+        self.stage_mvs23()
+        self.stage_fusion()
+        if self._has_field():
+            self.stage_mesh()
+        self._time("total", t_all)
+        summary = {"out": str(self.out), "points": str(self.out / "points.ply"),
+                   "mesh": str(self.out / "mesh.ply") if self._has_field() else None,
+                   "timing": self.timing}
+        return summary
+
+    def _has_field(self) -> bool:
+        return self.cfg.train.mode in ("svolsdf", "volsdf") and \
+            self.cfg.train.ablation != "soft-consistency-only"
+
+    def _setup_log(self) -> None:
+        root = logging.getLogger("svolsdf")
+        path = str((self.out / "log").resolve())
+        if not any(isinstance(h, logging.FileHandler) and h.baseFilename == path
+                   for h in root.handlers):
+            h = logging.FileHandler(path)
+            h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+            root.addHandler(h)
+        if root.level == logging.NOTSET or root.level > logging.INFO:
+            root.setLevel(logging.INFO)
+
+    # ------------------------------------------------------------------ stage 1
+    def backbone(self):
+        from svolsdf.mvs.backbone import get_backbone
+
+        m = self.cfg.mvs
+        kwargs = {}
+        return get_backbone(m.backbone, weights=m.weights, **kwargs)
+
+    def stage_mvs1(self) -> list[ProbabilityVolume]:
+        d = self.out / "mvs" / "stage1"
+        files = [d / f"{v}.npz" for v in self.views]
+        if self._done("mvs1") and all(f.is_file() for f in files):
+            self._volumes1 = [ProbabilityVolume.load(f) for f in files]
+            return self._volumes1
+        t0 = time.perf_counter()
+        from svolsdf.mvs.cascade import run_cascade
+
+        res = run_cascade(self.backbone(), self.load(), stages=(1,))
+        d.mkdir(parents=True, exist_ok=True)
+        for v in res[1]:
+            v.save(d / f"{v.view_id}.npz")
+        self._volumes1 = res[1]
+        self._mark("mvs1", self.keys["mvs1"])
+        self._time("mvs1", t0)
+        return self._volumes1
+
+    # ------------------------------------------------------------------ field
+    def field_bounds(self) -> torch.Tensor:
+        """(2, 3) unit-frame box of the object: from stage-1 MVS depth where available (masked,
+        percentiles, padded), else the intersection of the views' frusta and depth ranges."""
+        scene = self.load()
+        norm = scene.normalization
+        pts = []
+        if self._volumes1 is not None and self.cfg.train.mode != "volsdf":
+            for vol in self._volumes1:
+                cam = vol.cameras
+                H, W = vol.depth.shape
+                uv = cam.pixel_grid(dtype=torch.float64).reshape(1, -1, 2)
+                conf = vol.confidence.reshape(-1)
+                keep = conf >= torch.quantile(conf.float(), 0.5)
+                if scene.masks is not None:
+                    i = scene.index(vol.view_id)
+                    m = F.interpolate(scene.masks[i:i + 1], size=(H, W), mode="bilinear")
+                    keep &= m.reshape(-1) > 0.5
+                X = cam.to(dtype=torch.float64).unproject(uv, vol.depth.double().reshape(1, -1))[0]
+                pts.append(norm.to_unit(X[keep]))
+        if pts and sum(len(p) for p in pts) > 100:
+            P = torch.cat(pts).float()
+            lo = torch.quantile(P[torch.randperm(len(P))[:200000]], 0.01, dim=0)
+            hi = torch.quantile(P[torch.randperm(len(P))[:200000]], 0.99, dim=0)
+        else:
+            lo, hi = self._frusta_box()
+        pad = 0.15 * (hi - lo).max()
+        lo, hi = (lo - pad).clamp(-2.5, 2.5), (hi + pad).clamp(-2.5, 2.5)
+        return torch.stack([lo, hi]).float()
+
+    def _frusta_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        scene = self.load()
+        cams = scene.cameras_unit
+        n = 64
+        g = torch.linspace(-2.0, 2.0, n, dtype=torch.float64)
+        X = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+        uv, z = cams.project(X)
+        nf = scene.depth_range / scene.normalization.scale
+        ok = (z > nf[:, None, 0]) & (z < nf[:, None, 1]) & (uv[..., 0] >= 0) \
+            & (uv[..., 0] <= cams.width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= cams.height - 1)
+        inside = ok.all(0)
+        if inside.sum() < 8:
+            return torch.full((3,), -1.0), torch.full((3,), 1.0)
+        P = X[inside].float()
+        return P.min(0).values, P.max(0).values
+
+    def build_model(self):
+        """The configured `SurfaceModel` (grid field for fast, VolSDF MLP for paper)."""
+        f = self.cfg.field
+        if f.kind == "grid":
+            from svolsdf.field.grid import GridFieldConfig, GridSDFField
+
+            bounds = self.field_bounds()
+            ext = (bounds[1] - bounds[0]).max()
+            gcfg = GridFieldConfig(resolution=f.grid_start_resolution,
+                                   init_radius=float(0.35 * ext),
+                                   init_centre=tuple(((bounds[0] + bounds[1]) / 2).tolist()))
+            model = GridSDFField(bounds, gcfg)
+        elif f.kind == "mlp":
+            from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig
+
+            model = VolSDFField(VolSDFFieldConfig(n_layers=f.mlp_depth, d_hidden=f.mlp_width,
+                                                  render_hidden=f.mlp_width))
+        else:
+            raise InputError(f"unknown field kind {f.kind!r} (grid or mlp)")
+        return model
+
+    def _grid_schedule(self) -> list[tuple[int, int]]:
+        f = self.cfg.field
+        if f.kind != "grid" or f.grid_resolution <= f.grid_start_resolution:
+            return []
+        steps = self.cfg.train.steps
+        r0, r1 = f.grid_start_resolution, f.grid_resolution
+        mid = int(round((r0 * r1) ** 0.5))
+        return [(int(steps * 0.25), mid), (int(steps * 0.5), r1)]
+
+    def make_sampler(self, prior, training: bool = True):
+        from svolsdf.render.guided import GuidedSamplerConfig, MVSGuidedSampler
+        from svolsdf.render.samplers import ErrorBoundSampler
+
+        t = self.cfg.train
+        if t.sampler == "error_bounded":
+            return ErrorBoundSampler()
+        if t.sampler == "mvs":
+            if training:
+                gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
+            else:
+                gc = GuidedSamplerConfig(n_coarse=128, n_uniform=32, n_fine=64)
+            return MVSGuidedSampler(prior if training else None, gc)
+        raise InputError(f"unknown sampler {t.sampler!r} (mvs or error_bounded)")
+
+    def train_data(self):
+        from svolsdf.optimize.trainer import TrainData
+
+        scene = self.load()
+        s = scene.normalization.scale
+        nf = (scene.depth_range / s).float()
+        nf = torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
+        mvs_depth = None
+        if self.cfg.train.ablation in ("mse", "no-prob-volume"):
+            mvs_depth = self._filtered_stage1_depth() / s
+        return TrainData(scene.images, scene.cameras_unit, nf, mvs_depth)
+
+    def _filtered_stage1_depth(self) -> torch.Tensor:
+        """(V, H, W) stage-1 MVS depth (world), geometrically filtered, 0 where rejected, at the
+        working size (for the "mse" and "no-prob-volume" ablations)."""
+        from svolsdf.fusion.filter import check_geometric_consistency
+
+        scene = self.load()
+        vols = self._volumes1
+        out = []
+        for i, v in enumerate(vols):
+            cnt = torch.zeros_like(v.depth, dtype=torch.long)
+            for j, u in enumerate(vols):
+                if i != j:
+                    m = check_geometric_consistency(v.depth, v.cameras, u.depth, u.cameras)[0]
+                    cnt += m.long()
+            d = torch.where(cnt >= 1, v.depth, torch.zeros_like(v.depth))
+            d = F.interpolate(d[None, None], size=(scene.height, scene.width), mode="nearest")
+            out.append(d[0, 0])
+        return torch.stack(out)
+
+    def stage_field(self):
+        from svolsdf.optimize.trainer import Trainer
+        from svolsdf.prior.consistency import MVSPrior
+
+        fdir = self.out / "field"
+        final = fdir / "model.pt"
+        model = self.build_model()
+        if self._done("field") and final.is_file():
+            self._load_model(model, final)
+            self._model = model.to(self.device)
+            return self._model
+        t0 = time.perf_counter()
+        tcfg = self.cfg.train
+        torch.manual_seed(tcfg.seed)
+        prior = None
+        if tcfg.mode == "svolsdf" and self._volumes1 is not None:
+            prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
+        trainer = Trainer(model, self.train_data(), tcfg, prior=prior,
+                          sampler=self.make_sampler(prior), out_dir=fdir, device=self.device,
+                          grid_schedule=self._grid_schedule())
+        if self._state().get("field_partial") == self.keys["field"]:
+            trainer.load_checkpoint()
+        else:
+            self._mark("field_partial", self.keys["field"])
+        trainer.fit(progress=self.progress)
+        fdir.mkdir(parents=True, exist_ok=True)
+        tmp = final.with_suffix(".tmp")
+        torch.save({"model_state_dict": model.state_dict(),
+                    "grid_resolution": getattr(model, "resolution", None),
+                    "bounds": getattr(model, "bounds", None)}, tmp)
+        os.replace(tmp, final)
+        self._model = model
+        self._mark("field", self.keys["field"])
+        hist = trainer.history
+        self._time("field", t0, steps=tcfg.steps,
+                   steps_per_s=round(hist[-1]["steps_per_s"], 3) if hist else None)
+        return model
+
+    def _load_model(self, model, path: Path) -> None:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        res = state.get("grid_resolution")
+        if res is not None and hasattr(model, "upsample") and res > model.resolution:
+            model.upsample(res)
+        model.load_state_dict(state["model_state_dict"])
+
+    def model(self):
+        if self._model is None:
+            self.stage_field()
+        return self._model
+
+    # ------------------------------------------------------------------ rendering
+    @torch.no_grad()
+    def render_views(self, cameras_unit, near_far=None, chunk: int = 2048, keys=("depth",
+                     "opacity", "rgb", "normals")) -> dict[str, torch.Tensor]:
+        """Render every camera of ``cameras_unit`` with the field (eval-mode sampler).
+
+        Returns:
+            dict of (V, H, W, ...) tensors: depth (unit-frame z-depth), opacity, rgb, normals.
+        """
+        from svolsdf.render.rays import rays_from_cameras
+        from svolsdf.render.volume import render_rays
+
+        model = self.model()
+        model.eval()
+        sampler = self.make_sampler(None, training=False)
+        cams = cameras_unit.to(self.device, dtype=torch.float32)
+        H, W = cams.height, cams.width
+        res = {k: [] for k in keys}
+        for t in range(len(cams)):
+            rays = rays_from_cameras(cams, t, radius=float(getattr(model, "radius", 3.0)))
+            if near_far is not None:
+                rays.near = torch.maximum(rays.near, near_far[t, 0] / rays.cos)
+                rays.far = torch.maximum(torch.minimum(rays.far, near_far[t, 1] / rays.cos),
+                                         rays.near + 1e-3)
+            parts = {k: [] for k in keys}
+            for i in range(0, len(rays), chunk):
+                rb = rays[i:i + chunk]
+                s = sampler(model, rb, training=False)
+                o = render_rays(model, rb, s.z, create_graph=False)
+                for k in keys:
+                    parts[k].append(getattr(o, k).detach().cpu())
+            for k in keys:
+                v = torch.cat(parts[k])
+                res[k].append(v.reshape(H, W, *v.shape[1:]))
+        return {k: torch.stack(v) for k, v in res.items()}
+
+    # ------------------------------------------------------------------ guide depth
+    def stage_guide(self) -> dict[int, torch.Tensor] | None:
+        """World z-depth maps that replace the stage-1 depth (METHOD.md 6.1), or None."""
+        if self.cfg.train.mode == "mvs-only":
+            return None
+        gdir = self.out / "field" / "render_depth"
+        files = {v: gdir / f"{v}.npy" for v in self.views}
+        if self._done("guide") and all(f.is_file() for f in files.values()):
+            return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+        t0 = time.perf_counter()
+        scene = self.load()
+        s = scene.normalization.scale
+        if self.cfg.train.ablation == "soft-consistency-only":
+            guide = self._consistency_depth()
+        else:
+            nf = (scene.depth_range / s).float().to(self.device)
+            nf = torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
+            r = self.render_views(scene.cameras_unit, nf)
+            guide = {}
+            for i, v in enumerate(self.views):
+                d = r["depth"][i] * s
+                low = r["opacity"][i] < 0.2
+                if self.cfg.output.low_weight_rule == "max":
+                    # METHOD.md 6.1: pixels with sum w < 0.2 get the map's maximum depth
+                    d = torch.where(low, d[~low].max() if (~low).any() else d.max(), d)
+                elif self.cfg.output.low_weight_rule == "mvs" and self._volumes1 is not None:
+                    m = self._volumes1[i].depth[None, None]
+                    m = F.interpolate(m, size=d.shape, mode="bilinear")[0, 0]
+                    d = torch.where(low, m, d)
+                guide[v] = d.float()
+                self._render_previews(v, r, i)
+        for v, d in guide.items():
+            _save_npy(files[v], d.numpy().astype(np.float32))
+        self._mark("guide", self.keys["guide"])
+        self._time("guide", t0)
+        return guide
+
+    def _render_previews(self, v: int, r: dict, i: int) -> None:
+        from svolsdf.io.images import write_image
+
+        d = self.out / "field"
+        write_image(d / "render_rgb" / f"{v}.png", r["rgb"][i].permute(2, 0, 1).clamp(0, 1))
+        n = r["normals"][i]
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        write_image(self.out / "normals" / f"{v}.png",
+                    ((n * 0.5 + 0.5) * r["opacity"][i][..., None].clamp(0, 1)).permute(2, 0, 1))
+
+    def _consistency_depth(self) -> dict[int, torch.Tensor]:
+        """Ablation "soft-consistency-only": the expected depth under the consistency-weighted
+        stage-1 volume P_ref * sum P_src (METHOD.md 3, 9.2.3) at each input view's hypotheses."""
+        from svolsdf.prior.consistency import MVSPrior
+
+        scene = self.load()
+        norm = scene.normalization
+        prior = MVSPrior(self._volumes1, norm)
+        out = {}
+        for i, vol in enumerate(self._volumes1):
+            D, H, W = vol.depths.shape
+            cam = vol.cameras.to(dtype=torch.float64)
+            uv = cam.pixel_grid(dtype=torch.float64).reshape(1, -1, 2)
+            num = torch.zeros(H * W)
+            den = torch.zeros(H * W)
+            for k in range(D):
+                X = cam.unproject(uv, vol.depths[k].double().reshape(1, -1))[0]
+                pts = norm.to_unit(X).float()[:, None]
+                p_ref, p_src, _ = prior.lookup(pts, torch.full((H * W,), i, dtype=torch.long))
+                w = (p_ref * p_src)[:, 0]
+                num += w * vol.depths[k].reshape(-1)
+                den += w
+            d = torch.where(den > 1e-6, num / den.clamp_min(1e-12), vol.depth.reshape(-1))
+            out[vol.view_id] = d.reshape(H, W).float()
+        return out
+
+    # ------------------------------------------------------------------ stages 2-3
+    def stage_mvs23(self) -> dict[int, torch.Tensor]:
+        """Final per-view depth: MVS stage 3 (guided by the field when there is one); for the
+        ``volsdf`` mode, the field's rendered depth itself."""
+        ddir = self.out / "depth"
+        files = {v: ddir / f"{v}.npy" for v in self.views}
+        if self._done("mvs23") and all(f.is_file() for f in files.values()):
+            return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+        t0 = time.perf_counter()
+        from svolsdf.io.images import write_depth_preview
+
+        guide = self.stage_guide()
+        if self.cfg.train.mode == "volsdf":
+            depths = guide
+            for v, d in depths.items():
+                _save_npy(files[v], d.numpy().astype(np.float32))
+                write_depth_preview(ddir / f"{v}.png", d)
+        else:
+            from svolsdf.mvs.cascade import run_cascade, save_cascade
+
+            prev = {v.view_id: v for v in self._volumes1} if guide is None else None
+            stages = (2, 3)
+            if guide is None and self._volumes1 is None:
+                stages = (1, 2, 3)
+            res = run_cascade(self.backbone(), self.load(), guide_depth=guide, stages=stages,
+                              prev=prev)
+            if self._volumes1 is not None:
+                res[1] = self._volumes1
+            save_cascade(res, self.out, picture=lambda d, p: write_depth_preview(
+                p, torch.from_numpy(d)))
+            depths = {v.view_id: v.depth.float() for v in res[max(res)]}
+        self._mark("mvs23", self.keys["mvs23"])
+        self._time("mvs23", t0)
+        return depths
+
+    # ------------------------------------------------------------------ fusion
+    def stage_fusion(self) -> Path:
+        path = self.out / "points.ply"
+        if self._done("fusion") and path.is_file():
+            return path
+        t0 = time.perf_counter()
+        from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
+        from svolsdf.io.ply import write_points_ply
+
+        scene = self.load()
+        depths = {v: torch.from_numpy(np.load(self.out / "depth" / f"{v}.npy"))
+                  for v in self.views}
+        confs = None
+        cdir = self.out / "confidence"
+        if all((cdir / f"{v}.npy").is_file() for v in self.views) \
+                and self.cfg.train.mode != "volsdf":
+            confs = {v: torch.from_numpy(np.load(cdir / f"{v}.npy")) for v in self.views}
+        o = self.cfg.output
+        fcfg = FusionConfig(dist_thresh=o.fusion_dist, rel_thresh=o.fusion_rel,
+                            min_consistent=o.fusion_views, conf_thresh=o.fusion_conf,
+                            use_masks=o.use_masks)
+        cams = {v: scene.cameras[[i]] for i, v in enumerate(self.views)}
+        images = {v: scene.images[i] for i, v in enumerate(self.views)}
+        masks = None
+        if scene.masks is not None and o.use_masks:
+            masks = {v: scene.masks[i, 0] for i, v in enumerate(self.views)}
+        fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg)
+        write_points_ply(path, fused.points.numpy(),
+                         None if fused.colors is None else fused.colors.numpy())
+        self._mark("fusion", self.keys["fusion"])
+        self._time("fusion", t0, points=int(len(fused.points)))
+        log.info("fused %d points -> %s", len(fused.points), path)
+        return path
+
+    # ------------------------------------------------------------------ mesh
+    def stage_mesh(self) -> Path:
+        o = self.cfg.output
+        path = self.out / ("mesh.obj" if o.mesh_format == "obj" else "mesh.ply")
+        if self._done("mesh") and path.is_file():
+            return path
+        t0 = time.perf_counter()
+        from svolsdf.fusion.mesh import (
+            colors_from_fn,
+            extract_mesh,
+            largest_component,
+            save_mesh,
+            to_world,
+            vertex_normals,
+        )
+
+        model = self.model()
+        model.eval()
+        b = getattr(model, "bounds", None)
+        bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else self.field_bounds()
+        dev = self.device
+
+        def sdf_fn(x):
+            return model.sdf(x.to(dev)).cpu()
+
+        v, f = extract_mesh(sdf_fn, bounds, resolution=o.mesh_resolution, coarse_to_fine=True,
+                            progress=self.progress)
+        v, f = largest_component(v, f)
+        cols = None
+        try:
+            def colour_fn(p, n):
+                p = p.to(dev)
+                n = n.to(dev)
+                with torch.enable_grad():
+                    _, g, feat = model.sdf_and_grad(p, create_graph=False)
+                return model.colour(p, -n, g, feat).detach().cpu()
+
+            cols = colors_from_fn(v, vertex_normals(v, f), colour_fn)
+        except Exception as e:  # colours are a convenience
+            log.warning("mesh colours failed: %s", e)
+        vw = to_world(v, self.load().normalization)
+        save_mesh(path, vw, f, cols, fmt=o.mesh_format)
+        self._mark("mesh", self.keys["mesh"])
+        self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)))
+        return path
