@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import svolsdf  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import pytest
 import torch
 
