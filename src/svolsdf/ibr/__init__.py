@@ -1,1 +1,35 @@
-"""svolsdf.ibr"""
+"""Image-based rendering with Laplacian-pyramid blending (METHOD.md 7) and orbit camera paths."""
+
+from svolsdf.ibr.blend import (
+    IBRConfig,
+    IBRResult,
+    erode,
+    fill_candidates,
+    ibr_render,
+    laplacian_blend,
+    view_softmax_weights,
+    warp_sources,
+)
+from svolsdf.ibr.path import (
+    look_at_point,
+    look_at_rotation,
+    orbit_cameras,
+    slerp_rotation,
+    slerp_unit,
+)
+
+__all__ = [
+    "IBRConfig",
+    "IBRResult",
+    "erode",
+    "fill_candidates",
+    "ibr_render",
+    "laplacian_blend",
+    "look_at_point",
+    "look_at_rotation",
+    "orbit_cameras",
+    "slerp_rotation",
+    "slerp_unit",
+    "view_softmax_weights",
+    "warp_sources",
+]
