@@ -174,6 +174,11 @@ class IBRResult(NamedTuple):
 # pieces
 
 
+def _as_float_image(img: Tensor) -> Tensor:
+    """uint8 images -> float32 in [0, 1]; float images unchanged."""
+    return img if img.is_floating_point() else img.float() / 255.0
+
+
 def _grid(uv: Tensor, width: int, height: int) -> Tensor:
     """(..., 2) pixel coordinates -> grid_sample coordinates for align_corners=True (integer
     pixel centres, like ``cv2.remap``); non-finite values go far outside."""
@@ -196,7 +201,8 @@ def warp_sources(
     Args:
         target_cam: `Cameras` with one view, size W x H.
         target_depth: (H, W) target z-depth in world units; <= 0 or non-finite = none.
-        src_images: (V, 3, Hs, Ws) float source images at ``src_cams``' size.
+        src_images: (V, 3, Hs, Ws) source images at ``src_cams``' size, float in [0, 1] (uint8
+            is divided by 255).
         src_cams: `Cameras` with V views, size Ws x Hs.
         src_depths: (V, Hd, Wd) source z-depths (any size; the cameras are rescaled to it).
         cfg: `IBRConfig` (thresholds and colour interpolation).
@@ -211,7 +217,8 @@ def warp_sources(
     V = len(src_cams)
     H, W = target_cam.height, target_cam.width
     dev = target_depth.device
-    dt = src_images.dtype if src_images.is_floating_point() else torch.float32
+    src_images = _as_float_image(src_images)
+    dt = src_images.dtype
     g64 = torch.float64  # geometry in float64 (DTU depths ~600 mm, thresholds at 1 %)
     tcam = target_cam.to(device=dev, dtype=g64)
     scams = src_cams.to(device=dev, dtype=g64)
@@ -441,8 +448,10 @@ def ibr_render(
         target_cam: `Cameras` with one view, size W x H.
         target_depth: (H, W) rendered z-depth of the target, world units (the cameras' units);
             <= 0 or non-finite = no surface (the rendered colour is used there).
-        fallback_rgb: (3, H, W) float in [0, 1], the volume-rendered colour of the target.
-        src_images: (V, 3, Hs, Ws) float in [0, 1], the input images at ``src_cams``' size.
+        fallback_rgb: (3, H, W) float in [0, 1] (or uint8), the volume-rendered colour of the
+            target.
+        src_images: (V, 3, Hs, Ws) float in [0, 1] (or uint8), the input images at
+            ``src_cams``' size.
         src_cams: `Cameras` with V views, size Ws x Hs.
         src_depths: (V, Hd, Wd) rendered z-depths of the sources (any resolution; cameras are
             rescaled to it for the consistency check).
@@ -455,8 +464,8 @@ def ibr_render(
     cfg = cfg or IBRConfig()
     _check_inputs(target_cam, target_depth, fallback_rgb, src_images, src_cams, src_depths)
     dev = target_depth.device
-    dt = src_images.dtype if src_images.is_floating_point() else torch.float32
-    rendered = fallback_rgb.to(device=dev, dtype=dt)
+    dt = _as_float_image(src_images[:1]).dtype
+    rendered = _as_float_image(fallback_rgb).to(device=dev, dtype=dt)
 
     colours, valid, cos = warp_sources(
         target_cam, target_depth, src_images, src_cams, src_depths, cfg
