@@ -128,9 +128,38 @@ def evaluate(
                                                    f" and {out / 'report.html'}"))
 
 
+_LIST_OPTIONS = ("--views", "--scenes", "--modes")
+
+
+def join_list_options(argv: list[str]) -> list[str]:
+    """``--views 25 22 28`` -> ``--views "25 22 28"`` (typer options take one value each).
+
+    Tokens after a list option are joined until the next token that starts with ``-`` (a negative
+    number still counts as a value) or, for ``--views``, is not an integer.
+    """
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        out.append(tok)
+        i += 1
+        if tok in _LIST_OPTIONS:
+            vals = []
+            while i < len(argv):
+                t = argv[i]
+                is_num = t.lstrip("-").replace(",", "").isdigit()
+                if (t.startswith("-") and not is_num) or (tok == "--views" and vals and not is_num):
+                    break
+                vals.append(t)
+                i += 1
+            if vals:
+                out.append(" ".join(vals))
+    return out
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point (``svolsdf``)."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
     debug = "--debug" in argv
     try:
         app(args=argv, standalone_mode=False)

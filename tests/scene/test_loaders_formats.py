@@ -46,11 +46,12 @@ def test_idr_roundtrip_with_scale_mat(tmp_path):
     assert s.normalization.scale == 2.0 and s.normalization.radius == 3.0
     torch.testing.assert_close(s.normalization.center, torch.tensor([0.3, -0.2, 0.1],
                                                                      dtype=torch.float64))
-    # no pair.txt: computed; no depth in files: the sphere (r = 3 * 2 = 6 about the centre)
+    # no pair.txt: computed; no depth in files: the object sphere (unit-frame radius 1, so
+    # r = 1 * 2 = 2 world units about the centre)
     assert s.extras["pairs_source"].startswith("view selection")
     assert set(s.pairs) == {0, 1, 2, 3} and all(len(v) == 3 for v in s.pairs.values())
     zc = s.cameras.world_to_camera(s.normalization.center[None])[:, 0, 2]
-    torch.testing.assert_close(s.depth_range[:, 1], zc + 6.0)
+    torch.testing.assert_close(s.depth_range[:, 1], zc + 2.0)
 
 
 def test_idr_views_and_resize(tmp_path):

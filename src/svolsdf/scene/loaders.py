@@ -185,7 +185,7 @@ def load_scene(path: str | Path, views: list[int] | None = None,
         extras["depth_range_source"] = "DTU standard (METHOD.md 1.1: 425 + 2.65 k, 192 planes)"
     else:
         depth = sphere_depth_range(cams_all, norm)
-        extras["depth_range_source"] = "normalization sphere"
+        extras["depth_range_source"] = "object sphere (unit-frame radius 1)"
         if src.points is not None and len(src.points) > 0:
             pr, counts = points_depth_range(cams_all, src.points, src.visibility)
             ok = torch.isfinite(pr).all(-1)

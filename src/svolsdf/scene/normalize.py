@@ -115,8 +115,13 @@ def _scale_around(center: Tensor, cameras: Cameras, radius: float, margin: float
 
 
 def sphere_depth_range(cameras: Cameras, normalization: Normalization,
-                       min_near: float = 0.01) -> Tensor:
-    """z-depth range of the normalization sphere in each view.
+                       min_near: float = 0.01, radius: float = 1.0) -> Tensor:
+    """z-depth range of the object sphere in each view.
+
+    VolSDF's frame (METHOD.md 1.2) puts the cameras inside radius ~2.73 and the object inside the
+    unit sphere; the radius-3 sphere bounds rays, not the object, and seen from a camera inside
+    it spans z from ~0, which would waste most of the MVS planes. So the range is that of the
+    sphere of unit-frame radius ``radius`` (default 1, the object sphere).
 
     z is linear along the optical axis, so the sphere of world radius r = radius * scale about
     the centre spans z in [z_c - r, z_c + r], z_c being the centre's z-depth. Cameras inside the
@@ -124,13 +129,13 @@ def sphere_depth_range(cameras: Cameras, normalization: Normalization,
 
     Args:
         cameras: V cameras.
-        normalization: the sphere (centre, radius * scale).
+        normalization: the unit frame (centre, scale).
         min_near: smallest near plane as a fraction of the centre's depth.
 
     Returns:
         (V, 2) float64 [near, far] in world units.
     """
-    r = normalization.radius * normalization.scale
+    r = radius * normalization.scale
     zc = cameras.world_to_camera(normalization.center.double()[None].to(cameras.w2c.dtype))
     zc = zc[:, 0, 2].double()
     floor = torch.clamp(min_near * zc, min=min_near * r)

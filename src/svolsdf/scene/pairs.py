@@ -96,12 +96,13 @@ def visible_in_views(cameras: Cameras, points: Tensor) -> Tensor:
 
 
 def sample_sphere_points(normalization: Normalization, n: int = 4096, seed: int = 0) -> Tensor:
-    """(n, 3) float64 world points uniform in the normalization sphere (deterministic)."""
+    """(n, 3) float64 world points uniform in the object sphere (unit-frame radius 1, where
+    VolSDF's normalization puts the object, METHOD.md 1.2; deterministic)."""
     g = torch.Generator().manual_seed(seed)
     d = torch.randn(n, 3, generator=g, dtype=torch.float64)
     d = d / d.norm(dim=-1, keepdim=True)
     r = torch.rand(n, 1, generator=g, dtype=torch.float64) ** (1.0 / 3.0)
-    return normalization.to_world(d * r * normalization.radius)
+    return normalization.to_world(d * r)
 
 
 def view_selection_scores(centers: Tensor, points: Tensor, visibility: Tensor,
