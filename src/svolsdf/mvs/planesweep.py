@@ -19,7 +19,7 @@ hypotheses, METHOD.md 2.5):
    cost by -cost / T). T is calibrated from the cost statistics of each volume (``temperature``
    None): with g the median over pixels of (median_D cost - min_D cost), T = g / (ln D + m),
    ``m = temperature_margin``. At a typical pixel the D/2 hypotheses at the median cost then keep
-   about D/2 · e^-(ln D + m) = e^-m / 2 of the mass (m = 2: ~7 %), so the distribution is peaked
+   about D/2 · e^-(ln D + m) = e^-m / 2 of the mass (m = 4: ~1 %), so the distribution is peaked
    where the matching is distinctive and spread where it is not.
 6. depth = expectation, confidence = 4-bin sum (METHOD.md 2.4).
 
@@ -75,10 +75,11 @@ class PlaneSweepConfig:
     see `svolsdf.mvs.hypotheses`."""
     inverse_depth: bool = False
     """Space stage-1 planes uniformly in inverse depth (unbounded scenes)."""
-    window: tuple[int, int, int] = (7, 7, 7)
+    window: tuple[int, int, int] = (5, 5, 5)
     """ZNCC window side (odd, pixels at the stage's resolution) per stage."""
-    gradient_weight: float = 0.0
-    """Weight of the ZNCC cost on x/y image gradients, added to the grayscale cost (0 = off)."""
+    gradient_weight: float = 0.5
+    """Weight of the ZNCC cost on x/y image gradients, added to the grayscale cost (0 = off).
+    Gradients sharpen the cost at texture edges (benchmarks/results/mvs_planesweep.md)."""
     keep_fraction: float = 0.5
     """Fraction of the valid sources whose best costs are averaged (robustness to occlusion)."""
     filter: str = "guided"
@@ -91,7 +92,7 @@ class PlaneSweepConfig:
     """SGM penalty for larger jumps away from intensity edges."""
     sgm_sigma: float = 0.04
     """Intensity difference (on [0, 1]) over which the SGM jump penalty drops from P2 to P1."""
-    filter_radius: tuple[int, int, int] = (4, 4, 4)
+    filter_radius: tuple[int, int, int] = (2, 2, 2)
     """Radius of the aggregation filter per stage (pixels at the stage's resolution)."""
     filter_eps: float = 1e-3
     """Guided-filter regularizer (on [0, 1] grayscale; larger = closer to a box filter)."""
@@ -99,8 +100,9 @@ class PlaneSweepConfig:
     """Cost where no source sees the hypothesis (1 - ZNCC of unrelated patches)."""
     temperature: float | None = None
     """Softmax temperature; None calibrates it per volume from the costs (module docstring)."""
-    temperature_margin: float = 2.0
-    """m in T = g / (ln D + m); larger = more peaked."""
+    temperature_margin: float = 4.0
+    """m in T = g / (ln D + m); larger = more peaked (m = 4: the hypotheses at the median cost keep
+    ~1 % of the mass at a typical pixel)."""
     depth_chunk: int = 24
     """Hypotheses processed at once (memory)."""
     zncc_eps: float = 1e-5

@@ -1,0 +1,199 @@
+"""The ``svolsdf mvs`` job: the MVS cascade alone on a scene, with its outputs on disk.
+
+`run_mvs` loads the scene at the working size, runs stages 1-3 of a backbone with every input view
+as the reference once (METHOD.md 0, 2.5; no field, so stage 2 is centred on stage 1's depth),
+and writes under ``out``::
+
+    mvs/stage{1,2,3}/<view id>.npz   compressed `ProbabilityVolume`s (prob as float16)
+    depth/<view id>.npy              stage-3 z-depth, world units, float32 (H, W), working size
+    depth/<view id>.png              the same, colour-coded
+    confidence/<view id>.npy         conf1 * conf2 * conf3 at the working size (METHOD.md 6.2)
+    confidence/<view id>.png         the same as a grey picture
+    points.ply                       MVS-only fused point cloud (METHOD.md 6.3, released settings)
+    mvs.json                         backbone, views, size, depth ranges, timings, fusion stats
+
+Depth range: the scene's per-view range (from the file, a dataset rule, or the object sphere; see
+`svolsdf.scene.loaders`), unless ``depth_range`` gives one (near, far) for every view.
+"""
+
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from svolsdf.errors import InputError
+from svolsdf.scene.scene import Scene
+
+__all__ = ["MVSJobConfig", "run_mvs", "working_size", "mvs_depth_range"]
+
+log = logging.getLogger(__name__)
+
+#: the paper's working size (METHOD.md 1.3)
+DEFAULT_MAX_WIDTH = 768
+
+
+@dataclass
+class MVSJobConfig:
+    """Options of ``svolsdf mvs``."""
+
+    scene: Path
+    """Scene folder (any format `svolsdf.scene.loaders.load_scene` reads)."""
+    out: Path
+    """Output folder (created; existing files of the same names are replaced)."""
+    views: list[int] | None = None
+    """Input view ids (default: all views of the scene)."""
+    backbone: str = "planesweep"
+    """MVS backbone: planesweep (training-free), casmvsnet or patchmatchnet."""
+    weights: Path | None = None
+    """Weights file for casmvsnet / patchmatchnet (patchmatchnet defaults to ../shared)."""
+    size: tuple[int, int] | None = None
+    """Working (W, H); None: the images' size, shrunk to 768 pixels wide if wider (METHOD.md
+    1.3)."""
+    depth_range: tuple[float, float] | None = None
+    """(near, far) z-depth in world units for every view; None: the scene's ranges."""
+    fuse: bool = True
+    """Write the fused MVS-only point cloud points.ply."""
+    device: str = "cpu"
+    """Torch device for the scene tensors."""
+
+
+def working_size(native: tuple[int, int], size: tuple[int, int] | None) -> tuple[int, int]:
+    """(W, H) to run at: ``size``, or ``native`` shrunk to 768 wide keeping its aspect."""
+    if size is not None:
+        return int(size[0]), int(size[1])
+    W, H = native
+    if W <= DEFAULT_MAX_WIDTH:
+        return W, H
+    return DEFAULT_MAX_WIDTH, max(8, round(H * DEFAULT_MAX_WIDTH / W))
+
+
+def mvs_depth_range(scene: Scene, depth_range: tuple[float, float] | None = None
+                    ) -> torch.Tensor:
+    """(V, 2) float64 [near, far] per view: ``depth_range`` for every view, or the scene's."""
+    if depth_range is None:
+        return scene.depth_range.double()
+    near, far = (float(x) for x in depth_range)
+    if not 0 < near < far:
+        raise InputError(f"--depth-range {near:g},{far:g}: it must satisfy 0 < near < far")
+    return torch.tensor([[near, far]] * len(scene), dtype=torch.float64)
+
+
+def _save_grey_png(path: Path, a: np.ndarray) -> None:
+    from svolsdf.io.images import write_image
+
+    write_image(path, np.clip(a, 0, 1).astype(np.float32))
+
+
+def run_mvs(cfg: MVSJobConfig) -> dict:
+    """Run the MVS cascade on ``cfg.scene`` and write the outputs (module docstring).
+
+    Returns:
+        The summary also written to ``out/mvs.json``: backbone, views, size, depth ranges, seconds
+        per stage, and the fusion stats per view (share of pixels kept, number of points).
+
+    Raises:
+        InputError: bad scene, view ids, backbone, weights or depth range.
+    """
+    from svolsdf.io.images import write_depth_preview
+    from svolsdf.mvs.backbone import get_backbone
+    from svolsdf.mvs.cascade import run_cascade, save_cascade
+    from svolsdf.scene.loaders import load_scene
+
+    t_start = time.perf_counter()
+    out = Path(cfg.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is a file; give an output folder")
+    probe = load_scene(cfg.scene, views=cfg.views, load_images=False)
+    if len(probe) < 2:
+        raise InputError(f"{cfg.scene}: MVS needs at least 2 views, got {len(probe)} "
+                         f"({probe.view_ids})")
+    W, H = working_size(tuple(probe.extras.get("native_size", (probe.width, probe.height))),
+                        cfg.size)
+    backbone = get_backbone(cfg.backbone, weights=cfg.weights)  # weights errors before loading
+    t0 = time.perf_counter()
+    scene = load_scene(cfg.scene, views=cfg.views, image_size=(W, H))
+    scene = replace(scene, depth_range=mvs_depth_range(scene, cfg.depth_range))
+    if cfg.device != "cpu":
+        scene = replace(scene, images=scene.images.to(cfg.device),
+                        masks=None if scene.masks is None else scene.masks.to(cfg.device))
+    t_load = time.perf_counter() - t0
+    log.info("mvs: %d views %s at %dx%d, backbone %s", len(scene), scene.view_ids, W, H,
+             cfg.backbone)
+
+    timings: dict[str, float] = {"load": t_load}
+    res = {}
+    last = None
+    for k in (1, 2, 3):
+        t0 = time.perf_counter()
+        res.update(run_cascade(backbone, scene, stages=(k,), prev=last))
+        last = {v.view_id: v for v in res[k]}
+        timings[f"stage{k}"] = time.perf_counter() - t0
+
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    ranges = {v: scene.depth_range[scene.index(v)].tolist() for v in scene.view_ids}
+
+    def picture(depth: np.ndarray, path: Path) -> None:
+        vid = int(path.stem)
+        m = None if scene.masks is None else scene.masks[scene.index(vid), 0].cpu()
+        if m is not None and m.shape != depth.shape:
+            m = None
+        write_depth_preview(path, torch.from_numpy(depth), mask=m)
+
+    files = save_cascade(res, out, picture=picture)
+    for f in files.values():
+        _save_grey_png(f["confidence"].with_suffix(".png"), np.load(f["confidence"]))
+    timings["save"] = time.perf_counter() - t0
+
+    summary: dict = {
+        "scene": str(cfg.scene),
+        "format": scene.format,
+        "units": scene.units,
+        "views": scene.view_ids,
+        "backbone": cfg.backbone,
+        "weights": None if cfg.weights is None else str(cfg.weights),
+        "size": [W, H],
+        "depth_range": {str(v): r for v, r in ranges.items()},
+        "depth_range_source": ("given" if cfg.depth_range is not None else
+                               str(scene.extras.get("depth_range_source", "?"))),
+        "stage_sizes": {str(k): list(res[k][0].depth.shape[::-1]) for k in res},
+        "hypotheses": {str(k): res[k][0].num_depths for k in res},
+    }
+    if cfg.fuse:
+        t0 = time.perf_counter()
+        summary["fusion"] = _fuse(scene, files, out / "points.ply")
+        timings["fusion"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    summary["seconds"] = {k: round(v, 3) for k, v in timings.items()}
+    tmp = out / "mvs.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=1) + "\n")
+    os.replace(tmp, out / "mvs.json")
+    log.info("mvs: wrote %s in %.1f s", out, timings["total"])
+    return summary
+
+
+def _fuse(scene: Scene, files: dict, path: Path) -> dict:
+    """Fuse the stage-3 depth maps (METHOD.md 6.3) into ``path``; returns the stats."""
+    from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
+    from svolsdf.io.ply import write_points_ply
+
+    ids = list(files)
+    depths = {v: torch.from_numpy(np.load(files[v]["depth"])) for v in ids}
+    confs = {v: torch.from_numpy(np.load(files[v]["confidence"])) for v in ids}
+    cams = {v: scene.cameras[scene.index(v)] for v in ids}
+    images = {v: scene.images[scene.index(v)].cpu() for v in ids}
+    masks = None if scene.masks is None else {v: scene.masks[scene.index(v)].cpu() for v in ids}
+    fused = fuse_depth_maps(depths, cams, images=images, confidences=confs, masks=masks,
+                            cfg=FusionConfig())
+    write_points_ply(path, fused.points.numpy(), fused.colors.numpy())
+    stats = {str(v): s for v, s in fused.stats.items()}
+    stats["points_total"] = int(len(fused.points))
+    return stats
