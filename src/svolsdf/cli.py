@@ -157,6 +157,81 @@ def join_list_options(argv: list[str]) -> list[str]:
     return out
 
 
+# --------------------------------------------------------------------------- mvs / synth
+@app.command("mvs")
+def mvs(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (any format `svolsdf info` reads).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Input view ids, e.g. --views 25 22 28 (default: all views).")] = None,
+    backbone: Annotated[str, typer.Option(
+        "--backbone", help="planesweep (training-free, default), casmvsnet or patchmatchnet.")
+    ] = "planesweep",
+    weights: Annotated[Path | None, typer.Option(
+        "--weights", help="Weights of casmvsnet (required) or patchmatchnet (default: "
+                          "../shared/weights/patchmatchnet).")] = None,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Working size WxH (default: the images' size, at most 768 wide).")
+    ] = None,
+    depth_range: Annotated[str | None, typer.Option(
+        "--depth-range", help="NEAR,FAR z-depth in world units for every view (default: the "
+                              "scene's per-view ranges).")] = None,
+    no_fuse: Annotated[bool, typer.Option("--no-fuse", help="Skip the fused points.ply.")
+                       ] = False,
+) -> None:
+    """MVS alone: per-view depth, confidence and probability volumes, and a fused point cloud.
+
+    Writes OUT/mvs/stage{1,2,3}/<view>.npz, OUT/depth/<view>.npy (+ PNG; stage-3 z-depth in
+    world units at the working size), OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and
+    OUT/mvs.json.
+    """
+    from svolsdf.mvs.run import MVSJobConfig, run_mvs
+    from svolsdf.scene.synthetic import parse_size
+
+    rng = None
+    if depth_range is not None:
+        try:
+            near, far = (float(x) for x in depth_range.replace(",", " ").split())
+        except ValueError:
+            raise InputError(f"--depth-range must be NEAR,FAR (e.g. 425,931); got "
+                             f"{depth_range!r}") from None
+        rng = (near, far)
+    cfg = MVSJobConfig(scene=scene, out=out, views=_parse_views(views), backbone=backbone,
+                       weights=weights, size=None if size is None else parse_size(size),
+                       depth_range=rng, fuse=not no_fuse)
+    s = run_mvs(cfg)
+    typer.echo(f"mvs ({s['backbone']}) on views {s['views']} at {s['size'][0]}x{s['size'][1]}: "
+               f"{s['seconds']['total']:.1f} s")
+    if "fusion" in s:
+        typer.echo(f"points: {out / 'points.ply'} ({s['fusion']['points_total']} points)")
+    typer.echo(f"depth:  {out / 'depth'}/<view>.npy, volumes in {out / 'mvs'}")
+
+
+@app.command("synth")
+def synth(
+    out: Annotated[Path, typer.Argument(help="Output folder (new, empty, or an earlier "
+                                             "synthetic scene).")],
+    seed: Annotated[int, typer.Option("--seed", help="Random seed (same seed, same bytes).")
+                    ] = 0,
+    views: Annotated[int, typer.Option("--views", help="Number of views.")] = 9,
+    size: Annotated[str, typer.Option("--size", help="Image size WxH.")] = "768x576",
+    object_kind: Annotated[str, typer.Option(
+        "--object", help="Object kind: random, sphere, box, torus, capsule or blobs.")
+    ] = "random",
+    cameras_from: Annotated[Path | None, typer.Option(
+        "--cameras-from", help="Borrow the cameras of this IDR scene (cameras.npz or "
+                               "cameras_sphere.npz, image/).")] = None,
+) -> None:
+    """Render a synthetic scene with exact ground truth (IDR layout, gt_depth/, gt_points.ply)."""
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene, parse_size
+
+    w, h = parse_size(size)
+    cfg = SynthConfig(seed=seed, views=views, width=w, height=h, object=object_kind,
+                      cameras_from=None if cameras_from is None else str(cameras_from))
+    path = make_synthetic_scene(out, cfg)
+    typer.echo(f"synthetic scene ({views} views, {w}x{h}, {object_kind}, seed {seed}): {path}")
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Console entry point (``svolsdf``)."""
     argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
