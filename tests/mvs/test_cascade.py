@@ -1,0 +1,168 @@
+"""The cascade: guide depth centring stages 2-3 (METHOD.md 6.1, 2.5), outputs on disk, the
+``svolsdf mvs`` job and command."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from tests.mvs.synth import plane_scene
+
+from svolsdf.cli import main as cli_main
+from svolsdf.errors import InputError
+from svolsdf.io.ply import read_ply
+from svolsdf.mvs.cascade import combined_confidence, run_cascade, save_cascade
+from svolsdf.mvs.hypotheses import base_interval
+from svolsdf.mvs.planesweep import PlaneSweepBackbone
+from svolsdf.mvs.run import MVSJobConfig, run_mvs, working_size
+from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+RANGE = (2.5, 6.0)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_guide_centres_stage2_and_stage3_follows_stage2():
+    scene, gt = plane_scene(48, 36, depth_range=RANGE)
+    guide = {v: gt[v] + 0.05 for v in scene.view_ids}  # a guide 5 cm behind the surface
+    res = run_cascade(PlaneSweepBackbone(), scene, guide_depth=guide, stages=(1, 2, 3))
+    assert sorted(res) == [1, 2, 3]
+    for v2, v3 in zip(res[2], res[3], strict=True):
+        g = F.interpolate(guide[v2.view_id][None, None], size=v2.depth.shape, mode="bilinear",
+                          align_corners=False)[0, 0]
+        assert torch.allclose(v2.depths.mean(0), g, atol=1e-4)  # centred on the guide
+        c3 = F.interpolate(v2.depth[None, None], size=v3.depth.shape, mode="bilinear",
+                           align_corners=False)[0, 0]
+        assert torch.allclose(v3.depths.mean(0), c3, atol=1e-4)  # then on stage 2's depth
+        # stage 2 moves from the guide (0.05 off) to the surface, stage 3 refines it
+        e2 = (v2.depth - F.interpolate(gt[v2.view_id][None, None], size=v2.depth.shape)[0, 0])
+        e3 = (v3.depth - gt[v3.view_id]).abs().median()
+        assert float(e2.abs().median()) < 0.035 and float(e3) < 0.02
+    # without stage 1, a guide alone starts the cascade at stage 2
+    res23 = run_cascade(PlaneSweepBackbone(), scene, guide_depth=guide, stages=(2, 3))
+    assert sorted(res23) == [2, 3]
+    assert torch.allclose(res23[2][0].depths, res[2][0].depths)
+
+
+def test_prev_resumes_and_stage_order_is_checked():
+    scene, _ = plane_scene(32, 24, depth_range=RANGE)
+    bb = PlaneSweepBackbone()
+    r1 = run_cascade(bb, scene, stages=(1,))
+    r23 = run_cascade(bb, scene, stages=(2, 3), prev={v.view_id: v for v in r1[1]})
+    full = run_cascade(bb, scene)
+    assert torch.allclose(r23[3][2].depth, full[3][2].depth, atol=1e-5)
+    with pytest.raises(ValueError, match="increasing"):
+        run_cascade(bb, scene, stages=(3, 2))
+    with pytest.raises(InputError, match="previous stage"):
+        run_cascade(bb, scene, stages=(2,))
+
+
+def test_save_cascade_files_and_roundtrip(tmp_path):
+    scene, _ = plane_scene(32, 24, depth_range=RANGE)
+    res = run_cascade(PlaneSweepBackbone(), scene, ref_ids=[0, 2])
+    pictures = []
+    files = save_cascade(res, tmp_path, picture=lambda d, p: pictures.append((d.shape, p)))
+    assert sorted(files) == [0, 2]
+    for k in (1, 2, 3):
+        for vid in (0, 2):
+            v = ProbabilityVolume.load(tmp_path / "mvs" / f"stage{k}" / f"{vid}.npz")
+            orig = res[k][[0, 2].index(vid)]
+            assert v.stage == k and v.view_id == vid
+            assert torch.allclose(v.depths, orig.depths)
+            assert torch.allclose(v.prob, orig.prob, atol=2e-3)  # stored as float16
+            assert torch.allclose(v.prob.sum(0), torch.ones(v.depth.shape), atol=1e-5)
+    d = np.load(files[0]["depth"])
+    assert d.dtype == np.float32 and d.shape == (24, 32)
+    assert np.allclose(d, res[3][0].depth.numpy())
+    conf = np.load(files[0]["confidence"])
+    expect = combined_confidence([res[k][0] for k in (1, 2, 3)], 32, 24)
+    assert np.allclose(conf, expect.numpy()) and conf.max() <= 1 + 1e-6
+    assert [p.name for _, p in pictures] == ["0.png", "2.png"]
+
+
+def test_combined_confidence_is_the_product():
+    scene, _ = plane_scene(32, 24, depth_range=RANGE)
+    res = run_cascade(PlaneSweepBackbone(), scene, ref_ids=[1])
+    vols = [res[k][0] for k in (1, 2, 3)]
+    c = combined_confidence(vols, 32, 24)
+    up = [F.interpolate(v.confidence[None, None], size=(24, 32), mode="bilinear",
+                        align_corners=False)[0, 0] for v in vols]
+    assert torch.allclose(c, up[0] * up[1] * up[2], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("mvsjob") / "scene"
+    return make_synthetic_scene(out, SynthConfig(views=3, width=64, height=48, seed=2,
+                                                 gt_points=2000, supersample=1,
+                                                 azimuth_span=30.0, elevation=(35.0, 50.0)))
+
+
+def test_run_mvs_outputs(tiny_scene, tmp_path):
+    out = tmp_path / "out"
+    s = run_mvs(MVSJobConfig(scene=tiny_scene, out=out, views=[0, 1, 2]))
+    assert s["size"] == [64, 48] and s["views"] == [0, 1, 2]
+    assert s["hypotheses"] == {"1": 192, "2": 32, "3": 8}
+    assert s["stage_sizes"] == {"1": [16, 12], "2": [32, 24], "3": [64, 48]}
+    for v in (0, 1, 2):
+        for rel in (f"depth/{v}.npy", f"depth/{v}.png", f"confidence/{v}.npy",
+                    f"confidence/{v}.png", f"mvs/stage1/{v}.npz", f"mvs/stage3/{v}.npz"):
+            assert (out / rel).is_file(), rel
+        d = np.load(out / "depth" / f"{v}.npy")
+        near, far = s["depth_range"][str(v)]
+        assert d.shape == (48, 64) and np.isfinite(d).all()
+        # finer stages are not clamped to the range (METHOD.md 2.5): allow their half-widths
+        slack = (16 + 2) * (far - near) / 192
+        assert (d > near - slack).all() and (d < far + slack).all()
+    pts = read_ply(out / "points.ply")["points"]
+    assert len(pts) == s["fusion"]["points_total"] > 0
+    assert json.loads((out / "mvs.json").read_text())["backbone"] == "planesweep"
+
+
+def test_run_mvs_size_and_bad_input(tiny_scene, tmp_path):
+    assert working_size((1600, 1200), None) == (768, 576)
+    assert working_size((640, 480), None) == (640, 480)
+    assert working_size((1600, 1200), (96, 72)) == (96, 72)
+    s = run_mvs(MVSJobConfig(scene=tiny_scene, out=tmp_path / "o", views=[2, 0], size=(32, 24),
+                             depth_range=(300.0, 900.0), fuse=False))
+    assert s["size"] == [32, 24] and s["views"] == [2, 0] and "fusion" not in s
+    assert s["depth_range"]["2"] == [300.0, 900.0]
+    assert np.load(tmp_path / "o" / "depth" / "2.npy").shape == (24, 32)
+    with pytest.raises(InputError, match="0 < near < far"):
+        run_mvs(MVSJobConfig(scene=tiny_scene, out=tmp_path / "p", depth_range=(5.0, 1.0)))
+    with pytest.raises(InputError, match="at least 2 views"):
+        run_mvs(MVSJobConfig(scene=tiny_scene, out=tmp_path / "p", views=[1]))
+    with pytest.raises(InputError, match="unknown MVS backbone"):
+        run_mvs(MVSJobConfig(scene=tiny_scene, out=tmp_path / "p", backbone="colmap"))
+
+
+def test_cli_mvs(tiny_scene, tmp_path, capsys):
+    out = tmp_path / "cli"
+    cli_main(["mvs", str(tiny_scene), "--views", "1", "0", "-o", str(out), "--size", "32x24",
+              "--no-fuse"])
+    assert (out / "depth" / "1.npy").is_file() and (out / "depth" / "0.npy").is_file()
+    assert "mvs (planesweep)" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        cli_main(["mvs", str(tiny_scene), "--views", "0", "9", "-o", str(out)])
+    assert e.value.code == 2
+    assert "view id 9 does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cli_main(["mvs", str(tiny_scene), "-o", str(out), "--backbone", "casmvsnet"])
+    assert e.value.code == 2
+    assert "--weights" in capsys.readouterr().err
+
+
+def test_interval_matches_method_constants():
+    # DTU: Δ̄ = 506.15 / 192 = 2.6362 (METHOD.md 2.5)
+    assert base_interval(425.0, 425.0 + 2.65 * 191) == pytest.approx(2.6362, abs=1e-4)
