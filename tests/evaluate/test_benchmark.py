@@ -1,0 +1,241 @@
+"""Tests of svolsdf.evaluate.benchmark: the Table-1 writers (pure functions), the driver with a
+stand-in pipeline on a tiny synthetic scene, the CLI, and one real mvs-only run."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import shared_path
+from svolsdf.cli import main
+from svolsdf.errors import InputError
+from svolsdf.evaluate.benchmark import (
+    BenchmarkConfig,
+    benchmark_csv,
+    benchmark_markdown,
+    run_benchmark,
+    scan_number,
+)
+from svolsdf.evaluate.chamfer import chamfer_fscore
+from svolsdf.io.ply import read_ply, write_points_ply
+
+# --------------------------------------------------------------------------- pure table writers
+
+
+def _row(scene, mode, acc, comp, psnr=None, t=10.0, status="ok"):
+    return {"scene": scene, "mode": mode, "accuracy": acc, "completeness": comp,
+            "overall": None if acc is None else (acc + comp) / 2, "psnr": psnr, "time_s": t,
+            "status": status, "protocol": "generic"}
+
+
+ROWS = [
+    _row("scan24", "svolsdf", 1.0, 2.0, psnr=20.0, t=100),
+    _row("scan24", "mvs-only", 2.0, 4.0, t=10),
+    _row("scan37", "svolsdf", 3.0, 1.0, psnr=22.0, t=300),
+    _row("scan37", "mvs-only", None, None, t=None, status="failed: RuntimeError: boom"),
+]
+
+
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def test_markdown_table_values_mean_and_marks():
+    md = benchmark_markdown(ROWS, ["svolsdf", "mvs-only"], title="T")
+    lines = md.splitlines()
+    assert lines[0] == "# T"
+    head = _cells(lines[2])
+    assert head == ["scene", "svolsdf Acc.", "svolsdf Comp.", "svolsdf Chamfer", "svolsdf PSNR",
+                    "svolsdf time (s)", "mvs-only Acc.", "mvs-only Comp.", "mvs-only Chamfer",
+                    "mvs-only PSNR", "mvs-only time (s)"]
+    r24 = _cells(lines[4])
+    assert r24 == ["scan24", "1.00", "2.00", "**1.50**", "20.00", "100", "2.00", "4.00", "3.00",
+                   "-", "10"]
+    r37 = _cells(lines[5])
+    assert r37 == ["scan37", "3.00", "1.00", "2.00", "22.00", "300", "-", "-", "-", "-", "-"]
+    mean = _cells(lines[6])
+    # svolsdf: mean over both scenes; mvs-only: only scan24 has values -> marked with *.
+    assert mean == ["**mean**", "2.00", "1.50", "**1.75**", "21.00", "200", "2.00*", "4.00*",
+                    "3.00*", "-", "10*"]
+    assert "- scan37 / mvs-only: failed: RuntimeError: boom" in md
+
+
+def test_markdown_without_psnr_has_no_psnr_columns_and_csv_matches():
+    rows = [_row("a", "svolsdf", 0.5, 0.7), _row("b", "svolsdf", 0.25, 0.5)]
+    md = benchmark_markdown(rows)
+    assert "PSNR" not in md
+    text = benchmark_csv(rows)
+    table = list(csv.reader(io.StringIO(text)))
+    assert table[0] == ["scene", "svolsdf_accuracy", "svolsdf_completeness", "svolsdf_overall",
+                        "svolsdf_time_s"]
+    assert [r[0] for r in table[1:]] == ["a", "b", "mean"]
+    assert float(table[3][1]) == pytest.approx(0.375)
+    assert float(table[3][3]) == pytest.approx((0.6 + 0.375) / 2)
+    full = list(csv.reader(io.StringIO(benchmark_csv(ROWS, ["svolsdf", "mvs-only"]))))
+    assert full[0][4] == "svolsdf_psnr" and full[2][6:] == ["", "", "", "", ""]
+    with pytest.raises(InputError, match="no runs"):
+        benchmark_markdown([])
+
+
+def test_scan_number_from_names():
+    assert scan_number("/data/dtu_scan65") == 65
+    assert scan_number("scan_24") == 24 and scan_number("Scan114") == 114
+    assert scan_number("/data/scan65/synthetic") is None
+
+
+# --------------------------------------------------------------------------- driver
+
+
+@pytest.fixture(scope="module")
+def synth_scene(tmp_path_factory):
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    root = tmp_path_factory.mktemp("bench") / "synth_a"
+    return make_synthetic_scene(root, SynthConfig(views=4, width=96, height=72, gt_points=4000,
+                                                  supersample=1, mesh_resolution=6.0))
+
+
+class FakePipeline:
+    """Stands in for svolsdf.pipeline.Pipeline: writes what the real one writes that the
+    benchmark reads (points.ply, views.json, config.yaml, timing.json), plus a render of the
+    held-out view 3, instead of reconstructing. mvs-only: the ground truth's first half;
+    svolsdf: all of it, 0.4 world units up; volsdf: fails."""
+
+    calls: list[tuple[str, str, int | None, list | None]] = []
+
+    def __init__(self, cfg, out, progress=True):
+        self.cfg, self.out = cfg, Path(out)
+
+    def run(self):
+        mode, scene = self.cfg.train.mode, Path(self.cfg.scene.path)
+        FakePipeline.calls.append((scene.name, mode, self.cfg.train.steps,
+                                   self.cfg.scene.image_size))
+        if mode == "volsdf":
+            raise RuntimeError("field diverged")
+        self.out.mkdir(parents=True, exist_ok=True)
+        gt = read_ply(scene / "gt_points.ply")["points"]
+        pts = gt[: len(gt) // 2] if mode == "mvs-only" else gt + [0, 0, 0.4]
+        write_points_ply(self.out / "points.ply", pts)
+        (self.out / "views.json").write_text(json.dumps(
+            {"inputs": [0, 1, 2], "test": [3], "size": [96, 72], "scene": str(scene)}))
+        (self.out / "config.yaml").write_text(f"scene:\n  path: {scene}\n")
+        (self.out / "timing.json").write_text(json.dumps(
+            {"mvs1": {"seconds": 1.5}, "fusion": {"seconds": 0.5}, "total": {"seconds": 9}}))
+        (self.out / "renders").mkdir(exist_ok=True)
+        img = np.asarray(Image.open(scene / "image" / "000003.png"))
+        noisy = np.clip(img.astype(int) + (8 if mode == "svolsdf" else 30), 0, 255)
+        Image.fromarray(noisy.astype(np.uint8)).save(self.out / "renders" / "3.png")
+        # An input-view render must not count: only views.json's held-out views are scored.
+        Image.fromarray(np.zeros_like(img)).save(self.out / "renders" / "0.png")
+        return {"points": str(self.out / "points.ply"), "mesh": None, "timing": {}}
+
+
+def test_run_benchmark_with_stand_in_pipeline(tmp_path, monkeypatch, synth_scene):
+    import svolsdf.pipeline
+
+    monkeypatch.setattr(svolsdf.pipeline, "Pipeline", FakePipeline)
+    FakePipeline.calls = []
+    out = tmp_path / "bench"
+    cfg = BenchmarkConfig(scenes=[synth_scene, synth_scene], modes=["svolsdf", "mvs-only",
+                                                                     "volsdf"],
+                          out=out, steps=7, size=(96, 72), lpips_net="alex",
+                          lpips_weights=shared_path("weights", "lpips"))
+    rows = run_benchmark(cfg)
+    assert [(c[0], c[1]) for c in FakePipeline.calls] == [
+        ("synth_a", m) for m in ("svolsdf", "mvs-only", "volsdf")] * 2
+    assert all(c[2] == 7 and c[3] == [96, 72] for c in FakePipeline.calls)
+    assert [(r["scene"], r["mode"]) for r in rows] == [
+        (s, m) for s in ("synth_a", "synth_a-2") for m in ("svolsdf", "mvs-only", "volsdf")]
+    gt = read_ply(synth_scene / "gt_points.ply")["points"]
+    thr = float(np.linalg.norm(gt.max(0) - gt.min(0))) * 0.01
+    for r in rows:
+        if r["mode"] == "volsdf":
+            assert r["status"].startswith("failed: RuntimeError: field diverged")
+            assert r["overall"] is None
+            continue
+        assert r["status"] == "ok" and r["protocol"] == "generic"
+        pts = read_ply(out / r["scene"] / r["mode"] / "points.ply")["points"]
+        want = chamfer_fscore(pts, gt, thr)
+        for k in ("accuracy", "completeness", "overall", "fscore"):
+            assert r[k] == pytest.approx(want[k], rel=1e-9)
+        assert r["time_s"] == pytest.approx(2.0)  # stage seconds, not the "total" entry
+        m = json.loads((out / r["scene"] / r["mode"] / "metrics.json").read_text())
+        assert set(m["images"]["psnr"]["per_view"]) == {"3"}  # view 0 is an input
+    sv = [r for r in rows if r["mode"] == "svolsdf"]
+    mo = [r for r in rows if r["mode"] == "mvs-only"]
+    assert sv[0]["accuracy"] > 0.1 and mo[0]["accuracy"] == 0.0 and mo[0]["completeness"] > 1
+    assert sv[0]["psnr"] > mo[0]["psnr"] > 10
+    # The files: Markdown and CSV tables (2 scenes + mean), JSON rows.
+    assert json.loads((out / "benchmark.json").read_text()) == rows
+    table = list(csv.reader(io.StringIO((out / "benchmark.csv").read_text())))
+    assert [t[0] for t in table] == ["scene", "synth_a", "synth_a-2", "mean"]
+    hdr = table[0]
+    assert "svolsdf_psnr" in hdr and "volsdf_overall" in hdr
+    i = hdr.index("svolsdf_overall")
+    assert float(table[3][i]) == pytest.approx(np.mean([r["overall"] for r in sv]))
+    assert table[1][hdr.index("volsdf_overall")] == ""
+    md = (out / "benchmark.md").read_text()
+    assert "| synth_a |" in md and "| **mean** |" in md and "svolsdf PSNR" in md
+    assert "synth_a / volsdf: failed: RuntimeError: field diverged" in md
+    assert "protocol: generic" in md
+
+
+def test_cli_benchmark_and_errors(tmp_path, monkeypatch, capsys, synth_scene):
+    import svolsdf.pipeline
+
+    monkeypatch.setattr(svolsdf.pipeline, "Pipeline", FakePipeline)
+    out = tmp_path / "b"
+    main(["benchmark", "--scenes", str(synth_scene), "--modes", "mvs-only", "-o", str(out),
+          "--steps", "3", "--size", "96x72", "--lpips-net", "alex"])
+    text = capsys.readouterr().out
+    assert "| synth_a |" in text and f"wrote {out / 'benchmark.md'}" in text
+    assert (out / "benchmark.csv").is_file() and (out / "synth_a" / "mvs-only").is_dir()
+    for argv, msg in (
+        (["--scenes", str(synth_scene), "--modes", "nerf"], "unknown mode"),
+        (["--scenes", str(tmp_path / "nope")], "scene folder does not exist"),
+        (["--scenes", str(synth_scene), "--dtu-gt", str(tmp_path / "nodtu")],
+         "DTU ground-truth folder does not exist"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main(["benchmark", *argv, "-o", str(tmp_path / "x")])
+        assert e.value.code == 2
+        assert msg in capsys.readouterr().err
+
+
+def test_dtu_scene_without_scan_number_is_refused(tmp_path, synth_scene):
+    dtu = tmp_path / "dtu"
+    dtu.mkdir()
+    other = tmp_path / "plain"
+    other.mkdir()
+    with pytest.raises(InputError, match="no DTU scan number"):
+        run_benchmark(BenchmarkConfig(scenes=[other], modes=["mvs-only"], out=tmp_path / "o",
+                                      dtu_gt=dtu))
+
+
+def test_real_mvs_only_run(tmp_path, synth_scene):
+    """One real pipeline run (mvs-only, 3 views at 96x72) through the whole benchmark."""
+    out = tmp_path / "real"
+    rows = run_benchmark(BenchmarkConfig(scenes=[synth_scene], modes=["mvs-only"], out=out,
+                                         views=[0, 1, 2], size=(96, 72), device="cpu"))
+    (r,) = rows
+    assert r["status"] == "ok", r["status"]
+    run = out / "synth_a" / "mvs-only"
+    assert (run / "points.ply").is_file() and (run / "metrics.json").is_file()
+    assert json.loads((run / "views.json").read_text())["test"] == [3]
+    # The row holds the generic Chamfer of the run's own cloud against gt_points.ply.
+    gt = read_ply(synth_scene / "gt_points.ply")["points"]
+    pts = read_ply(run / "points.ply")["points"]
+    assert len(pts) > 100
+    want = chamfer_fscore(pts, gt, float(np.linalg.norm(gt.max(0) - gt.min(0))) * 0.01)
+    assert math.isfinite(r["overall"]) and r["overall"] > 0
+    for k in ("accuracy", "completeness", "overall"):
+        assert r[k] == pytest.approx(want[k], rel=1e-9)
+    assert r["time_s"] > 0 and r["psnr"] is None  # mvs-only renders no novel views
+    assert "| synth_a |" in (out / "benchmark.md").read_text()
