@@ -7,8 +7,8 @@ hypotheses, METHOD.md 2.5):
    ranges centred on the upsampled previous depth (or a guide depth, METHOD.md 6.1) later.
 2. Matching cost per source view: 1 - ZNCC of the reference and the warped source image
    (`svolsdf.mvs.warping.homo_warp`, per-pixel homographies) over a square window on grayscale,
-   optionally also on the image gradients. ZNCC is invariant to per-window gain and offset, so
-   exposure differences between views do not matter.
+   and on the image gradients (``gradient_weight``). ZNCC is invariant to per-window gain and
+   offset, so exposure differences between views do not matter.
 3. Aggregation over sources, robust to a source that does not see the point: the mean of the best
    ``ceil(keep_fraction * n_valid)`` costs among the sources where the point projects inside the
    image (out-of-image samples are missing, not bad matches). With 2 sources this is their minimum.
