@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+import os
 
-import svolsdf  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
-import pytest
-import torch
+# before torch loads its OpenMP runtime (see svolsdf/__init__.py): spinning threads make the
+# tests several times slower on a shared machine
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -128,33 +128,196 @@ def evaluate(
                                                    f" and {out / 'report.html'}"))
 
 
-_LIST_OPTIONS = ("--views", "--scenes", "--modes")
+# --------------------------------------------------------------------------- benchmark
+@app.command("benchmark")
+def benchmark(
+    scenes: Annotated[str, typer.Option(
+        "--scenes", help="Scene folders: --scenes A B ... (or one quoted, space-separated "
+                         "string).")],
+    modes: Annotated[str, typer.Option(
+        "--modes", help="Pipeline modes: --modes svolsdf mvs-only volsdf.")
+    ] = "svolsdf mvs-only volsdf",
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", help="Output folder: OUT/<scene>/<mode>/ runs and "
+                            "OUT/benchmark.{md,csv,json}.")] = Path("benchmark"),
+    preset_name: Annotated[str, typer.Option("--preset", help="Config preset: fast or paper.")
+                           ] = "fast",
+    steps: Annotated[int | None, typer.Option(
+        "--steps", help="Optimization steps (default: the preset's).")] = None,
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Input view ids for every scene, e.g. --views 25 22 28 (default: the "
+                        "pipeline's choice).")] = None,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Working image size WxH (default: the pipeline's).")] = None,
+    device: Annotated[str | None, typer.Option(
+        "--device", help="auto, cpu or cuda (default: the preset's).")] = None,
+    dtu_gt: Annotated[Path | None, typer.Option(
+        "--dtu-gt", help="DTU ground-truth root (ObsMask/, Points/stl/): DTU Chamfer for "
+                         "scenes named scanNN (or --scan).")] = None,
+    scan: Annotated[int | None, typer.Option(
+        "--scan", help="DTU scan number for scenes whose name has none.")] = None,
+    lpips_net: Annotated[str, typer.Option(
+        "--lpips-net", help="LPIPS backbone: vgg or alex.")] = "vgg",
+    report: Annotated[bool, typer.Option(
+        "--report/--no-report", help="Also write each run's report.html.")] = False,
+) -> None:
+    """Run the pipeline on scenes x modes, evaluate, and tabulate like the paper's Table 1.
 
-
-def join_list_options(argv: list[str]) -> list[str]:
-    """``--views 25 22 28`` -> ``--views "25 22 28"`` (typer options take one value each).
-
-    Tokens after a list option are joined until the next token that starts with ``-`` (a negative
-    number still counts as a value) or, for ``--views``, is not an integer.
+    Ground truth: gt_points.ply of synthetic scenes, or DTU's with --dtu-gt. Image metrics on the
+    held-out views that have renders. Writes OUT/benchmark.md, .csv and .json.
     """
-    out: list[str] = []
-    i = 0
-    while i < len(argv):
-        tok = argv[i]
-        out.append(tok)
-        i += 1
-        if tok in _LIST_OPTIONS:
-            vals = []
-            while i < len(argv):
-                t = argv[i]
-                is_num = t.lstrip("-").replace(",", "").isdigit()
-                if (t.startswith("-") and not is_num) or (tok == "--views" and vals and not is_num):
-                    break
-                vals.append(t)
-                i += 1
-            if vals:
-                out.append(" ".join(vals))
-    return out
+    from svolsdf.evaluate.benchmark import BenchmarkConfig, run_benchmark
+    from svolsdf.scene.synthetic import parse_size
+
+    cfg = BenchmarkConfig(
+        scenes=[Path(s) for s in scenes.split()],
+        modes=modes.replace(",", " ").split(), out=out, preset=preset_name, steps=steps,
+        views=_parse_views(views), size=None if size is None else parse_size(size),
+        device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report)
+    rows = run_benchmark(cfg)
+    failed = sum(r["status"] != "ok" for r in rows)
+    typer.echo((out / "benchmark.md").read_text())
+    typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'} and "
+               f"{out / 'benchmark.json'} ({len(rows)} runs" +
+               (f", {failed} failed)" if failed else ")"))
+
+
+# --------------------------------------------------------------------------- reconstruct / demo
+def _parse_size(text: str | None) -> list[int] | None:
+    """'768x576' -> [768, 576]."""
+    if text is None:
+        return None
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--size: '{text}' is not WxH (e.g. 768x576)") from None
+    if w < 8 or h < 8:
+        raise InputError(f"--size: {w}x{h} is too small")
+    return [w, h]
+
+
+def build_config(scene: Path | None, config: Path | None, preset_name: str | None,
+                 overrides: dict) -> object:
+    """Config from --config (or the preset), then the command-line overrides."""
+    from svolsdf.config import apply_overrides, load_config, preset
+
+    if config is not None:
+        cfg = load_config(config)
+        if preset_name is not None and preset_name != cfg.preset:
+            raise InputError(f"--preset {preset_name} contradicts {config} (preset "
+                             f"{cfg.preset}); drop one of them")
+    else:
+        cfg = preset(preset_name or "fast")
+    if scene is not None:
+        cfg.scene.path = str(scene)
+    apply_overrides(cfg, overrides)
+    if not cfg.scene.path:
+        raise InputError("no scene given (pass SCENE or a --config with scene.path)")
+    return cfg
+
+
+@app.command("reconstruct")
+def reconstruct(
+    scene: Annotated[Path | None, typer.Argument(
+        help="Scene folder (any format `svolsdf info` reads); optional with --config.")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out"),
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Input view ids, e.g. --views 25 22 28 (default: DTU's 25 22 28, or a "
+                        "central view and its two best source views).")] = None,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Working size WxH (default: 768 wide, never upsampled).")] = None,
+    preset_name: Annotated[str | None, typer.Option(
+        "--preset", help="fast (default: minutes on a CPU) or paper (METHOD.md constants).")
+    ] = None,
+    backbone: Annotated[str | None, typer.Option(
+        "--backbone", help="MVS backbone: planesweep (default), casmvsnet, patchmatchnet.")
+    ] = None,
+    weights: Annotated[Path | None, typer.Option(
+        "--weights", help="Weights of a learned MVS backbone.")] = None,
+    mode: Annotated[str | None, typer.Option(
+        "--mode", help="svolsdf (default), mvs-only, or volsdf (no MVS prior).")] = None,
+    ablation: Annotated[str | None, typer.Option(
+        "--ablation", help="soft-consistency-only, mse, no-prob-volume or ce.")] = None,
+    steps: Annotated[int | None, typer.Option("--steps", help="Optimization steps.")] = None,
+    device: Annotated[str | None, typer.Option(
+        "--device", help="auto (default), cpu or cuda.")] = None,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="A config.yaml (e.g. from an earlier OUT) to start from.")] = None,
+    mesh_resolution: Annotated[int | None, typer.Option(
+        "--mesh-resolution", help="Marching-cubes resolution.")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+) -> None:
+    """Reconstruct a scene: MVS, S-VolSDF optimization, guided MVS, fusion and mesh.
+
+    Writes OUT/points.ply, OUT/mesh.ply, OUT/depth/<view>.npy (+ PNG), OUT/config.yaml, OUT/log
+    and OUT/timing.json. A rerun reuses finished stages and resumes an interrupted optimization.
+    """
+    from svolsdf.pipeline import Pipeline
+
+    cfg = build_config(scene, config, preset_name, {
+        "scene.views": _parse_views(views), "scene.image_size": _parse_size(size),
+        "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
+        "train.mode": mode, "train.ablation": ablation, "train.steps": steps,
+        "device": device, "output.mesh_resolution": mesh_resolution, "train.seed": seed,
+    })
+    summary = Pipeline(cfg, out, progress=not no_progress).run()
+    typer.echo(f"points: {summary['points']}")
+    if summary.get("mesh"):
+        typer.echo(f"mesh:   {summary['mesh']}")
+    typer.echo(f"total {summary['timing'].get('total', {}).get('seconds', 0):.0f} s; "
+               f"details in {Path(out) / 'timing.json'}")
+
+
+@app.command("demo")
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path(
+        "svolsdf_demo"),
+    size: Annotated[str, typer.Option("--size", help="Image size WxH of the synthetic scene.")
+                    ] = "768x576",
+    seed: Annotated[int, typer.Option("--seed", help="Synthetic scene seed.")] = 0,
+    steps: Annotated[int | None, typer.Option("--steps", help="Optimization steps.")] = None,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+) -> None:
+    """Generate a synthetic scene, reconstruct it from 3 views with the fast preset, and score it.
+
+    Prints where the outputs are and the Chamfer distance against the scene's ground truth.
+    """
+    import json
+
+    from svolsdf.config import preset
+    from svolsdf.evaluate.synthetic import synthetic_chamfer
+    from svolsdf.io.ply import read_ply
+    from svolsdf.pipeline import Pipeline
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    w, h = _parse_size(size)
+    scene_dir = out / "scene"
+    if not (scene_dir / "gt_points.ply").is_file():
+        typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
+        make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
+    cfg = preset("fast")
+    cfg.scene.path = str(scene_dir)
+    if steps is not None:
+        cfg.train.steps = steps
+    run = out / "run"
+    typer.echo(f"reconstructing into {run} (fast preset) ...")
+    summary = Pipeline(cfg, run, progress=not no_progress).run()
+    views = json.loads((run / "views.json").read_text())["inputs"]
+    lines = []
+    result = {}
+    for name in ("points", "mesh"):
+        p = summary.get(name)
+        if p and Path(p).is_file():
+            r = synthetic_chamfer(read_ply(p)["points"], scene_dir, views)
+            result[name] = r
+            lines.append(f"{name:6s} {p}: Chamfer accuracy {r['accuracy']:.3f} mm, completeness "
+                         f"{r['completeness']:.3f} mm, overall {r['overall']:.3f} mm, F-score "
+                         f"{r['fscore']:.3f} at {r['threshold']:.2f} mm")
+    (run / "demo_metrics.json").write_text(json.dumps(result, indent=1))
+    typer.echo("\n".join(lines))
+    typer.echo(f"total {summary['timing']['total']['seconds']:.0f} s; inputs {views}; "
+               f"outputs in {run}")
 
 
 # --------------------------------------------------------------------------- mvs / synth
@@ -232,61 +395,36 @@ def synth(
     typer.echo(f"synthetic scene ({views} views, {w}x{h}, {object_kind}, seed {seed}): {path}")
 
 
-# --------------------------------------------------------------------------- benchmark
-@app.command("benchmark")
-def benchmark(
-    scenes: Annotated[str, typer.Option(
-        "--scenes", help="Scene folders: --scenes A B ... (or one quoted, space-separated "
-                         "string).")],
-    modes: Annotated[str, typer.Option(
-        "--modes", help="Pipeline modes: --modes svolsdf mvs-only volsdf.")
-    ] = "svolsdf mvs-only volsdf",
-    out: Annotated[Path, typer.Option(
-        "--out", "-o", help="Output folder: OUT/<scene>/<mode>/ runs and "
-                            "OUT/benchmark.{md,csv,json}.")] = Path("benchmark"),
-    preset_name: Annotated[str, typer.Option("--preset", help="Config preset: fast or paper.")
-                           ] = "fast",
-    steps: Annotated[int | None, typer.Option(
-        "--steps", help="Optimization steps (default: the preset's).")] = None,
-    views: Annotated[str | None, typer.Option(
-        "--views", help="Input view ids for every scene, e.g. --views 25 22 28 (default: the "
-                        "pipeline's choice).")] = None,
-    size: Annotated[str | None, typer.Option(
-        "--size", help="Working image size WxH (default: the pipeline's).")] = None,
-    device: Annotated[str | None, typer.Option(
-        "--device", help="auto, cpu or cuda (default: the preset's).")] = None,
-    dtu_gt: Annotated[Path | None, typer.Option(
-        "--dtu-gt", help="DTU ground-truth root (ObsMask/, Points/stl/): DTU Chamfer for "
-                         "scenes named scanNN (or --scan).")] = None,
-    scan: Annotated[int | None, typer.Option(
-        "--scan", help="DTU scan number for scenes whose name has none.")] = None,
-    lpips_net: Annotated[str, typer.Option(
-        "--lpips-net", help="LPIPS backbone: vgg or alex.")] = "vgg",
-    report: Annotated[bool, typer.Option(
-        "--report/--no-report", help="Also write each run's report.html.")] = False,
-) -> None:
-    """Run the pipeline on scenes x modes, evaluate, and tabulate like the paper's Table 1.
+_LIST_OPTIONS = ("--views", "--scenes", "--modes")
 
-    Ground truth: gt_points.ply of synthetic scenes, or DTU's with --dtu-gt. Image metrics on the
-    held-out views that have renders. Writes OUT/benchmark.md, .csv and .json.
+
+def join_list_options(argv: list[str]) -> list[str]:
+    """``--views 25 22 28`` -> ``--views "25 22 28"`` (typer options take one value each).
+
+    Tokens after a list option are joined until the next token that starts with ``-`` (a negative
+    number still counts as a value) or, for ``--views``, is not an integer.
     """
-    from svolsdf.evaluate.benchmark import BenchmarkConfig, run_benchmark
-    from svolsdf.scene.synthetic import parse_size
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        out.append(tok)
+        i += 1
+        if tok in _LIST_OPTIONS:
+            vals = []
+            while i < len(argv):
+                t = argv[i]
+                is_num = t.lstrip("-").replace(",", "").isdigit()
+                if (t.startswith("-") and not is_num) or (tok == "--views" and vals and not is_num):
+                    break
+                vals.append(t)
+                i += 1
+            if vals:
+                out.append(" ".join(vals))
+    return out
 
-    cfg = BenchmarkConfig(
-        scenes=[Path(s) for s in scenes.split()],
-        modes=modes.replace(",", " ").split(), out=out, preset=preset_name, steps=steps,
-        views=_parse_views(views), size=None if size is None else parse_size(size),
-        device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report)
-    rows = run_benchmark(cfg)
-    failed = sum(r["status"] != "ok" for r in rows)
-    typer.echo((out / "benchmark.md").read_text())
-    typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'} and "
-               f"{out / 'benchmark.json'} ({len(rows)} runs" +
-               (f", {failed} failed)" if failed else ")"))
 
-
-def main(argv: Optional[list[str]] = None) -> None:
+def main(argv: list[str] | None = None) -> None:
     """Console entry point (``svolsdf``)."""
     argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
     debug = "--debug" in argv

@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import asdict, dataclass, fields
 from dataclasses import field as dc_field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import yaml
 
@@ -42,12 +42,12 @@ DTU_EXCLUDED_IDS = [3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 36, 37, 38, 39]
 class SceneConfig:
     path: str = ""
     """Scene folder (any format `load_scene` reads)."""
-    views: Optional[list[int]] = None
+    views: list[int] | None = None
     """Input view ids; default: DTU's 25 22 28 on 49-view DTU scans, else a central view and its
     two best source views."""
     num_views: int = 3
     """Number of input views when ``views`` is not given."""
-    image_size: Optional[list[int]] = None
+    image_size: list[int] | None = None
     """Working size [W, H] for the field; default: 768 wide (4:3 -> 768x576), never upsampled."""
     lighting: int = 3
     """DTU raw layout only: the lighting index of the rectified images."""
@@ -57,12 +57,13 @@ class SceneConfig:
 class MVSConfig:
     backbone: str = "planesweep"
     """planesweep (training-free, default) | casmvsnet (needs --weights) | patchmatchnet."""
-    weights: Optional[str] = None
+    weights: str | None = None
     """Weights file for learned backbones."""
     ndepths: list[int] = dc_field(default_factory=lambda: [192, 32, 8])
     """Hypotheses per cascade stage (METHOD.md 0)."""
     width: str = "paper"
-    """Finer-stage search width: paper (half the default CasMVSNet width) | released (METHOD.md 2.5)."""
+    """Finer-stage search width: paper (half the default CasMVSNet width) | released
+    (METHOD.md 2.5)."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (unbounded scenes; METHOD.md 2.5, 9.1)."""
 
@@ -81,22 +82,28 @@ class FieldConfig:
     """grid: final resolution of the dense SDF grid."""
     grid_start_resolution: int = 64
     """grid: resolution at the start (coarse to fine)."""
+    init: str = "mvs"
+    """grid: initial surface. mvs: signed distance of the fused stage-1 MVS depth (fast preset,
+    svolsdf mode; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2)."""
 
 
 @dataclass
 class TrainConfig:
     mode: str = "svolsdf"
     """svolsdf (MVS prior + losses) | volsdf (the same model without the prior) | mvs-only."""
-    ablation: Optional[str] = None
+    ablation: str | None = None
     """None | soft-consistency-only | mse | no-prob-volume | ce (paper ablations)."""
-    steps: int = 3000
-    """Optimization steps."""
+    steps: int = 500
+    """Optimization steps (fast preset: 500 from the MVS-initialised grid)."""
     rays: int = 512
     """Rays per step, from one random input view (METHOD.md 4.6)."""
     lr: float = 5e-4
     """Adam learning rate for networks (constant, METHOD.md 4.6)."""
     lr_grid: float = 1e-2
-    """grid field: learning rate of the grid parameters."""
+    """grid field: learning rate of the feature grids."""
+    lr_sdf: float = 1e-4
+    """grid field: learning rate of the SDF grid (per node: keep it well below a cell size, or
+    Adam's normalized steps roughen the surface)."""
     grad_clip: float = 1.0
     """Global-norm gradient clipping (0 = off)."""
     eikonal_weight: float = 0.1
@@ -125,7 +132,13 @@ class TrainConfig:
     """mvs sampler: importance samples from P' and the current weights."""
     beta_min: float = 0.0
     """Lower bound on the Laplace beta (0 = learnable only, as the paper)."""
-    checkpoint_every: int = 500
+    beta_start: float = 0.0
+    """> 0: beta is not learned but annealed log-linearly from beta_start to beta_end over the
+    steps (unit-frame units; fast preset: a short run cannot wait for the learned beta to
+    sharpen). 0: learnable beta (METHOD.md 5.4, the paper)."""
+    beta_end: float = 0.005
+    """Final beta of the anneal (unit frame; ~1 mm on DTU-scale scenes)."""
+    checkpoint_every: int = 100
     """Save a checkpoint every N steps (resume after a kill)."""
     seed: int = 0
     """Random seed."""
@@ -178,7 +191,9 @@ def _paper() -> Config:
 
 
 def _fast() -> Config:
-    return Config(preset="fast")
+    c = Config(preset="fast")
+    c.train.beta_start = 0.05
+    return c
 
 
 PRESETS = {"fast": _fast, "paper": _paper}

@@ -403,6 +403,12 @@ class Pipeline:
         prior = None
         if tcfg.mode == "svolsdf" and self._volumes1 is not None:
             prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
+            if self.cfg.field.kind == "grid" and self.cfg.field.init == "mvs":
+                from svolsdf.field.init import init_grid_from_mvs
+
+                scene = self.load()
+                init_grid_from_mvs(model, self._volumes1, scene.normalization,
+                                   scene.masks if self.cfg.output.use_masks else None)
         trainer = Trainer(model, self.train_data(), tcfg, prior=prior,
                           sampler=self.make_sampler(prior), out_dir=fdir, device=self.device,
                           grid_schedule=self._grid_schedule())
@@ -623,6 +629,8 @@ class Pipeline:
         t0 = time.perf_counter()
         from svolsdf.fusion.mesh import (
             colors_from_fn,
+            cull_by_frusta,
+            cull_by_masks,
             extract_mesh,
             largest_component,
             save_mesh,
@@ -641,7 +649,19 @@ class Pipeline:
 
         v, f = extract_mesh(sdf_fn, bounds, resolution=o.mesh_resolution, coarse_to_fine=True,
                             progress=self.progress)
-        v, f = largest_component(v, f)
+        scene = self.load()
+        vw = to_world(v, scene.normalization)
+        # keep what the input views can judge: faces inside some view's frustum, and, with
+        # masks, inside the dilated object mask of every view that sees them (the mesh culling
+        # of the DTU evaluations, METHOD.md 8.3)
+        vw, f, idx = cull_by_frusta(vw, f, scene.cameras)
+        v = v[idx]
+        if scene.masks is not None and o.use_masks:
+            dil = max(2, round(12 * scene.width / 1600))  # METHOD.md 6.3's 12 px at 1600 wide
+            vw, f, idx = cull_by_masks(vw, f, scene.cameras, scene.masks, dilation=dil)
+            v = v[idx]
+        vw, f, idx = largest_component(vw, f, return_index=True)
+        v = v[idx]
         cols = None
         try:
             def colour_fn(p, n):
@@ -649,12 +669,12 @@ class Pipeline:
                 n = n.to(dev)
                 with torch.enable_grad():
                     _, g, feat = model.sdf_and_grad(p, create_graph=False)
+                g = torch.nn.functional.normalize(g, dim=-1)
                 return model.colour(p, -n, g, feat).detach().cpu()
 
             cols = colors_from_fn(v, vertex_normals(v, f), colour_fn)
         except Exception as e:  # colours are a convenience
             log.warning("mesh colours failed: %s", e)
-        vw = to_world(v, self.load().normalization)
         save_mesh(path, vw, f, cols, fmt=o.mesh_format)
         self._mark("mesh", self.keys["mesh"])
         self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)))

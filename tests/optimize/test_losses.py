@@ -118,3 +118,16 @@ def test_depth_mse_and_onehot():
     w = torch.full((3, 4), 0.25, requires_grad=True)
     gce_weight_loss(w, lab, 0.5).backward()
     assert (w.grad[0, [0, 2, 3]] == 0).all() and w.grad[0, 1] < 0 and (w.grad[1] == 0).all()
+
+
+def test_gce_gradient_is_finite_at_zero_weights():
+    """Empty samples have w = 0 exactly; d(w^q)/dw must not turn the step's gradient NaN."""
+    w = torch.tensor([[0.0, 0.3, 0.0, 0.7]], requires_grad=True)
+    p = torch.tensor([[0.0, 0.5, 0.2, 0.3]])
+    for form in ("paper", "released"):
+        for q in (0.0, 0.5, 1.0):
+            w.grad = None
+            gce_weight_loss(w, p, q=q, form=form).backward()
+            assert torch.isfinite(w.grad).all(), (form, q, w.grad)
+            if form == "paper" or q == 0.0:  # released: sg(w)^q = 0 stops it at w = 0
+                assert w.grad[0, 2] < 0  # labelled empty sample is pulled up

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import shared_path
 
+from conftest import shared_path
 from svolsdf.scene import load_scene
 
 

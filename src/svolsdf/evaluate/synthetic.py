@@ -70,6 +70,23 @@ def observed_gt_points(scene_dir: str | Path, views: list[int], tol_px: float = 
     return pts[seen.numpy()]
 
 
+def _table_height(scene_dir: str | Path) -> float | None:
+    """World z of the synthetic table top (scene.json), or None."""
+    import json
+
+    f = Path(scene_dir) / "scene.json"
+    if not f.is_file():
+        return None
+    t = json.loads(f.read_text()).get("table")
+    try:
+        plane = t["plane_world"]
+        if abs(float(plane["normal"][2])) > 0.999:  # horizontal table (svolsdf synth)
+            return float(plane["point"][2])
+    except (KeyError, TypeError, IndexError):
+        pass
+    return None
+
+
 def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int],
                       max_dist: float | None = None, threshold: float | None = None) -> dict:
     """Chamfer and F-score of ``points`` against the observed ground truth (METHOD.md 8.2).
@@ -99,6 +116,12 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
     # the ObsMask's bounding box (METHOD.md 8.1): only predictions near the object are scored
     lo, hi = gt.min(0) - max_dist, gt.max(0) + max_dist
     pred = pred[((pred >= lo) & (pred <= hi)).all(1)]
+    table = _table_height(scene_dir)
+    if table is not None:
+        # the table is not part of the object (DTU's plane plays this role): points within the
+        # F-score threshold of its plane are left out on both sides
+        pred = pred[pred[:, 2] > table + threshold]
+        gt = gt[gt[:, 2] > table + threshold]
     if len(pred) == 0:
         raise InputError("no reconstructed point lies near the ground-truth object")
     rng = np.random.default_rng(0)

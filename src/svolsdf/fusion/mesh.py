@@ -264,7 +264,7 @@ def submesh(vertices: Tensor, faces: Tensor, keep_faces: Tensor) -> tuple[Tensor
     return vertices[vertex_index], remap[kept], vertex_index
 
 
-def largest_component(vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+def largest_component(vertices: Tensor, faces: Tensor, return_index: bool = False):
     """The connected component (faces sharing vertices) with the largest surface area.
 
     As VolSDF's mesh export (METHOD.md 8.3: "the largest component is kept"), which splits the
@@ -274,11 +274,13 @@ def largest_component(vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
         vertices: (V, 3); faces: (F, 3).
 
     Returns:
-        vertices (V', 3), faces (F', 3) of that component.
+        vertices (V', 3), faces (F', 3) of that component, and with ``return_index`` the
+        (V',) indices of its vertices in the input.
     """
     vertices, faces = _check_mesh(vertices, faces)
     if len(faces) == 0:
-        return vertices[:0], faces
+        empty = torch.zeros(0, dtype=torch.long)
+        return (vertices[:0], faces, empty) if return_index else (vertices[:0], faces)
     f = faces.numpy()
     nv = len(vertices)
     rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
@@ -294,8 +296,8 @@ def largest_component(vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
     n_comp = int((np.bincount(face_label) > 0).sum())
     log.info("largest component: %d of %d components, %.1f%% of the area", best, n_comp,
              100.0 * comp_area[best] / max(comp_area.sum(), 1e-30))
-    v2, f2, _ = submesh(vertices, faces, torch.from_numpy(face_label == best))
-    return v2, f2
+    v2, f2, idx = submesh(vertices, faces, torch.from_numpy(face_label == best))
+    return (v2, f2, idx) if return_index else (v2, f2)
 
 
 def vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:

@@ -45,7 +45,8 @@ def gce_weight_loss(
     counting as zeros):
 
     - form "paper" (S-VolSDF Eq. for GCE, the default):
-        l_r = m_r * sum_k P'_rk (1 - w_rk^q) / q
+        l_r = m_r * sum_k P'_rk (1 - (w_rk + 1e-8)^q) / q   (the 1e-8 keeps the gradient finite
+        at w = 0)
     - form "released" (the reference code's gradient-equivalent surrogate; METHOD.md 9.2.4):
         l_r = m_r * sum_k -P'_rk sg(w_rk)^q log(w_rk + 1e-8)
       whose gradient -P' w^q / (w + 1e-8) equals the paper's -P' w^(q-1) (up to the 1e-8);
@@ -75,7 +76,9 @@ def gce_weight_loss(
     if q == 0:
         per = -p * torch.log(w + _LOG_EPS)
     elif form == "paper":
-        per = p * (1.0 - w.clamp_min(0.0) ** q) / q
+        # w + eps: d(w^q)/dw is infinite at w = 0 (every empty sample), which would make the
+        # step's gradient NaN; eps = the released form's 1e-8 (METHOD.md 9.2.4)
+        per = p * (1.0 - (w.clamp_min(0.0) + _LOG_EPS) ** q) / q
     elif q == 1:
         per = -p * w
     else:

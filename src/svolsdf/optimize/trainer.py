@@ -101,6 +101,11 @@ class Trainer:
     def _build_optimizer(self) -> None:
         if hasattr(self.model, "param_groups"):
             groups = self.model.param_groups(self.cfg.lr_grid, self.cfg.lr)
+            sdf = getattr(self.model, "sdf_grid", None)
+            if sdf is not None:  # the SDF grid gets its own (small) rate
+                for g in groups:
+                    g["params"] = [p for p in g["params"] if p is not sdf]
+                groups.append({"params": [sdf], "lr": self.cfg.lr_sdf, "name": "sdf"})
         else:
             groups = [{"params": list(self.model.parameters()), "lr": self.cfg.lr}]
         # METHOD.md 4.6: Adam, default betas, constant learning rate
@@ -220,14 +225,29 @@ class Trainer:
         sig = inspect.signature(self.model.sdf_and_grad)
         return {"clamp": False} if "clamp" in sig.parameters else {}
 
+    def _anneal_beta(self) -> None:
+        """TrainConfig.beta_start > 0: beta follows a log-linear anneal instead of being learned."""
+        cfg = self.cfg
+        lap = getattr(self.model, "laplace", None)
+        if cfg.beta_start <= 0 or lap is None:
+            return
+        t = min(self.step / max(cfg.steps, 1), 1.0)
+        beta = cfg.beta_start * (cfg.beta_end / cfg.beta_start) ** t
+        lap.beta_param.requires_grad_(False)
+        lap.beta_param.data.fill_(max(beta - lap.beta_min, 0.0))
+
     def train_step(self) -> dict[str, Tensor]:
         """One optimization step; returns the (detached) loss terms."""
         self._maybe_grow_grid()
+        self._anneal_beta()
         self.model.train()
         self.optimizer.zero_grad(set_to_none=True)
         terms = self.losses()
         terms["total"].backward()
         params = [p for p in self.model.parameters() if p.grad is not None]
+        if not params:
+            self.step += 1
+            return {k: v.detach() for k, v in terms.items()}
         # NaN-safe update (METHOD.md 9.2.8): zero every gradient if any is non-finite, without
         # a host sync (the flag stays on the device).
         finite = torch.stack([torch.isfinite(p.grad).all() for p in params]).all()
@@ -256,7 +276,7 @@ class Trainer:
                 bar.update(1)
                 if self.step % log_every == 0 or self.step == steps:
                     row = {"step": self.step, **{k: float(v) for k, v in terms.items()},
-                           "beta": float(self.model.beta)}
+                           "beta": float(torch.as_tensor(self.model.beta).detach())}
                     rate = (self.step - s0) / max(time.perf_counter() - t0, 1e-9)
                     row["steps_per_s"] = rate
                     self.history.append(row)

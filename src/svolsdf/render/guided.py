@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
 
 from svolsdf.field.base import SurfaceModel
 from svolsdf.render.rays import RayBundle
