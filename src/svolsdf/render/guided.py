@@ -6,7 +6,8 @@ label P' (METHOD.md 3) and the current surface say the surface is:
 
 1. ``n_coarse`` stratified probe distances on [near, far] (no gradients).
 2. At the probes: P' from the MVS prior (rays of input views only) and the current rendering
-   weights w from the field's Laplace density (METHOD.md 5.4 compositing).
+   weights w from the field's Laplace density (METHOD.md 5.4 compositing), with beta widened to
+   at least the probe spacing so that a sharp surface between two probes is still found.
 3. pdf = mix * P'/sum(P') + (1 - mix) * w/sum(w) + floor / n, per ray; a ray without MVS support
    (sum P' < ``thresh``) uses only the field's weights.
 4. ``n_fine`` samples by inverse CDF from that pdf, merged with ``n_uniform`` stratified samples
@@ -45,6 +46,8 @@ class GuidedSamplerConfig:
     """Uniform share added to the pdf so no interval is starved."""
     thresh: float = 1e-3
     """A ray is MVS-supported when sum_k P'_k > thresh (METHOD.md 4.2)."""
+    probe_beta: float = 1.0
+    """The probe weights use beta >= probe_beta x the probe spacing (module docstring)."""
 
 
 class MVSGuidedSampler:
@@ -73,7 +76,12 @@ class MVSGuidedSampler:
         pts = rays.origins[:, None] + zc[..., None] * rays.dirs[:, None]  # (R, C, 3)
         sdf = model.sdf(pts.reshape(-1, 3)).reshape(R, cfg.n_coarse)
         deltas = torch.cat([zc[:, 1:] - zc[:, :-1], torch.full_like(zc[:, :1], 1e10)], -1)
-        w, _ = composite(model.density(sdf), deltas)
+        # probe weights with beta widened to the probe spacing: a sharp surface (beta << spacing)
+        # between two probes would otherwise get no mass and no fine samples (the reason
+        # VolSDF's sampler raises beta until its error bound holds, METHOD.md 5.4)
+        spacing = ((rays.far - rays.near) / cfg.n_coarse)[:, None]
+        beta_probe = torch.maximum(torch.as_tensor(model.beta).detach(), cfg.probe_beta * spacing)
+        w, _ = composite(model.density(sdf, beta=beta_probe), deltas)
         w = w[:, :-1]
         w_n = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
         pdf = w_n
