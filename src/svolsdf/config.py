@@ -192,7 +192,11 @@ def _paper() -> Config:
 
 def _fast() -> Config:
     c = Config(preset="fast")
+    # measured on a 384x288 synthetic scene (notes of issue 5): an annealed beta and a 50-step
+    # warm-up (the paper's 200 of 100k steps would be 40% of this run) gave Chamfer 2.35 mm vs
+    # 2.50 mm with the learned beta and 200 steps; MVS alone 2.63 mm
     c.train.beta_start = 0.05
+    c.train.anneal_rgb = 50
     return c
 
 
