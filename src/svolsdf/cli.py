@@ -320,6 +320,38 @@ def demo(
                f"outputs in {run}")
 
 
+# --------------------------------------------------------------------------- render
+@app.command("render")
+def render(
+    out: Annotated[Path, typer.Argument(help="Run folder of svolsdf reconstruct.")],
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Scene view ids to render, e.g. --views 1 2 3 (default: the held-out "
+                        "test views of OUT/views.json, else the inputs).")] = None,
+    path: Annotated[str | None, typer.Option(
+        "--path", help="'orbit': a camera path through the input views (frames + video) "
+                       "instead of scene views.")] = None,
+    frames: Annotated[int, typer.Option("--frames", help="Orbit frames.")] = 60,
+    ibr: Annotated[bool, typer.Option(
+        "--ibr", help="Also image-based rendering (METHOD.md 7) -> OUT/renders_ibr/.")] = False,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Render size WxH, e.g. 768x576 (default: the run's working size).")
+    ] = None,
+    chunk: Annotated[int, typer.Option("--chunk", help="Rays per batch.")] = 4096,
+) -> None:
+    """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
+    from svolsdf.render.novel import render_outputs
+
+    res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
+                         size=_parse_size(size), frames=frames, chunk=chunk, progress=True)
+    w, h = res["size"]
+    typer.echo(f"rendered {len(res['files'])} view(s) at {w}x{h} "
+               f"({res['seconds_per_view']:.1f} s per view) -> {out / 'renders'}"
+               + (f"; IBR -> {out / 'renders_ibr'}" if res["ibr_files"] else ""))
+    for key in ("video", "video_ibr"):
+        if res[key] is not None:
+            typer.echo(f"video {res[key]}")
+
+
 # --------------------------------------------------------------------------- mvs / synth
 @app.command("mvs")
 def mvs(
