@@ -195,7 +195,15 @@ class Pipeline:
         """Run (or resume) every stage; returns a summary dict."""
         t_all = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
-        self._setup_log()
+        handler = self._setup_log()
+        try:
+            return self._run(t_all)
+        finally:
+            if handler is not None:  # this run's OUT/log only gets this run's messages
+                logging.getLogger("svolsdf").removeHandler(handler)
+                handler.close()
+
+    def _run(self, t_all: float) -> dict:
         scene = self.load()
         self.keys = self._keys()
         save_config(self.cfg, self.out / "config.yaml")
@@ -227,16 +235,19 @@ class Pipeline:
         return self.cfg.train.mode in ("svolsdf", "volsdf") and \
             self.cfg.train.ablation != "soft-consistency-only"
 
-    def _setup_log(self) -> None:
+    def _setup_log(self) -> logging.Handler | None:
+        """Append this run's messages to OUT/log; returns the handler to remove afterwards."""
         root = logging.getLogger("svolsdf")
-        path = str((self.out / "log").resolve())
-        if not any(isinstance(h, logging.FileHandler) and h.baseFilename == path
-                   for h in root.handlers):
-            h = logging.FileHandler(path)
-            h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-            root.addHandler(h)
         if root.level == logging.NOTSET or root.level > logging.INFO:
             root.setLevel(logging.INFO)
+        path = str((self.out / "log").resolve())
+        if any(isinstance(h, logging.FileHandler) and h.baseFilename == path
+               for h in root.handlers):
+            return None
+        h = logging.FileHandler(path)
+        h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        root.addHandler(h)
+        return h
 
     # ------------------------------------------------------------------ stage 1
     def backbone(self):
@@ -351,7 +362,8 @@ class Pipeline:
             if training:
                 gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
             else:
-                gc = GuidedSamplerConfig(n_coarse=128, n_uniform=32, n_fine=64)
+                # rendering: a converged field needs fewer probes (benchmarks/results/render_speed.md)
+                gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
             return MVSGuidedSampler(prior if training else None, gc)
         raise InputError(f"unknown sampler {t.sampler!r} (mvs or error_bounded)")
 
@@ -392,6 +404,7 @@ class Pipeline:
 
         fdir = self.out / "field"
         final = fdir / "model.pt"
+        torch.manual_seed(self.cfg.train.seed)  # the box (quantiles of a random subset) too
         model = self.build_model()
         if self._done("field") and final.is_file():
             self._load_model(model, final)
@@ -470,7 +483,7 @@ class Pipeline:
             for i in range(0, len(rays), chunk):
                 rb = rays[i:i + chunk]
                 s = sampler(model, rb, training=False)
-                o = render_rays(model, rb, s.z, create_graph=False)
+                o = render_rays(model, rb, s.z, create_graph=False, colour_min_weight=1e-4)
                 for k in keys:
                     parts[k].append(getattr(o, k).detach().cpu())
             for k in keys:

@@ -77,6 +77,7 @@ def render_rays(
     background: Callable | None = None,
     bounded_last: bool = False,
     create_graph: bool | None = None,
+    colour_min_weight: float = 0.0,
 ) -> RenderOutput:
     """Render R rays at sample distances z (METHOD.md 5.4; background 5.5).
 
@@ -94,6 +95,8 @@ def render_rays(
             (see :class:`svolsdf.field.background.NeRFPlusPlusBackground`).
         bounded_last: see above (implied by ``background``).
         create_graph: keep the SDF gradient differentiable (default ``model.training``).
+        colour_min_weight: > 0 evaluates the colour only at samples whose weight exceeds it
+            (for rendering without gradients; 0 = every sample, exact).
 
     Returns:
         RenderOutput (its S excludes the far bound when the last interval is bounded).
@@ -109,15 +112,28 @@ def render_rays(
     S = z.shape[1]
     points = rays.origins[:, None] + z[..., None] * rays.dirs[:, None]  # (R, S, 3)
     flat = points.reshape(-1, 3)
-    sdf, grad, feat = model.sdf_and_grad(flat, create_graph=create_graph)
     view_dirs = rays.dirs[:, None].expand(R, S, 3).reshape(-1, 3)
-    rgb_s = model.colour(flat, view_dirs, grad, feat).reshape(R, S, 3)
-    sdf = sdf.reshape(R, S)
-    grad = grad.reshape(R, S, 3)
-    sigma = model.density(sdf)
     last = (z_max - z[:, -1:]) if bounded else torch.full_like(z[:, :1], 1e10)
     deltas = torch.cat([z[:, 1:] - z[:, :-1], last], dim=-1)
-    w, t_after = composite(sigma, deltas)
+    if colour_min_weight > 0:
+        # rendering: the weights need only the SDF; gradients, features and colour are then
+        # evaluated only where a sample contributes (the dropped terms sum to less than
+        # S * colour_min_weight per ray)
+        sdf = model.sdf(flat).reshape(R, S)
+        w, t_after = composite(model.density(sdf), deltas)
+        keep = (w.reshape(-1) > colour_min_weight).nonzero()[:, 0]
+        _, g_k, f_k = model.sdf_and_grad(flat[keep], create_graph=False)
+        grad = torch.zeros(R * S, 3, dtype=w.dtype, device=w.device)
+        grad[keep] = g_k.to(w.dtype)
+        rgb_flat = torch.zeros(R * S, 3, dtype=w.dtype, device=w.device)
+        rgb_flat[keep] = model.colour(flat[keep], view_dirs[keep], g_k, f_k).to(w.dtype)
+        rgb_s = rgb_flat.reshape(R, S, 3)
+    else:
+        sdf, grad, feat = model.sdf_and_grad(flat, create_graph=create_graph)
+        sdf = sdf.reshape(R, S)
+        w, t_after = composite(model.density(sdf), deltas)
+        rgb_s = model.colour(flat, view_dirs, grad, feat).reshape(R, S, 3)
+    grad = grad.reshape(R, S, 3)
     opacity = w.sum(-1)
     rgb = (w[..., None] * rgb_s).sum(1)
     depth = rays.cos * (w * z).sum(-1) / (opacity + 1e-8)
