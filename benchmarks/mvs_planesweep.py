@@ -136,9 +136,7 @@ def dtu_case(work: Path) -> dict:
             im = Image.open(out / kind / f"{v}.png")
             im.resize((384, 288), Image.BILINEAR).save(pics / f"dtu65_{kind}_{v}.png",
                                                         optimize=True)
-        img = (scene.images[scene.index(v)].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
-        Image.fromarray(img).resize((384, 288), Image.BILINEAR).save(
-            pics / f"dtu65_image_{v}.png", optimize=True)
+        # the input images are not written here: they are the shared data's (never committed)
     return {"wall_s": wall, "seconds": s["seconds"], "pairs": pairs, "any_source": any_ok,
             "fusion": s.get("fusion"), "depth_range": s["depth_range"]}
 
@@ -226,11 +224,10 @@ def main() -> None:
         if dtu["fusion"]:
             lines += ["", f"- fused MVS-only point cloud: {dtu['fusion']['points_total']} points "
                           "(released fusion settings, dilated masks)"]
-        lines += ["", "Pictures (384x288): `mvs_planesweep/dtu65_{image,depth,confidence}_"
-                      "<view>.png`.", ""]
+        lines += ["", "Pictures (384x288): `mvs_planesweep/dtu65_{depth,confidence}_"
+                      "<view>.png` (input images: ../shared/data/dtu_scan65).", ""]
         for v in VIEWS:
-            lines.append(f"![view {v}](mvs_planesweep/dtu65_image_{v}.png) "
-                         f"![depth {v}](mvs_planesweep/dtu65_depth_{v}.png) "
+            lines.append(f"![depth {v}](mvs_planesweep/dtu65_depth_{v}.png) "
                          f"![confidence {v}](mvs_planesweep/dtu65_confidence_{v}.png)")
     lines += ["", NOTES]
     RESULTS.mkdir(parents=True, exist_ok=True)
