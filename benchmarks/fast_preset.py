@@ -134,8 +134,8 @@ def _paper_equal_time(scene: Path, field_s: float) -> dict:
     note = (f"paper preset (8x256 MLP, error-bounded sampler, 512 rays): {rate:.3f} steps/s, so "
             f"(d)'s {field_s:.0f} s of optimization buys {steps} of its 100,000 steps; rendering "
             f"the guide depth of the 3 input views would take ~{render_s / 60:.0f} min "
-            f"(measured on a 48x36 view, extrapolated). Not run to the end: at equal wall time "
-            f"the paper preset has not left its initial sphere.")
+            f"(measured on a 48x36 view, extrapolated). Not run to the end: it cannot finish the "
+            f"pipeline at equal wall time on a CPU.")
     return {"wall_s": None, "peak_gb": None, "field_s": field_s, "steps_per_s": rate,
             "stages": {}, "note": note}
 
