@@ -362,7 +362,8 @@ class Pipeline:
             if training:
                 gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
             else:
-                # rendering: a converged field needs fewer probes (benchmarks/results/render_speed.md)
+                # rendering: a converged field needs fewer probes
+                # (benchmarks/results/render_speed.md)
                 gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
             return MVSGuidedSampler(prior if training else None, gc)
         raise InputError(f"unknown sampler {t.sampler!r} (mvs or error_bounded)")

@@ -129,12 +129,13 @@ def write_colmap(root: Path, K, w2c, pts, binary: bool) -> Path:
     order = list(range(len(K)))[::-1]
     if not binary:
         (sp / "cameras.txt").write_text("# Camera list\n" + "".join(
-            f"{c} PINHOLE {W} {H} {fx:.17g} {fy:.17g} {cx:.17g} {cy:.17g}\n" for c, fx, fy, cx, cy in cams))
+            f"{c} PINHOLE {W} {H} {fx:.17g} {fy:.17g} {cx:.17g} {cy:.17g}\n"
+            for c, fx, fy, cx, cy in cams))
         lines = ["# Image list"]
         for i in order:
             q, t = quats[i], w2c[i][:3, 3]
-            lines.append(f"{ids[i]} {q[0]:.17g} {q[1]:.17g} {q[2]:.17g} {q[3]:.17g} {t[0]:.17g} {t[1]:.17g} "
-                         f"{t[2]:.17g} {i + 1} {names[i]}")
+            lines.append(f"{ids[i]} {q[0]:.17g} {q[1]:.17g} {q[2]:.17g} {q[3]:.17g} "
+                         f"{t[0]:.17g} {t[1]:.17g} {t[2]:.17g} {i + 1} {names[i]}")
             lines.append("")  # no 2D points listed
         (sp / "images.txt").write_text("\n".join(lines) + "\n")
         pl = ["# 3D point list"]

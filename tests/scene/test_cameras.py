@@ -36,7 +36,8 @@ def test_decompose_projection_recovers_k_and_pose():
 
 def test_project_unproject_round_trip():
     cams = _random_cameras()
-    uv = torch.rand(3, 50, 2, dtype=torch.float64) * torch.tensor([160.0, 120.0], dtype=torch.float64)
+    uv = torch.rand(3, 50, 2, dtype=torch.float64) * torch.tensor([160.0, 120.0],
+                                                                 dtype=torch.float64)
     depth = 2 + 3 * torch.rand(3, 50, dtype=torch.float64)
     X = cams.unproject(uv, depth)
     uv2, d2 = cams.project(X)
@@ -48,15 +49,16 @@ def test_rays_hit_unprojected_points():
     cams = _random_cameras()
     o, d, cos = cams.rays()
     depth = torch.full((3, cams.height * cams.width), 2.5, dtype=torch.float64)
-    X = cams.unproject(cams.pixel_grid(dtype=torch.float64).reshape(1, -1, 2).expand(3, -1, -1), depth)
+    uv = cams.pixel_grid(dtype=torch.float64).reshape(1, -1, 2).expand(3, -1, -1)
+    X = cams.unproject(uv, depth)
     torch.testing.assert_close(o + d * (depth / cos)[..., None], X, atol=1e-9, rtol=0)
 
 
 def test_resize_keeps_image_borders():
     cams = _random_cameras()
     small = cams.resize(80, 60)
-    X = cams.unproject(torch.tensor([[[-0.5, -0.5], [159.5, 119.5]]], dtype=torch.float64).expand(3, -1, -1),
-                       torch.full((3, 2), 3.0, dtype=torch.float64))
+    corners = torch.tensor([[[-0.5, -0.5], [159.5, 119.5]]], dtype=torch.float64)
+    X = cams.unproject(corners.expand(3, -1, -1), torch.full((3, 2), 3.0, dtype=torch.float64))
     uv, _ = small.project(X)
     expected = torch.tensor([[-0.5, -0.5], [79.5, 59.5]], dtype=torch.float64)
     torch.testing.assert_close(uv, expected.expand(3, -1, -1), atol=1e-9, rtol=0)

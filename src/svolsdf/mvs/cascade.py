@@ -40,7 +40,8 @@ def run_cascade(
         backbone: an `MVSBackbone`.
         scene: the scene at the working size.
         guide_depth: view id -> (H', W') z-depth centring stage 2 instead of stage 1's depth
-            (METHOD.md 6.1; the first listed stage > 1 if 2 is not listed). Stage 1 still runs when listed in ``stages`` (its volumes are the
+            (METHOD.md 6.1; the first listed stage > 1 if 2 is not listed). Stage 1 still runs
+            when listed in ``stages`` (its volumes are the
             prior), but its depth is not used to centre stage 2 for views with a guide.
         stages: increasing stage numbers; a stage > 1 needs the stage before it, a guide depth,
             or ``prev``.
@@ -67,7 +68,8 @@ def run_cascade(
 
 
 def combined_confidence(volumes: list[ProbabilityVolume], width: int, height: int) -> Tensor:
-    """Product of the stages' confidences, each bilinearly resized to (height, width) (METHOD.md 6.2).
+    """Product of the stages' confidences, each bilinearly resized to (height, width)
+    (METHOD.md 6.2).
 
     Args:
         volumes: one view's volumes of the stages run.
