@@ -102,8 +102,11 @@ class TrainConfig:
     lr_grid: float = 1e-2
     """grid field: learning rate of the feature grids."""
     lr_sdf: float = 1e-4
-    """grid field: learning rate of the SDF grid (per node: keep it well below a cell size, or
-    Adam's normalized steps roughen the surface)."""
+    """grid field: learning rate of the SDF grid when it starts from the MVS surface (per node:
+    keep it well below a cell size, or Adam's normalized steps roughen the surface)."""
+    lr_sdf_sphere: float = 1e-3
+    """grid field: learning rate of the SDF grid when it starts from a sphere (volsdf mode,
+    field.init = sphere): the surface has to travel, not just be refined."""
     grad_clip: float = 1.0
     """Global-norm gradient clipping (0 = off)."""
     eikonal_weight: float = 0.1

@@ -162,6 +162,7 @@ def init_grid_from_mvs(model, volumes: list[ProbabilityVolume], normalization: N
     cs = model.cell_size.tolist()  # (x, y, z)
     sdf = signed_distance_from_signs(inside, (cs[2], cs[1], cs[0]))
     model.sdf_grid.data.copy_(torch.from_numpy(sdf)[None].to(model.sdf_grid))
+    model.mvs_initialised = True  # the trainer refines it with TrainConfig.lr_sdf
     share = float(inside.mean())
     log.info("SDF grid initialised from stage-1 MVS depth (%.1f%% of nodes inside)", 100 * share)
     return share

@@ -105,7 +105,9 @@ class Trainer:
             if sdf is not None:  # the SDF grid gets its own (small) rate
                 for g in groups:
                     g["params"] = [p for p in g["params"] if p is not sdf]
-                groups.append({"params": [sdf], "lr": self.cfg.lr_sdf, "name": "sdf"})
+                lr = self.cfg.lr_sdf if getattr(self.model, "mvs_initialised", False) \
+                    else self.cfg.lr_sdf_sphere
+                groups.append({"params": [sdf], "lr": lr, "name": "sdf"})
         else:
             groups = [{"params": list(self.model.parameters()), "lr": self.cfg.lr}]
         # METHOD.md 4.6: Adam, default betas, constant learning rate
