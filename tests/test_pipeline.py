@@ -111,3 +111,7 @@ def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
     bad.write_text("train:\n  stepz: 3\n")
     with pytest.raises(InputError, match="stepz"):
         load_config(bad)
+    cfg = _tiny_cfg(tiny_scene)
+    cfg.output.finer_stage_optimization = True
+    with pytest.raises(InputError, match="not implemented"):
+        Pipeline(cfg, tmp_path / "b", progress=False).run()

@@ -77,7 +77,8 @@ class FieldConfig:
     mlp_width: int = 256
     """mlp: hidden width of the SDF and colour MLPs."""
     background: bool = False
-    """Add the NeRF++ inverted-sphere background model (unbounded scenes, METHOD.md 5.5)."""
+    """Add the NeRF++ inverted-sphere background model (unbounded scenes, METHOD.md 5.5). The
+    model exists (field/background.py) but is not wired into the pipeline yet: True is refused."""
     grid_resolution: int = 128
     """grid: final resolution of the dense SDF grid."""
     grid_start_resolution: int = 64
@@ -134,7 +135,7 @@ class TrainConfig:
     samples_fine: int = 48
     """mvs sampler: importance samples from P' and the current weights."""
     beta_min: float = 0.0
-    """Lower bound on the Laplace beta (0 = learnable only, as the paper)."""
+    """> 0: replaces the Laplace density's floor beta_min (METHOD.md 5.4: 1e-4); 0 keeps it."""
     beta_start: float = 0.0
     """> 0: beta is not learned but annealed log-linearly from beta_start to beta_end over the
     steps (unit-frame units; fast preset: a short run cannot wait for the learned beta to
@@ -167,8 +168,8 @@ class OutputConfig:
     """Rendered-depth pixels with weight < 0.2: max (the map's maximum depth, released) |
     mvs (keep the stage-1 MVS depth)."""
     finer_stage_optimization: bool = False
-    """Paper option: also optimize the field at stages 2 and 3 (METHOD.md 9.2.13). Unsupported in
-    the released code."""
+    """Paper option: also optimize the field at stages 2 and 3 (METHOD.md 9.2.13; the released
+    code forbids it). Not implemented yet: True is refused with an error."""
 
 
 @dataclass

@@ -213,6 +213,12 @@ class Pipeline:
         log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s", scene.path, self.views,
                  scene.width, scene.height, self.cfg.train.mode, self.cfg.preset)
         mode = self.cfg.train.mode
+        if self.cfg.field.background:
+            raise InputError("field.background (NeRF++ background, field/background.py) is not "
+                             "wired into the pipeline yet")
+        if self.cfg.output.finer_stage_optimization:
+            raise InputError("output.finer_stage_optimization (the paper's optimization at "
+                             "stages 2-3, METHOD.md 9.2.13) is not implemented yet")
         if mode not in ("svolsdf", "volsdf", "mvs-only"):
             raise InputError(f"unknown mode {mode!r} (svolsdf, volsdf or mvs-only)")
         # stage keys chain their inputs: a changed config reruns that stage and the later ones
@@ -254,7 +260,11 @@ class Pipeline:
         from svolsdf.mvs.backbone import get_backbone
 
         m = self.cfg.mvs
-        kwargs = {}
+        nd = tuple(int(x) for x in m.ndepths)
+        if m.backbone == "planesweep":
+            kwargs = {"num_depths": nd, "width": m.width, "inverse_depth": m.inverse_depth}
+        else:  # casmvsnet and the depth + confidence adapters share these names
+            kwargs = {"ndepths": nd, "width_mode": m.width, "inverse_depth": m.inverse_depth}
         return get_backbone(m.backbone, weights=m.weights, **kwargs)
 
     def stage_mvs1(self) -> list[ProbabilityVolume]:
@@ -340,6 +350,8 @@ class Pipeline:
                                                   render_hidden=f.mlp_width))
         else:
             raise InputError(f"unknown field kind {f.kind!r} (grid or mlp)")
+        if self.cfg.train.beta_min > 0 and hasattr(model, "laplace"):
+            model.laplace.beta_min = float(self.cfg.train.beta_min)  # METHOD.md 5.4's floor
         return model
 
     def _grid_schedule(self) -> list[tuple[int, int]]:
