@@ -113,5 +113,27 @@ def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
         load_config(bad)
     cfg = _tiny_cfg(tiny_scene)
     cfg.output.finer_stage_optimization = True
-    with pytest.raises(InputError, match="not implemented"):
+    cfg.train.mode = "volsdf"
+    with pytest.raises(InputError, match="finer_stage_optimization"):
         Pipeline(cfg, tmp_path / "b", progress=False).run()
+
+
+def test_finer_stage_optimization(tiny_run, tmp_path):
+    """The paper's option (METHOD.md 9.2.13): more steps against the stage-2 volumes, then
+    stage 3 around the re-rendered depth; reuses the finished field and stage-1 volumes."""
+    import shutil
+
+    out, _, p = tiny_run
+    out2 = tmp_path / "finer"
+    shutil.copytree(out, out2)
+    cfg = load_config(out / "config.yaml")
+    cfg.output.finer_stage_optimization = True
+    p2 = Pipeline(cfg, out2, progress=False)
+    p2.run()
+    assert "field" not in p2.timing and "mvs23" in p2.timing and "mesh" in p2.timing
+    assert (out2 / "field" / "stage2" / "model.pt").is_file()
+    assert (out2 / "field" / "stage2" / "losses.csv").is_file()
+    v = json.loads((out2 / "views.json").read_text())["inputs"][0]
+    d = np.load(out2 / "depth" / f"{v}.npy")
+    assert d.shape == (120, 160) and np.isfinite(d).all()
+    assert not np.array_equal(d, np.load(out / "depth" / f"{v}.npy"))

@@ -168,8 +168,9 @@ class OutputConfig:
     """Rendered-depth pixels with weight < 0.2: max (the map's maximum depth, released) |
     mvs (keep the stage-1 MVS depth)."""
     finer_stage_optimization: bool = False
-    """Paper option: also optimize the field at stages 2 and 3 (METHOD.md 9.2.13; the released
-    code forbids it). Not implemented yet: True is refused with an error."""
+    """Paper option (METHOD.md 9.2.13; the released code forbids it): after stage 2, optimize
+    the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
+    its depth again and centre stage 3 on it (svolsdf mode; Pipeline._finer_stage_cascade)."""
 
 
 @dataclass

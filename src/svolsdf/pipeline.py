@@ -144,10 +144,11 @@ class Pipeline:
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
         k_guide = _hash(k_field, c["output"]["low_weight_rule"])
-        k_mvs23 = _hash(k_guide, c["mvs"])
+        k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"])
         k_fusion = _hash(k_mvs23, {k: v for k, v in c["output"].items() if k.startswith("fusion")
                                    or k == "use_masks"})
-        k_mesh = _hash(k_field, c["output"]["mesh_resolution"], c["output"]["mesh_format"])
+        k_mesh = _hash(k_field, c["output"]["mesh_resolution"], c["output"]["mesh_format"],
+                       k_mvs23 if c["output"]["finer_stage_optimization"] else None)
         return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
                 "fusion": k_fusion, "mesh": k_mesh}
 
@@ -216,9 +217,10 @@ class Pipeline:
         if self.cfg.field.background:
             raise InputError("field.background (NeRF++ background, field/background.py) is not "
                              "wired into the pipeline yet")
-        if self.cfg.output.finer_stage_optimization:
-            raise InputError("output.finer_stage_optimization (the paper's optimization at "
-                             "stages 2-3, METHOD.md 9.2.13) is not implemented yet")
+        if self.cfg.output.finer_stage_optimization and (
+                mode != "svolsdf" or self.cfg.train.ablation is not None):
+            raise InputError("output.finer_stage_optimization needs mode svolsdf without an "
+                             "ablation (it optimizes the field against the stage-2 volumes)")
         if mode not in ("svolsdf", "volsdf", "mvs-only"):
             raise InputError(f"unknown mode {mode!r} (svolsdf, volsdf or mvs-only)")
         # stage keys chain their inputs: a changed config reruns that stage and the later ones
@@ -514,32 +516,78 @@ class Pipeline:
         if self._done("guide") and all(f.is_file() for f in files.values()):
             return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
         t0 = time.perf_counter()
-        scene = self.load()
-        s = scene.normalization.scale
         if self.cfg.train.ablation == "soft-consistency-only":
             guide = self._consistency_depth()
         else:
-            nf = (scene.depth_range / s).float().to(self.device)
-            nf = torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
-            r = self.render_views(scene.cameras_unit, nf)
-            guide = {}
-            for i, v in enumerate(self.views):
-                d = r["depth"][i] * s
-                low = r["opacity"][i] < 0.2
-                if self.cfg.output.low_weight_rule == "max":
-                    # METHOD.md 6.1: pixels with sum w < 0.2 get the map's maximum depth
-                    d = torch.where(low, d[~low].max() if (~low).any() else d.max(), d)
-                elif self.cfg.output.low_weight_rule == "mvs" and self._volumes1 is not None:
-                    m = self._volumes1[i].depth[None, None]
-                    m = F.interpolate(m, size=d.shape, mode="bilinear")[0, 0]
-                    d = torch.where(low, m, d)
-                guide[v] = d.float()
-                self._render_previews(v, r, i)
+            guide = self._rendered_guide(previews=True)
         for v, d in guide.items():
             _save_npy(files[v], d.numpy().astype(np.float32))
         self._mark("guide", self.keys["guide"])
         self._time("guide", t0)
         return guide
+
+    def _rendered_guide(self, previews: bool = False) -> dict[int, torch.Tensor]:
+        """The field's rendered z-depth (world) of each input view, with METHOD.md 6.1's rule
+        for pixels of accumulated weight < 0.2."""
+        scene = self.load()
+        s = scene.normalization.scale
+        nf = (scene.depth_range / s).float().to(self.device)
+        nf = torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
+        r = self.render_views(scene.cameras_unit, nf)
+        guide = {}
+        for i, v in enumerate(self.views):
+            d = r["depth"][i] * s
+            low = r["opacity"][i] < 0.2
+            if self.cfg.output.low_weight_rule == "max":
+                # METHOD.md 6.1: pixels with sum w < 0.2 get the map's maximum depth
+                d = torch.where(low, d[~low].max() if (~low).any() else d.max(), d)
+            elif self.cfg.output.low_weight_rule == "mvs" and self._volumes1 is not None:
+                m = self._volumes1[i].depth[None, None]
+                m = F.interpolate(m, size=d.shape, mode="bilinear")[0, 0]
+                d = torch.where(low, m, d)
+            guide[v] = d.float()
+            if previews:
+                self._render_previews(v, r, i)
+        return guide
+
+    def _finer_stage_cascade(self, guide: dict[int, torch.Tensor]) -> dict:
+        """The paper's optional optimization at the finer stages (METHOD.md 9.2.13; the released
+        code forbids it): stage 2 runs centred on the rendered depth, the field is optimized
+        further against the soft-consistency prior of the stage-2 volumes, its depth is rendered
+        again, and stage 3 runs centred on that depth.
+
+        Returns:
+            {2: stage-2 volumes, 3: stage-3 volumes}.
+        """
+        from dataclasses import replace
+
+        from svolsdf.mvs.cascade import run_cascade
+        from svolsdf.optimize.trainer import Trainer
+        from svolsdf.prior.consistency import MVSPrior
+
+        bb = self.backbone()
+        scene = self.load()
+        res2 = run_cascade(bb, scene, guide_depth=guide, stages=(2,))
+        model = self.model()
+        t = self.cfg.train
+        # continue at the end of the stage-1 schedule: fixed final beta, no warm-up
+        t2 = replace(t, steps=max(1, t.steps // 5), anneal_rgb=0,
+                     beta_start=t.beta_end if t.beta_start > 0 else 0.0)
+        prior2 = MVSPrior(res2[2], scene.normalization, device=self.device)
+        trainer = Trainer(model, self.train_data(), t2, prior=prior2,
+                          sampler=self.make_sampler(prior2),
+                          out_dir=self.out / "field" / "stage2", device=self.device)
+        trainer.fit(progress=self.progress)
+        log.info("finer-stage optimization: %d more steps against the stage-2 volumes", t2.steps)
+        final = self.out / "field" / "stage2" / "model.pt"
+        tmp = final.with_suffix(".tmp")
+        torch.save({"model_state_dict": model.state_dict(),
+                    "grid_resolution": getattr(model, "resolution", None)}, tmp)
+        os.replace(tmp, final)
+        guide2 = self._rendered_guide()
+        res3 = run_cascade(bb, scene, guide_depth=guide2, stages=(3,),
+                           prev={v.view_id: v for v in res2[2]})
+        return {2: res2[2], 3: res3[3]}
 
     def _render_previews(self, v: int, r: dict, i: int) -> None:
         from svolsdf.io.images import write_image
@@ -601,8 +649,11 @@ class Pipeline:
             stages = (2, 3)
             if guide is None and self._volumes1 is None:
                 stages = (1, 2, 3)
-            res = run_cascade(self.backbone(), self.load(), guide_depth=guide, stages=stages,
-                              prev=prev)
+            if self.cfg.output.finer_stage_optimization and guide is not None:
+                res = self._finer_stage_cascade(guide)
+            else:
+                res = run_cascade(self.backbone(), self.load(), guide_depth=guide,
+                                  stages=stages, prev=prev)
             if self._volumes1 is not None:
                 res[1] = self._volumes1
             save_cascade(res, self.out, picture=lambda d, p: write_depth_preview(
@@ -665,6 +716,9 @@ class Pipeline:
         )
 
         model = self.model()
+        refined = self.out / "field" / "stage2" / "model.pt"
+        if o.finer_stage_optimization and refined.is_file():
+            self._load_model(model, refined)  # the field after the finer-stage optimization
         model.eval()
         b = getattr(model, "bounds", None)
         bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else self.field_bounds()
