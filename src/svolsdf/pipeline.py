@@ -382,36 +382,31 @@ class Pipeline:
             return MVSGuidedSampler(prior if training else None, gc)
         raise InputError(f"unknown sampler {t.sampler!r} (mvs or error_bounded)")
 
+    def unit_near_far(self) -> torch.Tensor:
+        """(V, 2) unit-frame z-depth range of the input views, padded by 10% (rays are clipped
+        to it in training, guide rendering and novel views)."""
+        scene = self.load()
+        nf = (scene.depth_range / scene.normalization.scale).float()
+        return torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
+
     def train_data(self):
         from svolsdf.optimize.trainer import TrainData
 
         scene = self.load()
-        s = scene.normalization.scale
-        nf = (scene.depth_range / s).float()
-        nf = torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
         mvs_depth = None
         if self.cfg.train.ablation in ("mse", "no-prob-volume"):
-            mvs_depth = self._filtered_stage1_depth() / s
-        return TrainData(scene.images, scene.cameras_unit, nf, mvs_depth)
+            mvs_depth = self._filtered_stage1_depth() / scene.normalization.scale
+        return TrainData(scene.images, scene.cameras_unit, self.unit_near_far(), mvs_depth)
 
     def _filtered_stage1_depth(self) -> torch.Tensor:
         """(V, H, W) stage-1 MVS depth (world), geometrically filtered, 0 where rejected, at the
         working size (for the "mse" and "no-prob-volume" ablations)."""
-        from svolsdf.fusion.filter import check_geometric_consistency
+        from svolsdf.field.init import consistent_depths
 
         scene = self.load()
-        vols = self._volumes1
-        out = []
-        for i, v in enumerate(vols):
-            cnt = torch.zeros_like(v.depth, dtype=torch.long)
-            for j, u in enumerate(vols):
-                if i != j:
-                    m = check_geometric_consistency(v.depth, v.cameras, u.depth, u.cameras)[0]
-                    cnt += m.long()
-            d = torch.where(cnt >= 1, v.depth, torch.zeros_like(v.depth))
-            d = F.interpolate(d[None, None], size=(scene.height, scene.width), mode="nearest")
-            out.append(d[0, 0])
-        return torch.stack(out)
+        depths, _ = consistent_depths(self._volumes1)  # >= 1 consistent source (METHOD.md 6.3)
+        return torch.stack([F.interpolate(d[None, None], size=(scene.height, scene.width),
+                                          mode="nearest")[0, 0] for d in depths])
 
     def stage_field(self):
         from svolsdf.optimize.trainer import Trainer
@@ -531,9 +526,7 @@ class Pipeline:
         for pixels of accumulated weight < 0.2."""
         scene = self.load()
         s = scene.normalization.scale
-        nf = (scene.depth_range / s).float().to(self.device)
-        nf = torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
-        r = self.render_views(scene.cameras_unit, nf)
+        r = self.render_views(scene.cameras_unit, self.unit_near_far().to(self.device))
         guide = {}
         for i, v in enumerate(self.views):
             d = r["depth"][i] * s
@@ -710,6 +703,7 @@ class Pipeline:
             cull_by_masks,
             extract_mesh,
             largest_component,
+            model_colour_fn,
             save_mesh,
             to_world,
             vertex_normals,
@@ -744,15 +738,7 @@ class Pipeline:
         v = v[idx]
         cols = None
         try:
-            def colour_fn(p, n):
-                p = p.to(dev)
-                n = n.to(dev)
-                with torch.enable_grad():
-                    _, g, feat = model.sdf_and_grad(p, create_graph=False)
-                g = torch.nn.functional.normalize(g, dim=-1)
-                return model.colour(p, -n, g, feat).detach().cpu()
-
-            cols = colors_from_fn(v, vertex_normals(v, f), colour_fn)
+            cols = colors_from_fn(v, vertex_normals(v, f), model_colour_fn(model), device=dev)
         except Exception as e:  # colours are a convenience
             log.warning("mesh colours failed: %s", e)
         save_mesh(path, vw, f, cols, fmt=o.mesh_format)

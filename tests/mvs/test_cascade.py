@@ -102,7 +102,6 @@ def test_combined_confidence_is_the_product():
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("mvsjob") / "scene"
     return make_synthetic_scene(out, SynthConfig(views=3, width=64, height=48, seed=2,
                                                  gt_points=2000, supersample=1,

@@ -38,7 +38,6 @@ def _one_thread():
 @pytest.fixture(scope="module")
 def sphere_run():
     """A textured sphere in front of a slanted textured plane, 3 views at 96x72, all stages."""
-    torch.set_num_threads(1)
     cams = make_cameras(96, 72)
     sphere = ((0.0, 0.0, 0.2), 1.3)
     plane = ((math.sin(0.3), 0.0, -math.cos(0.3)), -1.2)

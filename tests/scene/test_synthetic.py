@@ -34,17 +34,11 @@ def _digest(root: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def scene96(tmp_path_factory) -> tuple[Path, float]:
-    """A default 3-view 96x72 scene and the seconds it took."""
-    torch.set_num_threads(1)
+    """A default 3-view 96x72 scene and the seconds it took (speed: benchmarks/synth_speed.py)."""
     out = tmp_path_factory.mktemp("synth") / "s96"
     t0 = time.perf_counter()
     make_synthetic_scene(out, SynthConfig(views=3, width=96, height=72, seed=5))
     return out, time.perf_counter() - t0
-
-
-def test_generates_in_seconds(scene96):
-    _, seconds = scene96
-    assert seconds < 15.0, f"a 3-view 96x72 scene took {seconds:.1f} s"
 
 
 def test_layout_and_loader(scene96):

@@ -96,6 +96,12 @@ class Trainer:
         self.generator = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self._build_optimizer()
         self.history: list[dict] = []
+        # METHOD.md 4.5: the eikonal term uses the raw field, without the sphere clamp (for
+        # fields whose sdf_and_grad can switch it off); decided once, not every step
+        import inspect
+
+        clamp_arg = "clamp" in inspect.signature(self.model.sdf_and_grad).parameters
+        self._noclamp = {"clamp": False} if clamp_arg else {}
 
     # ------------------------------------------------------------------ setup
     def _build_optimizer(self) -> None:
@@ -184,12 +190,9 @@ class Trainer:
         # eikonal (METHOD.md 4.5): R uniform points in the box + one sample per ray
         lo, hi = self._eikonal_box()
         u = torch.rand(R, 3, device=self.device) * (hi - lo) + lo
-        eik_pts = out.points[torch.arange(R, device=self.device), s.eik_index.clamp_max(
-            out.points.shape[1] - 1)]
-        _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp())
+        _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp)
         g_all = torch.cat([g_u, out.grad[torch.arange(R, device=self.device),
                                          s.eik_index.clamp_max(out.grad.shape[1] - 1)]], 0)
-        del eik_pts
         terms["eikonal"] = L.eikonal_loss(g_all)
 
         total = cfg.rgb_weight * terms["rgb"] + cfg.eikonal_weight * terms["eikonal"]
@@ -219,13 +222,6 @@ class Trainer:
             return b[0].to(self.device), b[1].to(self.device)
         r = float(getattr(self.model, "radius", 3.0))
         return (torch.full((3,), -r, device=self.device), torch.full((3,), r, device=self.device))
-
-    def _noclamp(self) -> dict:
-        # METHOD.md 4.5: the eikonal term uses the raw field, without the sphere clamp
-        import inspect
-
-        sig = inspect.signature(self.model.sdf_and_grad)
-        return {"clamp": False} if "clamp" in sig.parameters else {}
 
     def _anneal_beta(self) -> None:
         """TrainConfig.beta_start > 0: beta follows a log-linear anneal instead of being learned."""
