@@ -35,6 +35,7 @@ from svolsdf.field.base import SurfaceModel
 from svolsdf.field.density import LaplaceDensity
 from svolsdf.field.embedding import positional_encoding
 from svolsdf.field.grid_ops import (
+    device_vector,
     laplacian_loss,
     resample_grid,
     total_variation_loss,
@@ -226,7 +227,7 @@ class GridSDFField(SurfaceModel):
     def cell_size(self) -> Tensor:
         """(3,) SDF grid spacing (x, y, z) in unit-frame units."""
         Z, Y, X = self.grid_shape
-        n = torch.tensor([X, Y, Z], dtype=self.bounds.dtype, device=self.bounds.device)
+        n = device_vector([X, Y, Z], self.bounds.device, self.bounds.dtype)
         return (self.bounds[1] - self.bounds[0]) / (n - 1)
 
     @torch.no_grad()
@@ -268,7 +269,8 @@ class GridSDFField(SurfaceModel):
         the eikonal term. ``n_samples`` random interior nodes (None = all).
         """
         # Cells are cubic (_snap_bounds) up to rounding after a non-integer upsample factor.
-        return laplacian_loss(self.sdf_grid, n_samples) / float(self.cell_size.mean()) ** 4
+        # (the cell size stays a device tensor: float() here would stall a GPU every step)
+        return laplacian_loss(self.sdf_grid, n_samples) / self.cell_size.mean() ** 4
 
     def feature_tv_loss(self) -> Tensor:
         """() mean over levels of the total variation (squared differences) of each feature grid."""
@@ -301,7 +303,7 @@ class GridSDFField(SurfaceModel):
         p, d, inside = self._to_box(x)
         lo, hi = self.bounds
         Z, Y, X = self.grid_shape
-        n = torch.tensor([X, Y, Z], dtype=x.dtype, device=x.device)
+        n = device_vector([X, Y, Z], x.device, x.dtype)
         to_index = (n - 1) / (hi - lo)  # (3,) index units per unit-frame unit
         value, gu = trilinear_with_grad(self.sdf_grid, (p - lo) * to_index, with_grad)
         dist = d.norm(dim=-1)

@@ -22,7 +22,20 @@ __all__ = [
     "resample_grid",
     "laplacian_loss",
     "total_variation_loss",
+    "device_vector",
 ]
+
+
+def device_vector(values: list[float], device, dtype) -> Tensor:
+    """A small constant (len(values),) tensor made on ``device`` by fills, not by a copy.
+
+    ``torch.tensor(values, device="cuda")`` copies host memory with a blocking copy, which
+    synchronises the device; inside a training step that stalls the GPU queue every call.
+    """
+    out = torch.empty(len(values), device=device, dtype=dtype)
+    for i, v in enumerate(values):
+        out[i] = v  # a fill kernel on the device
+    return out
 
 
 def _check_grid_points(grid: Tensor, u: Tensor) -> None:
@@ -58,14 +71,14 @@ def trilinear_with_grad(
     _check_grid_points(grid, u)
     C, Z, Y, X = grid.shape
     n = u.shape[0]
-    size = torch.tensor([X, Y, Z], device=u.device, dtype=u.dtype)
+    size = device_vector([X, Y, Z], u.device, u.dtype)
     u = torch.minimum(torch.clamp(u, min=0.0), size - 1)
     i0 = torch.minimum(u.detach().floor(), size - 2)
     f = u - i0  # (N, 3) in [0, 1]
     i0 = i0.long()
     base = (i0[:, 2] * Y + i0[:, 1]) * X + i0[:, 0]  # (N,)
-    offs = torch.tensor(
-        [0, 1, X, X + 1, X * Y, X * Y + 1, X * Y + X, X * Y + X + 1], device=u.device
+    offs = device_vector(
+        [0, 1, X, X + 1, X * Y, X * Y + 1, X * Y + X, X * Y + X + 1], u.device, torch.long
     )
     idx = (base[:, None] + offs).reshape(-1)  # (N*8,) corner order: z, y, x (x fastest)
     c = grid.reshape(C, -1).index_select(1, idx).reshape(C, n, 2, 2, 2).permute(1, 0, 2, 3, 4)
@@ -147,7 +160,7 @@ def laplacian_loss(grid: Tensor, n_samples: int | None = None) -> Tensor:
     y = torch.randint(1, Y - 1, (n_samples,), device=dev)
     x = torch.randint(1, X - 1, (n_samples,), device=dev)
     centre = (z * Y + y) * X + x
-    steps = torch.tensor([1, X, X * Y], device=dev)
+    steps = device_vector([1, X, X * Y], dev, torch.long)
     flat = grid.reshape(C, -1)
     plus_idx = (centre[:, None] + steps).reshape(-1)
     minus_idx = (centre[:, None] - steps).reshape(-1)

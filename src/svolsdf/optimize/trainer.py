@@ -93,7 +93,9 @@ class Trainer:
         self.grid_schedule = sorted(grid_schedule or [])
         self.step = 0
         self.out_dir = Path(out_dir) if out_dir is not None else None
-        self.generator = torch.Generator(device="cpu").manual_seed(cfg.seed)
+        # on the training device: the view and pixel draws never leave it (no host copy and no
+        # host read inside a step; a blocking host-to-device copy synchronises CUDA)
+        self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self._build_optimizer()
         self.history: list[dict] = []
         # METHOD.md 4.5: the eikonal term uses the raw field, without the sphere clamp (for
@@ -129,28 +131,40 @@ class Trainer:
 
     # ------------------------------------------------------------------ rays
     def sample_rays(self, n: int) -> tuple[RayBundle, Tensor, Tensor]:
-        """n random pixels of one random view (METHOD.md 4.6).
+        """n random pixels of one random view (METHOD.md 4.6), drawn on the device.
 
         Returns:
-            rays (R,), pixel index (R,) long into H*W, view index () long.
+            rays (R,), pixel index (R,) long into H*W, view index (1,) long (a 1-element
+            tensor, not 0-dim: indexing with a 0-dim tensor reads it on the host).
         """
-        t = int(torch.randint(self.V, (1,), generator=self.generator))
-        pix = torch.randperm(self.H * self.W, generator=self.generator)[:n].to(self.device)
+        t = torch.randint(self.V, (1,), generator=self.generator, device=self.device)
+        pix = torch.randperm(self.H * self.W, generator=self.generator, device=self.device)[:n]
         uv = torch.stack([pix % self.W, pix // self.W], dim=-1).float()
         rays = self.make_rays(t, uv)
-        return rays, pix, torch.tensor(t, device=self.device)
+        return rays, pix, t
 
-    def make_rays(self, t: int, uv: Tensor) -> RayBundle:
-        """Rays of view t through pixels uv (R, 2), clipped to the view's depth range."""
+    def make_rays(self, t: int | Tensor, uv: Tensor) -> RayBundle:
+        """Rays of view t (an int or a (1,) long tensor) through pixels uv (R, 2), clipped to
+        the view's depth range (only the near bound with a background model: the foreground
+        then ends at the bounding sphere, METHOD.md 5.5)."""
         radius = float(getattr(self.model, "radius", 3.0))
-        rays = rays_from_cameras(self.cameras, torch.full((uv.shape[0],), t, device=self.device),
-                                 uv, radius=radius, near=1e-4, far_mode="sphere")
+        R = uv.shape[0]
+        view = (torch.full((R,), t, device=self.device) if isinstance(t, int)
+                else t.reshape(1).expand(R))
+        rays = rays_from_cameras(self.cameras, view, uv, radius=radius, near=1e-4,
+                                 far_mode="sphere")
         if self.near_far is not None:
             near = self.near_far[t, 0] / rays.cos
-            far = self.near_far[t, 1] / rays.cos
             rays.near = torch.maximum(rays.near, near)
-            rays.far = torch.maximum(torch.minimum(rays.far, far), rays.near + 1e-3)
+            far = rays.far if self.background is not None else torch.minimum(
+                rays.far, self.near_far[t, 1] / rays.cos)
+            rays.far = torch.maximum(far, rays.near + 1e-3)
         return rays
+
+    @property
+    def background(self):
+        """The model's background (``model.background``, METHOD.md 5.5) or None."""
+        return getattr(self.model, "background", None)
 
     # ------------------------------------------------------------------ one step
     def losses(self) -> dict[str, Tensor]:
@@ -159,7 +173,7 @@ class Trainer:
         model = self.model
         rays, pix, t = self.sample_rays(cfg.rays)
         s = self.sampler(model, rays, training=True)
-        out = render_rays(model, rays, s.z, create_graph=True)
+        out = render_rays(model, rays, s.z, background=self.background, create_graph=True)
         R = len(rays)
         target = self.images[t].reshape(3, -1)[:, pix].T  # (R, 3)
         terms: dict[str, Tensor] = {}
@@ -309,6 +323,8 @@ class Trainer:
             "grid_resolution": getattr(self.model, "resolution", None),
             "generator": self.generator.get_state(),
             "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state(self.device)
+            if self.device.type == "cuda" else None,
             "history": self.history,
         }
         tmp = path.with_suffix(".tmp")
@@ -333,8 +349,11 @@ class Trainer:
         except ValueError:  # parameter groups changed (grid grown): fresh moments
             log.info("optimizer state not restored (parameter groups changed)")
         self.step = int(state["iter_step"])
-        self.generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
+        # RNG states must be CPU byte tensors (map_location moved them to the device)
+        self.generator.set_state(state["generator"].cpu())
+        torch.set_rng_state(state["torch_rng"].cpu())
+        if state.get("cuda_rng") is not None and self.device.type == "cuda":
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu(), self.device)
         self.history = list(state.get("history", []))
         log.info("resumed from %s at step %d", path, self.step)
         return True

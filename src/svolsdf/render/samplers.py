@@ -234,8 +234,9 @@ def error_bound_sample(
        subset in training, evenly spaced indices otherwise)).
     5. One random eikonal index per ray.
 
-    With one iteration (training) the convergence test is not evaluated, so the step has no
-    device-host synchronisation.
+    In training the convergence test is not evaluated (all ``max_total_iters_train``
+    iterations run; 1 in the paper, METHOD.md 4.6), so the step has no device-host
+    synchronisation.
 
     Args:
         model: any :class:`SurfaceModel` (``sdf``, ``density(sdf, beta)``, ``beta``).
@@ -275,8 +276,11 @@ def error_bound_sample(
         beta = hi
         weights = _weights(model, sdf, z, beta[:, None])
         it += 1
-        # The convergence test (max_r beta_r <= beta0) only matters when iterations remain.
-        refine = it < max_iters and bool((beta.max() > beta0).item())
+        # The convergence test (max_r beta_r <= beta0) only matters when iterations remain. In
+        # training it is skipped (every iteration runs): reading it would stall the device
+        # each step, and refining a converged set changes no ray's beta (it stays beta0, the
+        # lower end of the line search), it only adds candidate samples.
+        refine = it < max_iters and (training or bool((beta.max() > beta0).item()))
         if refine:
             # More samples where the bound says the opacity is uncertain (step 3.7).
             _, bound = opacity_error_bound(model, sdf, z, d_star, beta[:, None])
