@@ -77,8 +77,9 @@ class FieldConfig:
     mlp_width: int = 256
     """mlp: hidden width of the SDF and colour MLPs."""
     background: bool = False
-    """Add the NeRF++ inverted-sphere background model (unbounded scenes, METHOD.md 5.5). The
-    model exists (field/background.py) but is not wired into the pipeline yet: True is refused."""
+    """Add the NeRF++ inverted-sphere background model (unbounded scenes, METHOD.md 5.5): the
+    field's sphere clamp is off and rays end at the bounding sphere, beyond which the
+    background MLP (field/background.py) renders."""
     grid_resolution: int = 128
     """grid: final resolution of the dense SDF grid."""
     grid_start_resolution: int = 64

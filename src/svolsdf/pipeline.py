@@ -214,9 +214,6 @@ class Pipeline:
         log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s", scene.path, self.views,
                  scene.width, scene.height, self.cfg.train.mode, self.cfg.preset)
         mode = self.cfg.train.mode
-        if self.cfg.field.background:
-            raise InputError("field.background (NeRF++ background, field/background.py) is not "
-                             "wired into the pipeline yet")
         if self.cfg.output.finer_stage_optimization and (
                 mode != "svolsdf" or self.cfg.train.ablation is not None):
             raise InputError("output.finer_stage_optimization needs mode svolsdf without an "
@@ -343,18 +340,39 @@ class Pipeline:
             ext = (bounds[1] - bounds[0]).max()
             gcfg = GridFieldConfig(resolution=f.grid_start_resolution,
                                    init_radius=float(0.35 * ext),
-                                   init_centre=tuple(((bounds[0] + bounds[1]) / 2).tolist()))
+                                   init_centre=tuple(((bounds[0] + bounds[1]) / 2).tolist()),
+                                   # METHOD.md 5.5: no sphere clamp under a background model
+                                   sphere_clamp_scale=None if f.background else 20.0)
             model = GridSDFField(bounds, gcfg)
         elif f.kind == "mlp":
             from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig
 
             model = VolSDFField(VolSDFFieldConfig(n_layers=f.mlp_depth, d_hidden=f.mlp_width,
-                                                  render_hidden=f.mlp_width))
+                                                  render_hidden=f.mlp_width,
+                                                  sphere_clamp=not f.background))
         else:
             raise InputError(f"unknown field kind {f.kind!r} (grid or mlp)")
+        if f.background:
+            self._attach_background(model)
         if self.cfg.train.beta_min > 0 and hasattr(model, "laplace"):
             model.laplace.beta_min = float(self.cfg.train.beta_min)  # METHOD.md 5.4's floor
         return model
+
+    def _attach_background(self, model) -> None:
+        """``model.background``: the NeRF++ inverted-sphere background (METHOD.md 5.5).
+
+        A submodule of the field, so it moves with ``model.to(device)``, is saved in its
+        state_dict (keys ``background.net.*``, ``background.colour_net.*``), trained by the
+        Trainer at the network rate ``train.lr`` and passed to every ``render_rays`` call. The
+        paper's network sizes with the MLP field; a smaller MLP with the fast grid field.
+        """
+        from svolsdf.field.background import BackgroundConfig, NeRFPlusPlusBackground
+
+        bcfg = BackgroundConfig(radius=float(model.radius))
+        if self.cfg.field.kind == "grid":
+            bcfg = BackgroundConfig(radius=float(model.radius), n_layers=4, d_hidden=64,
+                                    skip_in=(), feature_dim=32, colour_hidden=32)
+        model.background = NeRFPlusPlusBackground(bcfg)
 
     def _grid_schedule(self) -> list[tuple[int, int]]:
         f = self.cfg.field
@@ -479,6 +497,7 @@ class Pipeline:
 
         model = self.model()
         model.eval()
+        background = getattr(model, "background", None)
         sampler = self.make_sampler(None, training=False)
         cams = cameras_unit.to(self.device, dtype=torch.float32)
         H, W = cams.height, cams.width
@@ -487,13 +506,16 @@ class Pipeline:
             rays = rays_from_cameras(cams, t, radius=float(getattr(model, "radius", 3.0)))
             if near_far is not None:
                 rays.near = torch.maximum(rays.near, near_far[t, 0] / rays.cos)
-                rays.far = torch.maximum(torch.minimum(rays.far, near_far[t, 1] / rays.cos),
-                                         rays.near + 1e-3)
+                # with a background the foreground ends at the sphere (METHOD.md 5.5)
+                far = rays.far if background is not None else torch.minimum(
+                    rays.far, near_far[t, 1] / rays.cos)
+                rays.far = torch.maximum(far, rays.near + 1e-3)
             parts = {k: [] for k in keys}
             for i in range(0, len(rays), chunk):
                 rb = rays[i:i + chunk]
                 s = sampler(model, rb, training=False)
-                o = render_rays(model, rb, s.z, create_graph=False, colour_min_weight=1e-4)
+                o = render_rays(model, rb, s.z, background=background, create_graph=False,
+                                colour_min_weight=1e-4)
                 for k in keys:
                     parts[k].append(getattr(o, k).detach().cpu())
             for k in keys:

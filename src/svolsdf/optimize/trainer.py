@@ -221,7 +221,8 @@ class Trainer:
             if p_label is not None and cfg.sparse_weight > 0 and self.step < cfg.anneal_rgb:
                 w_sp = L.sparse_weight_at(self.step, cfg.sparse_weight, cfg.anneal_rgb,
                                           "linear" if cfg.sparse_decay else "constant")
-                terms["sparse"] = L.sparse_loss(out.depth, p_label, normalize=cfg.sparse_norm)
+                # depth over the foreground and the T_bg-scaled background (METHOD.md 5.5)
+                terms["sparse"] = L.sparse_loss(out.depth_all, p_label, normalize=cfg.sparse_norm)
                 total = total + w_sp * terms["sparse"]
         if cfg.smooth_weight > 0 and hasattr(model, "smoothness_loss"):
             terms["smooth"] = model.smoothness_loss()
@@ -287,8 +288,12 @@ class Trainer:
                 terms = self.train_step()
                 bar.update(1)
                 if self.step % log_every == 0 or self.step == steps:
-                    row = {"step": self.step, **{k: float(v) for k, v in terms.items()},
-                           "beta": float(torch.as_tensor(self.model.beta).detach())}
+                    # one device read per logged step (train_step itself never reads)
+                    vals = torch.stack([v.float().reshape(()) for v in terms.values()]
+                                       + [torch.as_tensor(self.model.beta).detach().float()
+                                          .reshape(()).to(self.device)]).tolist()
+                    row = {"step": self.step, **dict(zip(terms, vals[:-1], strict=True)),
+                           "beta": vals[-1]}
                     rate = (self.step - s0) / max(time.perf_counter() - t0, 1e-9)
                     row["steps_per_s"] = rate
                     self.history.append(row)

@@ -68,7 +68,8 @@ class MVSGuidedSampler:
     @torch.no_grad()
     def __call__(self, model: SurfaceModel, rays: RayBundle,
                  training: bool | None = None) -> SamplerOutput:
-        """rays: R rays -> SamplerOutput with z (R, n_uniform + n_fine) sorted, eik_index (R,)."""
+        """rays: R rays -> SamplerOutput with z (R, n_uniform + n_fine) sorted (one more, the
+        far bound, when the model has a ``background``), eik_index (R,)."""
         cfg = self.config
         training = model.training if training is None else training
         R = len(rays)
@@ -96,5 +97,9 @@ class MVSGuidedSampler:
         zf = sample_pdf(zc, pdf, cfg.n_fine, det=not training)
         zu = uniform_sampler(rays.near, rays.far, cfg.n_uniform, stratified=training)
         z, _ = torch.sort(torch.cat([zu, zf], dim=-1), dim=-1)
+        if getattr(model, "background", None) is not None:
+            # render_rays takes the last entry as the far bound where the background starts
+            # (METHOD.md 5.5), as with the error-bounded sampler's final set
+            z = torch.cat([z, rays.far[:, None]], dim=-1)
         eik = torch.randint(z.shape[1], (R,), device=z.device)
         return SamplerOutput(z, eik)
