@@ -40,6 +40,7 @@ __all__ = [
     "stage_size",
     "stage_cameras",
     "expected_depth",
+    "mode_depth",
     "photometric_confidence",
     "volume_from_prob",
     "check_depth_ranges",
@@ -174,6 +175,29 @@ def expected_depth(prob: Tensor, depths: Tensor) -> Tensor:
     return (prob * depths).sum(-3)
 
 
+def mode_depth(prob: Tensor, depths: Tensor, radius: int = 2) -> Tensor:
+    """Soft depth regression restricted to the main mode: sum_{|k-k*|<=r} P_k d_k / sum P_k.
+
+    k* = argmax_k P_k. Equal to `expected_depth` for a unimodal distribution inside the window;
+    for a bimodal one (a training-free cost with a second, wrong match) it stays on the stronger
+    mode instead of landing between the two, on no surface.
+
+    Args:
+        prob: (..., D, H, W) probabilities over D.
+        depths: (..., D, H, W) hypothesis depths (broadcastable to prob).
+        radius: r, hypotheses on each side of the argmax.
+
+    Returns:
+        (..., H, W) depth.
+    """
+    D = prob.shape[-3]
+    k = torch.arange(D, device=prob.device).view(D, 1, 1)
+    kstar = prob.argmax(-3, keepdim=True)
+    win = ((k - kstar).abs() <= radius).to(prob.dtype)
+    pw = prob * win
+    return (pw * depths).sum(-3) / pw.sum(-3).clamp_min(1e-12)
+
+
 def photometric_confidence(prob: Tensor) -> Tensor:
     """CasMVSNet's 4-bin photometric confidence (METHOD.md 2.4).
 
@@ -203,15 +227,19 @@ def volume_from_prob(
     view_id: int,
     stage: int,
     inverse_depth: bool = False,
+    depth_radius: int | None = None,
 ) -> ProbabilityVolume:
     """Assemble a `ProbabilityVolume` from (D, H, W) probabilities and hypotheses.
 
-    depth = expectation, confidence = 4-bin sum (METHOD.md 2.4).
+    depth = expectation (METHOD.md 2.4), or with ``depth_radius`` r the expectation over the
+    2r+1 hypotheses around the argmax (`mode_depth`); confidence = 4-bin sum (METHOD.md 2.4).
     """
+    depth = (expected_depth(prob, depths) if depth_radius is None
+             else mode_depth(prob, depths.expand_as(prob), depth_radius))
     return ProbabilityVolume(
         depths=depths,
         prob=prob,
-        depth=expected_depth(prob, depths),
+        depth=depth,
         confidence=photometric_confidence(prob),
         cameras=cameras,
         view_id=int(view_id),

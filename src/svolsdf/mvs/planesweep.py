@@ -21,7 +21,8 @@ hypotheses, METHOD.md 2.5):
    ``m = temperature_margin``. At a typical pixel the D/2 hypotheses at the median cost then keep
    about D/2 · e^-(ln D + m) = e^-m / 2 of the mass (m = 4: ~1 %), so the distribution is peaked
    where the matching is distinctive and spread where it is not.
-6. depth = expectation, confidence = 4-bin sum (METHOD.md 2.4).
+6. depth = expectation over the main mode (``depth_radius``; the full expectation of METHOD.md
+   2.4 with None), confidence = 4-bin sum (METHOD.md 2.4).
 
 Everything is vectorized in torch; warps, windows and filters are computed in chunks over depth.
 """
@@ -108,6 +109,12 @@ class PlaneSweepConfig:
     zncc_eps: float = 1e-5
     """Added to each window variance in ZNCC's denominator, ~ the squared image noise on [0, 1]
     (a flat patch gets cost ~1 instead of matching noise)."""
+    depth_radius: int | None = 2
+    """Depth estimate per pixel: the probability-weighted mean over the 2r+1 hypotheses around
+    the most likely one (`svolsdf.mvs.backbone.mode_depth`); None = the full expectation of
+    METHOD.md 2.4. A training-free cost often has a second, wrong match on textureless or
+    repeated surfaces; the full expectation then lands between the two, on no surface, and the
+    next stage searches around that."""
     min_depth_ratio: float = 0.05
     """Finer-stage hypotheses are clamped to >= this fraction of the view's near depth."""
     extra: dict = field(default_factory=dict)
@@ -395,7 +402,8 @@ class PlaneSweepBackbone(MVSBackbone):
             prob = torch.softmax(-cost / T, dim=0)
             log.debug("planesweep stage %d view %d: T = %.4g", k, vid, T)
             out.append(volume_from_prob(prob, depths, cams[r], vid, k,
-                                        inverse_depth=self.cfg.inverse_depth and k == 1))
+                                        inverse_depth=self.cfg.inverse_depth and k == 1,
+                                        depth_radius=self.cfg.depth_radius))
         return out
 
     def _cost_volume(self, k, r, src, chans, gray, cams, depths) -> Tensor:
