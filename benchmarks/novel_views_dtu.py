@@ -1,4 +1,4 @@
-"""Novel-view benchmark on DTU (issue 7): S-VolSDF against the VolSDF-only baseline of the same code.
+"""Novel-view benchmark on DTU (issue 7): S-VolSDF against the same code's VolSDF-only baseline.
 
 On ../shared/data/dtu_scan65 (inputs 25 22 28 at 768x576, the paper's protocol, METHOD.md 1.3)
 it runs, in fresh processes, for each mode (``svolsdf``: the default fast preset; ``volsdf``: the
@@ -116,7 +116,7 @@ def main() -> None:
               "renders the input views' depth once).", "", "## Per view (PSNR, VR / IBR)", "",
               "| view | " + " | ".join(res) + " |", "|---|" + "---|" * len(res)]
     first = next(iter(res.values()))
-    for i, v in enumerate(first["test_views"]):
+    for v in first["test_views"]:
         cells = []
         for r in res.values():
             a, b = r["images"]["psnr"], (r["images_ibr"] or {}).get("psnr")
