@@ -56,3 +56,24 @@ def test_reconstruct_mvs_only_and_config_roundtrip(scene, tmp_path, capsys):
     # the written config reruns the same job (all stages reused)
     main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
     assert "reconstruct" not in capsys.readouterr().err
+
+
+def test_background_flag_reaches_the_config(monkeypatch, tmp_path):
+    # the flag sets field.background; the pipeline is replaced by a recorder (no run)
+    import svolsdf.pipeline as pl
+
+    seen = {}
+
+    class Recorder:
+        def __init__(self, cfg, out, progress=True):
+            seen["cfg"] = cfg
+
+        def run(self):
+            return {"points": "p", "mesh": None, "timing": {}}
+
+    monkeypatch.setattr(pl, "Pipeline", Recorder)
+    for flag, want in (("--background", True), ("--no-background", False), (None, False)):
+        argv = ["reconstruct", str(tmp_path), "-o", str(tmp_path / "o")] + ([flag] if flag else [])
+        seen.clear()
+        main(argv)  # standalone_mode=False: returns normally on success
+        assert seen["cfg"].field.background is want

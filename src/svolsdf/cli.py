@@ -246,6 +246,9 @@ def reconstruct(
     mesh_resolution: Annotated[int | None, typer.Option(
         "--mesh-resolution", help="Marching-cubes resolution.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
+    background: Annotated[bool | None, typer.Option(
+        "--background/--no-background",
+        help="NeRF++ inverted-sphere background for unbounded scenes (METHOD.md 5.5).")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
 ) -> None:
     """Reconstruct a scene: MVS, S-VolSDF optimization, guided MVS, fusion and mesh.
@@ -260,6 +263,7 @@ def reconstruct(
         "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
         "train.mode": mode, "train.ablation": ablation, "train.steps": steps,
         "device": device, "output.mesh_resolution": mesh_resolution, "train.seed": seed,
+        "field.background": background,
     })
     summary = Pipeline(cfg, out, progress=not no_progress).run()
     typer.echo(f"points: {summary['points']}")

@@ -64,7 +64,8 @@ def open_run(out: str | Path, progress: bool = False):
 
     Args:
         out: a run folder written by ``svolsdf reconstruct`` (config.yaml, views.json,
-            field/model.pt).
+            field/model.pt; field/stage2/model.pt instead when the finer-stage optimization
+            made one).
         progress: progress bars in the pipeline.
 
     Returns:
@@ -106,6 +107,9 @@ def open_run(out: str | Path, progress: bool = False):
         # a config or package change alters the stage hash; rendering never retrains
         log.warning("%s: the stored field was trained under another config hash (edited config "
                     "or newer package); rendering the stored field/model.pt as it is", out)
+    refined = out / "field" / "stage2" / "model.pt"
+    if p.cfg.output.finer_stage_optimization and refined.is_file():
+        model_path = refined  # the field after the finer-stage optimization (as the mesh uses)
     model = p.build_model()
     try:
         p._load_model(model, model_path)
