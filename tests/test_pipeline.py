@@ -137,3 +137,25 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
     d = np.load(out2 / "depth" / f"{v}.npy")
     assert d.shape == (120, 160) and np.isfinite(d).all()
     assert not np.array_equal(d, np.load(out / "depth" / f"{v}.npy"))
+
+
+def test_field_stage_uses_the_regressed_stage1_depth(tmp_path):
+    # the plane sweep stores the main-mode depth; the field stage takes sum_k P_k d_k (2.4)
+    from svolsdf.mvs.volume import ProbabilityVolume
+    from svolsdf.scene.cameras import Cameras
+
+    cam = Cameras(K=torch.tensor([[[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]]]),
+                  w2c=torch.eye(4)[None], width=4, height=3)
+    depths = torch.linspace(1, 2, 5).view(5, 1, 1).expand(5, 3, 4).contiguous()
+    prob = torch.zeros(5, 3, 4)
+    prob[0], prob[4] = 0.6, 0.4  # bimodal: mode depth 1.0, expectation 1.4
+    vol = ProbabilityVolume(depths, prob, torch.ones(3, 4), torch.ones(3, 4), cam, 0)
+    cfg = preset("fast")
+    cfg.scene.path = str(tmp_path)
+    p = Pipeline(cfg, tmp_path / "o")
+    assert p.regressed_volumes1() is None
+    p._volumes1 = [vol]
+    reg = p.regressed_volumes1()
+    torch.testing.assert_close(reg[0].depth, torch.full((3, 4), 1.4))
+    assert vol.depth.eq(1).all()  # the stored volume is left as it is
+    assert p.regressed_volumes1() is reg  # cached

@@ -23,7 +23,7 @@ import logging
 import os
 import resource
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -284,6 +284,25 @@ class Pipeline:
         self._time("mvs1", t0)
         return self._volumes1
 
+    def regressed_volumes1(self) -> list[ProbabilityVolume] | None:
+        """The stage-1 volumes with depth = sum_k P_k d_k, the regression of METHOD.md 2.4.
+
+        The field stage (box, SDF initialisation, the ablations' MVS depth) uses this depth
+        whatever estimate the backbone stores: the plane sweep stores the main-mode depth
+        (`PlaneSweepConfig.depth_radius`), which centres its own next stage better, while the
+        smoother full expectation initialises the SDF grid better (synthetic benchmark scene,
+        points Chamfer 2.12 vs 2.34 mm; benchmarks/results/fast_preset.md).
+        """
+        if self._volumes1 is None:
+            return None
+        if getattr(self, "_reg1", None) is None or self._reg1[0] is not self._volumes1:
+            from svolsdf.mvs.backbone import expected_depth
+
+            self._reg1 = (self._volumes1, [
+                replace(v, depth=expected_depth(v.prob.float(), v.depths.float())
+                                    .to(v.depth.dtype)) for v in self._volumes1])
+        return self._reg1[1]
+
     # ------------------------------------------------------------------ field
     def field_bounds(self) -> torch.Tensor:
         """(2, 3) unit-frame box of the object: from stage-1 MVS depth where available (masked,
@@ -292,7 +311,7 @@ class Pipeline:
         norm = scene.normalization
         pts = []
         if self._volumes1 is not None and self.cfg.train.mode != "volsdf":
-            for vol in self._volumes1:
+            for vol in self.regressed_volumes1():
                 cam = vol.cameras
                 H, W = vol.depth.shape
                 uv = cam.pixel_grid(dtype=torch.float64).reshape(1, -1, 2)
@@ -422,7 +441,7 @@ class Pipeline:
         from svolsdf.field.init import consistent_depths
 
         scene = self.load()
-        depths, _ = consistent_depths(self._volumes1)  # >= 1 consistent source (METHOD.md 6.3)
+        depths, _ = consistent_depths(self.regressed_volumes1())  # >= 1 consistent source (6.3)
         return torch.stack([F.interpolate(d[None, None], size=(scene.height, scene.width),
                                           mode="nearest")[0, 0] for d in depths])
 
@@ -448,7 +467,7 @@ class Pipeline:
                 from svolsdf.field.init import init_grid_from_mvs
 
                 scene = self.load()
-                init_grid_from_mvs(model, self._volumes1, scene.normalization,
+                init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
                                    scene.masks if self.cfg.output.use_masks else None)
         trainer = Trainer(model, self.train_data(), tcfg, prior=prior,
                           sampler=self.make_sampler(prior), out_dir=fdir, device=self.device,
@@ -557,7 +576,7 @@ class Pipeline:
                 # METHOD.md 6.1: pixels with sum w < 0.2 get the map's maximum depth
                 d = torch.where(low, d[~low].max() if (~low).any() else d.max(), d)
             elif self.cfg.output.low_weight_rule == "mvs" and self._volumes1 is not None:
-                m = self._volumes1[i].depth[None, None]
+                m = self.regressed_volumes1()[i].depth[None, None]
                 m = F.interpolate(m, size=d.shape, mode="bilinear")[0, 0]
                 d = torch.where(low, m, d)
             guide[v] = d.float()

@@ -22,7 +22,9 @@ class ProbabilityVolume:
     Attributes:
         depths: (D, H, W) hypothesis z-depths in world units, increasing along D.
         prob: (D, H, W) probabilities, summing to 1 over D.
-        depth: (H, W) expected depth sum_k prob_k * depths_k (METHOD.md 2.4).
+        depth: (H, W) the backbone's depth estimate: the expectation sum_k prob_k * depths_k
+            (METHOD.md 2.4), or for the plane sweep by default the expectation around the most
+            likely hypothesis (`svolsdf.mvs.backbone.mode_depth`).
         confidence: (H, W) photometric confidence in [0, 1] (METHOD.md 2.4, 4-bin sum).
         cameras: the reference camera (1 view) at the volume's resolution (W, H).
         view_id: the reference view id.
