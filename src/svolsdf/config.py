@@ -141,8 +141,10 @@ class TrainConfig:
     """> 0: beta is not learned but annealed log-linearly from beta_start to beta_end over the
     steps (unit-frame units; fast preset: a short run cannot wait for the learned beta to
     sharpen). 0: learnable beta (METHOD.md 5.4, the paper)."""
-    beta_end: float = 0.005
-    """Final beta of the anneal (unit frame; ~1 mm on DTU-scale scenes)."""
+    beta_end: float = 0.0025
+    """Final beta of the anneal (unit frame; ~0.5 mm on DTU-scale scenes). 0.0025 against 0.005:
+    points Chamfer 2.00 vs 2.12 mm and 1.62 vs 1.66 mm on two synthetic 768x576 scenes
+    (benchmarks/results/fast_preset.md, notes)."""
     checkpoint_every: int = 100
     """Save a checkpoint every N steps (resume after a kill)."""
     seed: int = 0
