@@ -24,24 +24,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from _machine import cpu_name  # benchmarks/_machine.py (the script's folder is on sys.path)
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
-
-
-def _cpu() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _reconstruct(scene: Path, out: Path, *args: str) -> float:
@@ -202,7 +193,7 @@ def main() -> None:
         dtu["test_views"] = test
 
     lines = ["# Fast preset benchmark (issue 5)", "",
-             f"- machine: nproc = {os.cpu_count()}, CPU: {_cpu()}, torch threads = default "
+             f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}, torch threads = default "
              f"(OMP_WAIT_POLICY=PASSIVE); shared machine, other jobs may have been running",
              f"- command: `python benchmarks/fast_preset.py {' '.join(sys.argv[1:])}`",
              f"- scene: `svolsdf synth --seed {args.seed} --views 5 --size {args.size}` "

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import cpu_name  # benchmarks/_machine.py (the script's folder is on sys.path)
 from PIL import Image
 
 from svolsdf.fusion.filter import check_geometric_consistency
@@ -70,13 +71,6 @@ NOTES = """## Notes
   (load average ~5), so they are pessimistic; stage 3 spends most of its time in the Python loop
   of the scanline SGM (2 x (W + H) steps per view).
 """
-
-
-def _cpu() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
 
 
 def _peak_mb() -> float:
@@ -179,7 +173,7 @@ def main() -> None:
         "# Plane-sweep MVS benchmark",
         "",
         f"- machine: {torch.get_num_threads()} torch thread(s) on nproc = "
-        f"{len(__import__('os').sched_getaffinity(0))}, CPU: {_cpu()}; shared with other jobs",
+        f"{len(__import__('os').sched_getaffinity(0))}, CPU: {cpu_name()}; shared with other jobs",
         f"- torch {torch.__version__}, Python {platform.python_version()}, commit {commit}",
         f"- command: `python benchmarks/mvs_planesweep.py --threads {args.threads}`",
         "- backbone: `planesweep` with default `PlaneSweepConfig` (192/32/8 hypotheses, "

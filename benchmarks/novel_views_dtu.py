@@ -28,19 +28,11 @@ import sys
 import time
 from pathlib import Path
 
+from _machine import cpu_name  # benchmarks/_machine.py (the script's folder is on sys.path)
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 SCENE = SHARED / "data" / "dtu_scan65"
-
-
-def _cpu() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _run(*args: str) -> float:
@@ -93,7 +85,7 @@ def main() -> None:
     (args.work / "novel_views_dtu.json").write_text(json.dumps(res, indent=1))
 
     lines = ["# Novel views on DTU scan 65: S-VolSDF vs the VolSDF-only baseline (issue 7)", "",
-             f"- machine: nproc = {os.cpu_count()}, CPU: {_cpu()}, shared with other jobs",
+             f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}, shared with other jobs",
              f"- commit {_commit()}, Python {platform.python_version()}",
              "- command: `" + " ".join(["python benchmarks/novel_views_dtu.py", *sys.argv[1:]])
              + "`",
