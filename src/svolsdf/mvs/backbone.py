@@ -235,7 +235,7 @@ def volume_from_prob(
     2r+1 hypotheses around the argmax (`mode_depth`); confidence = 4-bin sum (METHOD.md 2.4).
     """
     depth = (expected_depth(prob, depths) if depth_radius is None
-             else mode_depth(prob, depths.expand_as(prob), depth_radius))
+             else mode_depth(prob, depths, depth_radius))
     return ProbabilityVolume(
         depths=depths,
         prob=prob,
