@@ -61,6 +61,19 @@ NOTES = """## Notes
   of the three views' any-source share at each stage's resolution): expectation 0.43 / 0.29 /
   0.23 at stages 1 / 2 / 3; r = 2: 0.55 / 0.37 / 0.28; r = 1: 0.55 / 0.36 / 0.27; r = 2 with
   filter radii 2 / 4 / 8: 0.55 / 0.38 / 0.27; r = 2 with windows 5 / 7 / 9: 0.55 / 0.37 / 0.27.
+- SGM (session 4): 8 scanline directions instead of 4 and P2 = 2.0 instead of 0.3 (P1 = 0.03,
+  cost range [0, 2]). Measured side by side with /tmp scripts, 1 torch thread:
+  - DTU, mean over views 25 / 22 / 28 of the any-source share at stages 1 / 2 / 3: 4 directions,
+    P2 0.3 (before): 0.550 / 0.365 / 0.277; 8 directions: 0.551 / 0.363 / 0.280; P2 1.0:
+    0.556 / 0.402 / 0.297; 8 directions, P2 1.0: 0.558 / 0.405 / 0.300; **8 directions, P2 2.0:
+    0.558 / 0.422 / 0.311**; 8 directions, P2 4.0: 0.556 / 0.430 / 0.319. A larger ZNCC epsilon
+    (1e-3, flat patches cost ~1 everywhere) was worse: 0.489 / 0.318 / 0.223.
+  - Synthetic scenes at 768x576 (`svolsdf synth --seed 0` and `--seed 3`, 5 views, inputs 1 2 0),
+    stage 1, share of mask pixels more than 5 mm off, mean of the 6 views: 0.34 before, 0.28
+    with 8 directions and P2 2.0, 0.26 with P2 4.0.
+  - The cost: a steeply slanted plane (30 degrees, tests/mvs/test_planesweep.py at 96x72)
+    prefers small P2; its worst stage-3 view went from 0.71 % of the range to 0.90 % (P2 2.0)
+    and 0.99 % (P2 4.0). P2 2.0 is the compromise; the diagonals also take ~15 % more time.
 - DTU: the depth is right on textured parts (forehead, jaw, teeth) and has outlier blobs on the
   white, nearly textureless bone and in dark cavities; views 22 and 28 are ~30-45 degrees apart,
   so the 22<->28 pair agrees on few pixels. This is the place to improve next (a left-right /

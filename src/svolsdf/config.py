@@ -103,9 +103,11 @@ class TrainConfig:
     """Adam learning rate for networks (constant, METHOD.md 4.6)."""
     lr_grid: float = 1e-2
     """grid field: learning rate of the feature grids."""
-    lr_sdf: float = 1e-4
+    lr_sdf: float = 3e-4
     """grid field: learning rate of the SDF grid when it starts from the MVS surface (per node:
-    keep it well below a cell size, or Adam's normalized steps roughen the surface)."""
+    keep it well below a cell size, or Adam's normalized steps roughen the surface). 3e-4 lets
+    the surface move ~0.15 unit-frame units over 500 steps; 1e-4 held it within a few mm of the
+    MVS initialisation (benchmarks/results/fast_preset.md, notes)."""
     lr_sdf_sphere: float = 1e-3
     """grid field: learning rate of the SDF grid when it starts from a sphere (volsdf mode,
     field.init = sphere): the surface has to travel, not just be refined."""

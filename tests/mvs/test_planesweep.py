@@ -66,7 +66,9 @@ def test_stage3_accuracy_on_object(sphere_run):
 
 @pytest.mark.parametrize("slanted", [False, True])
 def test_stage3_accuracy_on_planes(slanted):
-    scene, gt = plane_scene(64, 48, slanted=slanted, depth_range=RANGE)
+    # 96x72 (stage 1 at 24x18): at 64x48 the image borders, where hypotheses leave the sources,
+    # are a third of stage 1 and the median error says more about them than about the planes
+    scene, gt = plane_scene(96, 72, slanted=slanted, depth_range=RANGE)
     res = run_cascade(PlaneSweepBackbone(), scene)
     for i, v in enumerate(res[3]):
         err = _median_error(v, gt[i], torch.ones_like(gt[i], dtype=torch.bool))
@@ -187,6 +189,45 @@ def test_sgm_without_penalties_is_identity_and_smooths_with_them():
     c[2, 4, 4], c[0, 4, 4] = 0.3, 0.0
     out = sgm_aggregate(c, torch.zeros(9, 9), 0.05, 0.5, 0.1)
     assert int(out[:, 4, 4].argmin()) == 2
+
+
+def _sgm_reference(c, g, p1, p2, sigma, dy, dx):
+    """Slow per-pixel SGM recursion along direction (dy, dx), for the tests."""
+    D, H, W = c.shape
+    L = torch.zeros_like(c)
+    ys = range(H) if dy >= 0 else range(H - 1, -1, -1)
+    xs = list(range(W)) if dx >= 0 else list(range(W - 1, -1, -1))
+    for y in ys:
+        for x in xs:
+            py, px = y - dy, x - dx
+            if not (0 <= py < H and 0 <= px < W):
+                L[:, y, x] = c[:, y, x]
+                continue
+            P = L[:, py, px]
+            m = P.min()
+            pen = p1 + (p2 - p1) * math.exp(-abs(float(g[y, x] - g[py, px])) / sigma)
+            for k in range(D):
+                cand = [float(P[k]), float(m) + pen]
+                if k > 0:
+                    cand.append(float(P[k - 1]) + p1)
+                if k < D - 1:
+                    cand.append(float(P[k + 1]) + p1)
+                L[k, y, x] = c[k, y, x] + min(cand) - m
+    return L
+
+
+@pytest.mark.parametrize("directions", [4, 8])
+def test_sgm_matches_per_pixel_recursion(directions):
+    torch.manual_seed(0)
+    c, g = torch.rand(5, 6, 7), torch.rand(6, 7)
+    dirs = [(0, 1), (0, -1), (1, 0), (-1, 0)]
+    if directions == 8:
+        dirs += [(1, 1), (-1, -1), (1, -1), (-1, 1)]
+    ref = sum(_sgm_reference(c, g, 0.05, 0.5, 0.1, dy, dx) for dy, dx in dirs) / len(dirs)
+    out = sgm_aggregate(c, g, 0.05, 0.5, 0.1, directions)
+    assert torch.allclose(out, ref, atol=1e-5)
+    with pytest.raises(ValueError, match="directions"):
+        sgm_aggregate(c, g, 0.05, 0.5, 0.1, 6)
 
 
 def test_calibrated_temperature():

@@ -89,10 +89,14 @@ class PlaneSweepConfig:
     """Per stage: semi-global aggregation (4 directions) after the filter."""
     sgm_p1: float = 0.03
     """SGM penalty for a change of one hypothesis (cost units, cost in [0, 2])."""
-    sgm_p2: float = 0.3
-    """SGM penalty for larger jumps away from intensity edges."""
+    sgm_p2: float = 2.0
+    """SGM penalty for larger jumps away from intensity edges (above the cost range [0, 2]:
+    away from edges the depth may jump only where no smooth path explains the costs;
+    benchmarks/results/mvs_planesweep.md, notes)."""
     sgm_sigma: float = 0.04
     """Intensity difference (on [0, 1]) over which the SGM jump penalty drops from P2 to P1."""
+    sgm_directions: int = 8
+    """SGM scanline directions: 4 (horizontal, vertical) or 8 (and the diagonals)."""
     filter_radius: tuple[int, int, int] = (2, 2, 2)
     """Radius of the aggregation filter per stage (pixels at the stage's resolution)."""
     filter_eps: float = 1e-3
@@ -195,53 +199,76 @@ def zncc_cost(ref: Tensor, warped: Tensor, radius: int, eps: float,
     return 1.0 - ncc.clamp(-1, 1)
 
 
-def sgm_aggregate(cost: Tensor, guide: Tensor, p1: float, p2: float, sigma: float) -> Tensor:
-    """Semi-global aggregation of a cost volume along 4 scanline directions (Hirschmüller 2008).
+def sgm_aggregate(cost: Tensor, guide: Tensor, p1: float, p2: float, sigma: float,
+                  directions: int = 4) -> Tensor:
+    """Semi-global aggregation of a cost volume along 4 or 8 scanline directions (Hirschmüller 2008).
 
     Along each direction r: L_r(x, k) = C(x, k) + min(L_r(x-r, k), L_r(x-r, k±1) + P1,
     min_j L_r(x-r, j) + P2(x)) - min_j L_r(x-r, j), with an edge-aware
     P2(x) = P1 + (P2 - P1) exp(-|I(x) - I(x-r)| / sigma) so that depth may jump at intensity
-    edges. The result is the mean of the 4 directions, on the scale of ``cost``. Neighbouring
-    hypotheses k are neighbouring depths of the per-pixel hypothesis lists.
+    edges. The result is the mean over the directions, on the scale of ``cost``. Neighbouring
+    hypotheses k are neighbouring depths of the per-pixel hypothesis lists. With 8 directions the
+    4 diagonals are added; they remove most of the horizontal and vertical streaks that 4 paths
+    leave on weakly textured surfaces.
 
     Args:
         cost: (D, H, W) matching cost.
         guide: (H, W) grayscale reference image.
         p1, p2: penalties for a change of 1 and of more than 1 hypothesis.
         sigma: intensity scale of the edge-aware P2.
+        directions: 4 (horizontal and vertical) or 8 (and the diagonals).
 
     Returns:
         (D, H, W) aggregated cost.
     """
-    D, H, W = cost.shape
+    if directions not in (4, 8):
+        raise ValueError(f"directions must be 4 or 8, got {directions}")
     total = torch.zeros_like(cost)
-    for dim in (2, 1):  # along W (rows of columns), then along H
-        n = cost.shape[dim]
-        c = cost.movedim(dim, 0)  # (n, D, other)
-        g = guide.movedim(dim - 1, 0)  # (n, other)
-        dg = (g[1:] - g[:-1]).abs()
-        pen2 = p1 + (p2 - p1) * torch.exp(-dg / sigma)  # (n-1, other)
-        acc = torch.empty_like(c)
+    # (iteration dim of cost, column shift of the predecessor): (2, 0) walks along W,
+    # (1, 0) along H, (1, +-1) along the diagonals
+    paths = [(2, 0), (1, 0)] + ([(1, 1), (1, -1)] if directions == 8 else [])
+    for dim, shift in paths:
+        c = cost.movedim(dim, 0)  # (n, D, m)
+        g = guide.movedim(dim - 1, 0)  # (n, m)
         for reverse in (False, True):
-            order = range(n - 1, -1, -1) if reverse else range(n)
-            prev = None
-            for i in order:
-                if prev is None:
-                    cur = c[i].clone()
-                else:
-                    j = i + 1 if reverse else i - 1
-                    m = prev.min(dim=0, keepdim=True).values
-                    best = torch.minimum(prev, m + pen2[min(i, j)][None])
-                    best[1:] = torch.minimum(best[1:], prev[:-1] + p1)
-                    best[:-1] = torch.minimum(best[:-1], prev[1:] + p1)
-                    cur = c[i] + best - m
-                if reverse:
-                    acc[i] += cur
-                else:
-                    acc[i] = cur
-                prev = cur
-        total += acc.movedim(0, dim)
-    return total / 4
+            total += _sgm_pass(c, g, p1, p2, sigma, reverse, -shift if reverse else shift) \
+                .movedim(0, dim)
+    return total / len(paths) / 2
+
+
+def _sgm_pass(c: Tensor, g: Tensor, p1: float, p2: float, sigma: float, reverse: bool,
+              shift: int) -> Tensor:
+    """One SGM scanline pass over slices c[i] (D, m); the predecessor of column x in slice i is
+    column x - shift of slice i -+ 1 (columns without one start afresh). Returns (n, D, m)."""
+    n, _, m = c.shape
+    out = torch.empty_like(c)
+    if shift == 0:
+        tgt, src = slice(0, m), slice(0, m)
+    elif shift > 0:
+        tgt, src = slice(1, m), slice(0, m - 1)
+    else:
+        tgt, src = slice(0, m - 1), slice(1, m)
+    order = range(n - 1, -1, -1) if reverse else range(n)
+    prev = None
+    for i in order:
+        if prev is None:
+            cur = c[i].clone()
+        else:
+            j = i + 1 if reverse else i - 1
+            P = prev[:, src]
+            mval = P.min(dim=0, keepdim=True).values
+            pen2 = p1 + (p2 - p1) * torch.exp(-(g[i, tgt] - g[j, src]).abs() / sigma)
+            best = torch.minimum(P, mval + pen2[None])
+            best[1:] = torch.minimum(best[1:], P[:-1] + p1)
+            best[:-1] = torch.minimum(best[:-1], P[1:] + p1)
+            cur = c[i].clone() if shift else c[i]
+            if shift:
+                cur[:, tgt] = c[i][:, tgt] + best - mval
+            else:
+                cur = c[i] + best - mval
+        out[i] = cur
+        prev = cur
+    return out
 
 
 def aggregate_sources(costs: Tensor, valid: Tensor, keep_fraction: float,
@@ -445,5 +472,6 @@ class PlaneSweepBackbone(MVSBackbone):
                 agg = box_filter(agg[None], frad)[0]
             cost[d0:d0 + dh.shape[1]] = agg
         if cfg.sgm[k - 1]:
-            cost = sgm_aggregate(cost, g[0, 0], cfg.sgm_p1, cfg.sgm_p2, cfg.sgm_sigma)
+            cost = sgm_aggregate(cost, g[0, 0], cfg.sgm_p1, cfg.sgm_p2, cfg.sgm_sigma,
+                                 cfg.sgm_directions)
         return cost
