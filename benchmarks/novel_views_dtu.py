@@ -74,6 +74,9 @@ def main() -> None:
     ap.add_argument("--results", type=Path,
                     default=REPO / "benchmarks/results/novel_views_dtu.md")
     ap.add_argument("--modes", default="svolsdf,volsdf")
+    ap.add_argument("--keep", action="store_true",
+                    help="keep the modes not in --modes from WORK/novel_views_dtu.json (an "
+                         "earlier run) instead of dropping them; the table says which")
     ap.add_argument("--views", type=int, default=None,
                     help="only the first N test views (default: all 25)")
     args = ap.parse_args()
@@ -81,8 +84,18 @@ def main() -> None:
         sys.exit(f"skipped: {SCENE} is absent (the shared DTU scan)")
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    res = {mode: run_mode(args.work, mode, args.views) for mode in args.modes.split(",")}
-    (args.work / "novel_views_dtu.json").write_text(json.dumps(res, indent=1))
+    old = {}
+    js = args.work / "novel_views_dtu.json"
+    if args.keep and js.is_file():
+        old = json.loads(js.read_text())
+    res = {}
+    for mode in args.modes.split(","):
+        res[mode] = run_mode(args.work, mode, args.views)
+        res[mode]["commit"] = _commit()
+    kept = [m for m in old if m not in res]
+    for m in kept:
+        res[m] = old[m]
+    js.write_text(json.dumps(res, indent=1))
 
     lines = ["# Novel views on DTU scan 65: S-VolSDF vs the VolSDF-only baseline (issue 7)", "",
              f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}, shared with other jobs",
@@ -92,7 +105,10 @@ def main() -> None:
              "- inputs 25 22 28 at 768x576, fast preset; held-out views: the 25 test views of "
              "METHOD.md 1.3; metrics inside the object mask (PSNR) / on a white background "
              "(SSIM, LPIPS-VGG), METHOD.md 8.3",
-             f"- whole benchmark: {time.perf_counter() - t0:.0f} s", "",
+             f"- whole benchmark: {time.perf_counter() - t0:.0f} s"
+             + (f"; kept from an earlier run (--keep): {', '.join(kept)} (commit "
+                f"{', '.join(str(res[m].get('commit', 'unknown')) for m in kept)})"
+                if kept else ""), "",
              "| mode | renderer | PSNR | SSIM | LPIPS | render s/view | pipeline s |",
              "|---|---|---|---|---|---|---|"]
     for mode, r in res.items():

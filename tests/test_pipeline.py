@@ -98,6 +98,37 @@ def test_rerun_reuses_finished_stages(tiny_run):
     assert "field" not in p2.timing and "mvs1" not in p2.timing
 
 
+def test_backbone_defaults_and_weights_enter_the_stage_keys(tiny_run, monkeypatch, tmp_path):
+    """A changed backbone default must not reuse cached MVS volumes (nor what follows them)."""
+    import dataclasses
+
+    from svolsdf.mvs import planesweep
+    from svolsdf.mvs.backbone import backbone_signature
+
+    _, _, p = tiny_run
+    before = p._keys()
+    assert p._keys() == before
+
+    @dataclasses.dataclass
+    class NewDefaults(planesweep.PlaneSweepConfig):
+        sgm_p2: float = 9.0
+
+    monkeypatch.setattr(planesweep.PlaneSweepBackbone, "config_class", NewDefaults)
+    after = p._keys()
+    assert all(after[k] != before[k] for k in before), (before, after)
+    sig = backbone_signature("planesweep", sgm_p2=1.0)
+    assert sig["config"]["sgm_p2"] == 1.0
+    assert set(sig["config"]) == {f.name for f in dataclasses.fields(NewDefaults)}
+    # a replaced weights file changes the signature without loading it
+    w = tmp_path / "w.pt"
+    w.write_bytes(b"1")
+    first = backbone_signature("patchmatchnet", weights=w)
+    w.write_bytes(b"22")
+    assert backbone_signature("patchmatchnet", weights=w) != first
+    with pytest.raises(InputError, match="planesweep"):
+        backbone_signature("planesweep", no_such_field=1)
+
+
 def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
     cfg = _tiny_cfg(tiny_scene)
     cfg.scene.views = [0, 1, 99]

@@ -141,6 +141,12 @@ class Pipeline:
 
     def _keys(self) -> dict[str, str]:
         c = asdict(self.cfg)
+        # the backbone's full config (defaults included) and weights file: a changed default
+        # or a replaced checkpoint must not reuse cached volumes
+        from svolsdf.mvs.backbone import backbone_signature
+
+        c["mvs"] = {**c["mvs"], "signature": backbone_signature(
+            self.cfg.mvs.backbone, weights=self.cfg.mvs.weights, **self._backbone_kwargs())}
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
         k_guide = _hash(k_field, c["output"]["low_weight_rule"])
@@ -255,16 +261,19 @@ class Pipeline:
         return h
 
     # ------------------------------------------------------------------ stage 1
+    def _backbone_kwargs(self) -> dict:
+        m = self.cfg.mvs
+        nd = tuple(int(x) for x in m.ndepths)
+        if m.backbone == "planesweep":
+            return {"num_depths": nd, "width": m.width, "inverse_depth": m.inverse_depth}
+        # casmvsnet and the depth + confidence adapters share these names
+        return {"ndepths": nd, "width_mode": m.width, "inverse_depth": m.inverse_depth}
+
     def backbone(self):
         from svolsdf.mvs.backbone import get_backbone
 
         m = self.cfg.mvs
-        nd = tuple(int(x) for x in m.ndepths)
-        if m.backbone == "planesweep":
-            kwargs = {"num_depths": nd, "width": m.width, "inverse_depth": m.inverse_depth}
-        else:  # casmvsnet and the depth + confidence adapters share these names
-            kwargs = {"ndepths": nd, "width_mode": m.width, "inverse_depth": m.inverse_depth}
-        return get_backbone(m.backbone, weights=m.weights, **kwargs)
+        return get_backbone(m.backbone, weights=m.weights, **self._backbone_kwargs())
 
     def stage_mvs1(self) -> list[ProbabilityVolume]:
         d = self.out / "mvs" / "stage1"

@@ -149,6 +149,8 @@ class DepthConfidenceAdapter(MVSBackbone):
     working size), world z-depth.
     """
 
+    config_class = AdapterConfig
+
     def __init__(self, config: AdapterConfig | None = None, **cfg):
         self.config = config or AdapterConfig(**cfg)
         interval_ratio(2, self.config.width_mode)  # validates the name

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
+from dataclasses import asdict
+from pathlib import Path
 from collections.abc import Callable
 
 import torch
@@ -35,6 +37,7 @@ from svolsdf.scene.scene import Scene
 __all__ = [
     "MVSBackbone",
     "get_backbone",
+    "backbone_signature",
     "register_backbone",
     "available_backbones",
     "stage_size",
@@ -62,6 +65,26 @@ class MVSBackbone(ABC):
     name: str = "backbone"
     #: number of cascade stages
     num_stages: int = NUM_STAGES
+    #: the dataclass its ``**cfg`` keywords fill (None: the keywords are the whole config)
+    config_class: type | None = None
+
+    @classmethod
+    def signature(cls, weights=None, **cfg) -> dict:
+        """Everything that decides this backbone's output, for cache keys (`svolsdf.pipeline`).
+
+        The full config with its defaults (so that a changed default invalidates cached volumes)
+        and, with weights, the file's resolved path, size and modification time.
+        """
+        try:
+            conf = asdict(cls.config_class(**cfg)) if cls.config_class is not None else dict(cfg)
+        except TypeError as e:
+            raise InputError(f"{cls.name} backbone: {e}") from None
+        sig: dict = {"backbone": cls.name, "config": conf}
+        if weights is not None:
+            p = Path(weights)
+            st = p.stat() if p.is_file() else None
+            sig["weights"] = [str(p.resolve()), st.st_size, st.st_mtime_ns] if st else str(p)
+        return sig
 
     @classmethod
     def create(cls, weights=None, **cfg) -> MVSBackbone:
@@ -125,6 +148,23 @@ def available_backbones() -> list[str]:
     return sorted(set(_BUILTIN) | set(_REGISTERED))
 
 
+def _backbone_class(name: str) -> type[MVSBackbone]:
+    cls = _REGISTERED.get(name)
+    if cls is None:
+        if name not in _BUILTIN:
+            raise InputError(
+                f"unknown MVS backbone {name!r} (available: {', '.join(available_backbones())})"
+            )
+        module, attr = _BUILTIN[name].split(":")
+        cls = getattr(importlib.import_module(module), attr)
+    return cls
+
+
+def backbone_signature(name: str, weights=None, **cfg) -> dict:
+    """`MVSBackbone.signature` of the backbone called ``name`` (no weights are loaded)."""
+    return _backbone_class(name).signature(weights=weights, **cfg)
+
+
 def get_backbone(name: str, weights=None, **cfg) -> MVSBackbone:
     """Create the backbone called ``name``.
 
@@ -136,15 +176,7 @@ def get_backbone(name: str, weights=None, **cfg) -> MVSBackbone:
     Raises:
         InputError: unknown name, or a weights problem reported by the backbone.
     """
-    cls = _REGISTERED.get(name)
-    if cls is None:
-        if name not in _BUILTIN:
-            raise InputError(
-                f"unknown MVS backbone {name!r} (available: {', '.join(available_backbones())})"
-            )
-        module, attr = _BUILTIN[name].split(":")
-        cls = getattr(importlib.import_module(module), attr)
-    return cls.create(weights=weights, **cfg)
+    return _backbone_class(name).create(weights=weights, **cfg)
 
 
 # --------------------------------------------------------------------------- helpers

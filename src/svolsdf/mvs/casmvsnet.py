@@ -531,6 +531,8 @@ class CasMVSNetBackbone(MVSBackbone):
     the reference camera at that size (`stride_cameras`). Depths are world z-depths.
     """
 
+    config_class = CasMVSNetConfig
+
     def __init__(self, model: CasMVSNet, config: CasMVSNetConfig | None = None, **cfg):
         self.config = config or CasMVSNetConfig(**cfg)
         if any(d % 8 or d < 8 for d in self.config.ndepths):

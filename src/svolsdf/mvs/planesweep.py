@@ -341,6 +341,7 @@ class PlaneSweepBackbone(MVSBackbone):
     """
 
     name = "planesweep"
+    config_class = PlaneSweepConfig
 
     def __init__(self, config: PlaneSweepConfig | None = None, **fields) -> None:
         if config is None:
