@@ -29,7 +29,6 @@ import time
 from pathlib import Path
 
 import torch
-
 from _machine import cpu_name
 
 REPO = Path(__file__).resolve().parents[1]

@@ -201,7 +201,7 @@ def zncc_cost(ref: Tensor, warped: Tensor, radius: int, eps: float,
 
 def sgm_aggregate(cost: Tensor, guide: Tensor, p1: float, p2: float, sigma: float,
                   directions: int = 4) -> Tensor:
-    """Semi-global aggregation of a cost volume along 4 or 8 scanline directions (Hirschmüller 2008).
+    """Semi-global aggregation of a cost volume along 4 or 8 scanlines (Hirschmüller 2008).
 
     Along each direction r: L_r(x, k) = C(x, k) + min(L_r(x-r, k), L_r(x-r, k±1) + P1,
     min_j L_r(x-r, j) + P2(x)) - min_j L_r(x-r, j), with an edge-aware
