@@ -147,7 +147,10 @@ class Pipeline:
 
         c["mvs"] = {**c["mvs"], "signature": backbone_signature(
             self.cfg.mvs.backbone, weights=self.cfg.mvs.weights, **self._backbone_kwargs())}
-        k_mvs1 = _hash(c["scene"], c["mvs"], self.views)
+        from svolsdf import __version__
+
+        # every key chains from this one: a new release recomputes rather than mixing versions
+        k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
         k_guide = _hash(k_field, c["output"]["low_weight_rule"])
         k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"])
