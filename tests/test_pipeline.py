@@ -98,6 +98,19 @@ def test_rerun_reuses_finished_stages(tiny_run):
     assert "field" not in p2.timing and "mvs1" not in p2.timing
 
 
+def test_a_second_run_on_the_same_folder_is_refused(tiny_run):
+    fcntl = pytest.importorskip("fcntl", reason="folder locks need POSIX flock")
+    out, _, _ = tiny_run
+    with open(out / ".svolsdf.lock", "a+") as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(InputError, match="another svolsdf run"):
+            Pipeline(load_config(out / "config.yaml"), out, progress=False).run()
+    # released (as when the other process ends or is killed): the rerun goes through
+    p2 = Pipeline(load_config(out / "config.yaml"), out, progress=False)
+    p2.run()
+    assert "field" not in p2.timing
+
+
 def test_backbone_defaults_and_weights_enter_the_stage_keys(tiny_run, monkeypatch, tmp_path):
     """A changed backbone default must not reuse cached MVS volumes (nor what follows them)."""
     import dataclasses

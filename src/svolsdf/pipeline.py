@@ -17,6 +17,7 @@ last checkpoint after a kill. All files are written atomically.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -87,6 +88,41 @@ def resolve_device(name: str) -> torch.device:
 
 def _hash(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+@contextlib.contextmanager
+def _folder_lock(out: Path):
+    """Hold an exclusive lock on OUT/.svolsdf.lock for a run.
+
+    Two runs writing one output folder would mix their stages. The lock is an advisory ``flock``
+    that the operating system drops when the process ends, so a killed run never leaves a stale
+    lock behind. Where ``fcntl`` does not exist (Windows) runs are not locked.
+
+    Raises:
+        InputError: another process holds the folder; the message names the folder and its pid.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    path = out / ".svolsdf.lock"
+    f = open(path, "a+")  # noqa: SIM115 - held for the whole run
+    try:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            pid = f.read().strip() or "?"
+            raise InputError(f"{out}: another svolsdf run (pid {pid}) is writing this folder; "
+                             "wait for it or choose another output folder") from None
+        f.seek(0)
+        f.truncate()
+        f.write(str(os.getpid()))
+        f.flush()
+        yield
+    finally:
+        f.close()
 
 
 def _save_npy(path: Path, arr: np.ndarray) -> None:
@@ -205,13 +241,14 @@ class Pipeline:
         """Run (or resume) every stage; returns a summary dict."""
         t_all = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
-        handler = self._setup_log()
-        try:
-            return self._run(t_all)
-        finally:
-            if handler is not None:  # this run's OUT/log only gets this run's messages
-                logging.getLogger("svolsdf").removeHandler(handler)
-                handler.close()
+        with _folder_lock(self.out):
+            handler = self._setup_log()
+            try:
+                return self._run(t_all)
+            finally:
+                if handler is not None:  # this run's OUT/log only gets this run's messages
+                    logging.getLogger("svolsdf").removeHandler(handler)
+                    handler.close()
 
     def _run(self, t_all: float) -> dict:
         scene = self.load()
