@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import platform
+import resource
 
-__all__ = ["cpu_name"]
+__all__ = ["cpu_name", "peak_rss_gb"]
 
 
 def cpu_name() -> str:
@@ -16,3 +17,8 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def peak_rss_gb() -> float:
+    """Peak resident memory of this process in GiB (Linux ru_maxrss is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20

@@ -22,23 +22,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
-import resource
 import sys
 import time
 from pathlib import Path
 
 import torch
-from _machine import cpu_name
+from _machine import cpu_name, peak_rss_gb
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 RESULTS = REPO / "benchmarks/results"
-
-
-def _peak_gb() -> float:
-    """Peak resident memory of this process (Linux ru_maxrss is in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
 def main() -> None:
@@ -69,7 +64,7 @@ def main() -> None:
     torch.manual_seed(0)
     ckpt = args.work / "casmvsnet_random.ckpt"
     torch.save({"model": CasMVSNet().state_dict()}, ckpt)
-    base_gb = _peak_gb()
+    base_gb = peak_rss_gb()
     t0 = time.perf_counter()
     backbone = CasMVSNetBackbone.create(weights=ckpt, chunk_mb=args.chunk_mb)
     stage_s, shapes = {}, {}
@@ -82,17 +77,18 @@ def main() -> None:
         prev = {v.view_id: v for v in vols}
         finite = all(bool(torch.isfinite(v.depth).all()) for v in vols)
         print(f"stage {k}: {stage_s[k]:.1f} s, volume {shapes[k]}, finite depth {finite}, "
-              f"peak {_peak_gb():.2f} GB", flush=True)
+              f"peak {peak_rss_gb():.2f} GB", flush=True)
     total = time.perf_counter() - t0
     Wn, Hn = mvs_input_size(w, h)
     res = {
         "network_input": [Wn, Hn], "stage_seconds": stage_s, "total_seconds": total,
-        "volume_shapes": shapes, "peak_rss_gb": _peak_gb(), "rss_before_gb": base_gb,
+        "volume_shapes": shapes, "peak_rss_gb": peak_rss_gb(), "rss_before_gb": base_gb,
         "chunk_mb": args.chunk_mb, "threads": torch.get_num_threads(),
     }
     lines = [
         "# CasMVSNet on the CPU at the paper's MVS resolution (issue 3)", "",
-        f"- machine: nproc = {torch.get_num_threads()} torch threads, CPU: {cpu_name()}; "
+        f"- machine: nproc = {os.cpu_count()}, {torch.get_num_threads()} torch threads, "
+        f"CPU: {cpu_name()}; "
         "shared machine",
         f"- torch {torch.__version__}, Python {platform.python_version()}",
         f"- command: `python benchmarks/casmvsnet_cpu.py {' '.join(sys.argv[1:])}`",

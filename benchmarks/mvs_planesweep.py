@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import resource
 import shutil
 import subprocess
 import sys
@@ -29,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _machine import cpu_name  # benchmarks/_machine.py (the script's folder is on sys.path)
+from _machine import cpu_name, peak_rss_gb  # benchmarks/_machine.py, on sys.path
 from PIL import Image
 
 from svolsdf.fusion.filter import check_geometric_consistency
@@ -84,10 +83,6 @@ NOTES = """## Notes
   (load average ~5), so they are pessimistic; stage 3 spends most of its time in the Python loop
   of the scanline SGM (2 x (W + H) steps per view).
 """
-
-
-def _peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def synthetic_case(work: Path, name: str, cfg: SynthConfig) -> dict:
@@ -176,9 +171,9 @@ def main() -> None:
             seed=0, object="random", cameras_from=str(DTU), camera_views=VIEWS, **base)))
     synth.append(synthetic_case(args.work, "synth_blobs_cap", SynthConfig(
         seed=1, object="blobs", azimuth_span=30.0, elevation=(35.0, 50.0), **base)))
-    peak_synth = _peak_mb()
+    peak_synth = peak_rss_gb() * 1024
     dtu = dtu_case(args.work) if DTU.is_dir() else None
-    peak = _peak_mb()
+    peak = peak_rss_gb() * 1024
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=REPO).stdout.strip()

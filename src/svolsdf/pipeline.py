@@ -158,6 +158,7 @@ class Pipeline:
         self.timing: dict[str, dict] = {}
         self._scene: Scene | None = None
         self._volumes1: list[ProbabilityVolume] | None = None
+        self._reg1: tuple | None = None  # (volumes1, their regressed copies)
         self._model = None
 
     # ------------------------------------------------------------------ bookkeeping
@@ -176,15 +177,14 @@ class Pipeline:
         os.replace(tmp, self._state_path())
 
     def _keys(self) -> dict[str, str]:
+        from svolsdf import __version__
+        from svolsdf.mvs.backbone import backbone_signature
+
         c = asdict(self.cfg)
         # the backbone's full config (defaults included) and weights file: a changed default
         # or a replaced checkpoint must not reuse cached volumes
-        from svolsdf.mvs.backbone import backbone_signature
-
         c["mvs"] = {**c["mvs"], "signature": backbone_signature(
             self.cfg.mvs.backbone, weights=self.cfg.mvs.weights, **self._backbone_kwargs())}
-        from svolsdf import __version__
-
         # every key chains from this one: a new release recomputes rather than mixing versions
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
@@ -344,7 +344,7 @@ class Pipeline:
         """
         if self._volumes1 is None:
             return None
-        if getattr(self, "_reg1", None) is None or self._reg1[0] is not self._volumes1:
+        if self._reg1 is None or self._reg1[0] is not self._volumes1:
             from svolsdf.mvs.backbone import expected_depth
 
             self._reg1 = (self._volumes1, [

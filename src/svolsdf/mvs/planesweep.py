@@ -86,7 +86,7 @@ class PlaneSweepConfig:
     filter: str = "guided"
     """Cost aggregation per slice: "guided" (edge-aware), "box", or "none"."""
     sgm: tuple[bool, bool, bool] = (True, True, True)
-    """Per stage: semi-global aggregation (4 directions) after the filter."""
+    """Per stage: semi-global aggregation (``sgm_directions`` scanlines) after the filter."""
     sgm_p1: float = 0.03
     """SGM penalty for a change of one hypothesis (cost units, cost in [0, 2])."""
     sgm_p2: float = 2.0
@@ -261,11 +261,8 @@ def _sgm_pass(c: Tensor, g: Tensor, p1: float, p2: float, sigma: float, reverse:
             best = torch.minimum(P, mval + pen2[None])
             best[1:] = torch.minimum(best[1:], P[:-1] + p1)
             best[:-1] = torch.minimum(best[:-1], P[1:] + p1)
-            cur = c[i].clone() if shift else c[i]
-            if shift:
-                cur[:, tgt] = c[i][:, tgt] + best - mval
-            else:
-                cur = c[i] + best - mval
+            cur = c[i].clone()  # columns without a predecessor keep C
+            cur[:, tgt] += best - mval
         out[i] = cur
         prev = cur
     return out
