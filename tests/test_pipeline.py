@@ -88,6 +88,24 @@ def test_zero_level_lies_near_the_ground_truth(tiny_run, tiny_scene):
     assert r["accuracy"] < 3.0 * footprint and r["completeness"] < 4.0 * footprint, r
 
 
+def test_chamfer_of_points_far_from_the_object(tiny_scene):
+    """Nothing near the object: an InputError by default, the clip distance with on_empty="clip"
+    (so a method that missed the object still has a number in a comparison)."""
+    views = [0, 1]
+    gt = observed_gt_points(tiny_scene, views)
+    far = gt.mean(0) + 100.0 * (gt.max(0) - gt.min(0))
+    pts = far[None] + np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(InputError, match="no reconstructed point"):
+        synthetic_chamfer(pts, tiny_scene, views)
+    r = synthetic_chamfer(pts, tiny_scene, views, on_empty="clip")
+    assert r["pred_points"] == 0 and r["fscore"] == 0.0
+    assert r["accuracy"] == r["completeness"] == r["overall"] == r["max_dist"] > 0
+    near = synthetic_chamfer(gt[::7], tiny_scene, views, on_empty="clip")
+    assert near["overall"] < 0.1 * r["overall"]
+    with pytest.raises(ValueError, match="on_empty"):
+        synthetic_chamfer(pts, tiny_scene, views, on_empty="ignore")
+
+
 def test_rerun_reuses_finished_stages(tiny_run):
     out, summary, p = tiny_run
     model_file = out / "field" / "model.pt"

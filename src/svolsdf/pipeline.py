@@ -766,13 +766,25 @@ class Pipeline:
         o = self.cfg.output
         fcfg = FusionConfig(dist_thresh=o.fusion_dist, rel_thresh=o.fusion_rel,
                             min_consistent=o.fusion_views, conf_thresh=o.fusion_conf,
-                            use_masks=o.use_masks)
+                            use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
+        surface = None
+        sdir = self.out / "field" / "render_depth"
+        # the rendered guide is the surface (the soft-consistency ablation's guide is not)
+        if o.fusion_surface > 0 and self.cfg.train.ablation != "soft-consistency-only" \
+                and all((sdir / f"{v}.npy").is_file() for v in self.views):
+            surface = {}
+            for v in self.views:
+                ds = torch.from_numpy(np.load(sdir / f"{v}.npy")).float()
+                if ds.shape != depths[v].shape:  # nearest: no mixing across depth edges
+                    ds = F.interpolate(ds[None, None], size=tuple(depths[v].shape),
+                                       mode="nearest")[0, 0]
+                surface[v] = ds
         cams = {v: scene.cameras[[i]] for i, v in enumerate(self.views)}
         images = {v: scene.images[i] for i, v in enumerate(self.views)}
         masks = None
         if scene.masks is not None and o.use_masks:
             masks = {v: scene.masks[i, 0] for i, v in enumerate(self.views)}
-        fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg)
+        fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface)
         write_points_ply(path, fused.points.numpy(),
                          None if fused.colors is None else fused.colors.numpy())
         self._mark("fusion", self.keys["fusion"])

@@ -187,3 +187,31 @@ def test_mask_to_depth_resolution_keeps_any_coverage():
     assert r.dtype == torch.bool and r[1, 1] and r.sum() >= 1
     with pytest.raises(ValueError, match="two depth maps"):
         fuse_depth_maps({0: torch.ones(4, 4)}, {0: look_at_camera((0, 0, -4.0))})
+
+
+def test_fusion_surface_counts_as_one_source():
+    """A pixel whose only support is the optimized surface's depth survives with the surface
+    option, keeps its own depth, and a depth off the surface does not."""
+    cams = three_cameras()
+    depths = {v: sphere_depth(c).float() for v, c in cams.items()}
+    depths[1] = depths[1] * 1.1  # views 1 and 2 fail everywhere: no MVS support for view 0
+    depths[2] = depths[2] * 0.9
+    surface = {v: sphere_depth(c).float() for v, c in cams.items()}
+    plain = fuse_depth_maps(depths, cams)
+    assert plain.stats[0]["points"] == 0
+    cfg = FusionConfig(surface_rel_thresh=0.002)
+    out = fuse_depth_maps(depths, cams, cfg=cfg, surface_depths=surface)
+    n0 = out.stats[0]["points"]
+    valid0 = int((depths[0] > 0).sum())
+    assert n0 == valid0 and out.stats[0]["surface_only"] == pytest.approx(valid0 / (40 * 48))
+    _, z = cams[0].project(out.points[:n0].double())
+    torch.testing.assert_close(z[0].float(), depths[0][depths[0] > 0], rtol=1e-5, atol=0)
+    # views 1 and 2 are 10 % off the surface: rejected
+    assert out.stats[1]["points"] == 0 and out.stats[2]["points"] == 0
+    # off by default, and the surface option needs every view
+    assert fuse_depth_maps(depths, cams, surface_depths=surface).stats[0]["points"] == 0
+    with pytest.raises(ValueError, match="surface_depths"):
+        fuse_depth_maps(depths, cams, cfg=cfg, surface_depths={0: surface[0]})
+    with pytest.raises(ValueError, match="surface_depths"):
+        fuse_depth_maps(depths, cams, cfg=cfg,
+                        surface_depths={v: s[:20] for v, s in surface.items()})

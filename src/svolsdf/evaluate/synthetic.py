@@ -88,7 +88,8 @@ def _table_height(scene_dir: str | Path) -> float | None:
 
 
 def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int],
-                      max_dist: float | None = None, threshold: float | None = None) -> dict:
+                      max_dist: float | None = None, threshold: float | None = None,
+                      on_empty: str = "raise") -> dict:
     """Chamfer and F-score of ``points`` against the observed ground truth (METHOD.md 8.2).
 
     Args:
@@ -99,6 +100,10 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
             ground truth's bounding box are not scored (default 5% of the GT's bounding-box
             diagonal, the role of DTU's 20 mm cut-off on a ~400 mm object).
         threshold: F-score threshold (default 0.5% of the diagonal).
+        on_empty: when no prediction lies near the object: "raise" an `InputError`, or "clip":
+            every distance is then beyond the cut-off, so accuracy = completeness = overall =
+            max_dist, F-score 0 and ``pred_points`` 0 (a method that missed the object still
+            gets a number in a comparison table).
 
     Returns:
         dict: accuracy, completeness, overall, precision, recall, fscore, threshold, max_dist,
@@ -106,6 +111,8 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
     """
     from svolsdf.evaluate.chamfer import greedy_radius_downsample, nn_distances
 
+    if on_empty not in ("raise", "clip"):
+        raise ValueError(f"on_empty must be 'raise' or 'clip', got {on_empty!r}")
     gt = observed_gt_points(scene_dir, views)
     if len(gt) == 0:
         raise InputError(f"{scene_dir}: no ground-truth point is visible in views {views}")
@@ -123,6 +130,10 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
         pred = pred[pred[:, 2] > table + threshold]
         gt = gt[gt[:, 2] > table + threshold]
     if len(pred) == 0:
+        if on_empty == "clip":
+            return {"accuracy": max_dist, "completeness": max_dist, "overall": max_dist,
+                    "precision": 0.0, "recall": 0.0, "fscore": 0.0, "threshold": threshold,
+                    "max_dist": max_dist, "gt_points": int(len(gt)), "pred_points": 0}
         raise InputError("no reconstructed point lies near the ground-truth object")
     rng = np.random.default_rng(0)
     r = threshold / 5  # even out densities (METHOD.md 8.1's radius downsampling)

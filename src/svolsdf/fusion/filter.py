@@ -77,6 +77,13 @@ class FusionConfig:
     """Radius in pixels of the disk the masks are dilated with, at the mask's native resolution,
     before they are resized to the depth resolution (METHOD.md 6.3)."""
 
+    surface_rel_thresh: float = 0.0
+    """With ``surface_depths`` (the optimized surface's depth rendered in each reference view): a
+    pixel whose depth lies within this relative difference of the surface's depth counts as one
+    more consistent source (its fused depth is not changed by it). The surface is fitted to all
+    views at once, so agreeing with it is multi-view evidence where the other views' depth maps
+    failed (rims, occlusion borders). 0 = off (the released fusion)."""
+
     estimate_normals: bool = False
     """Also return per-point normals, from finite differences of the fused depth map's
     back-projected points, oriented towards the reference camera."""
@@ -89,8 +96,9 @@ class FusedPoints(NamedTuple):
         points: (N, 3) float32 world points.
         colors: (N, 3) uint8 colours from the reference images, or None without images.
         normals: (N, 3) float32 unit normals, or None unless ``estimate_normals``.
-        stats: view id -> {"valid", "geo", "photo", "mask", "kept": share of the depth map's
-            pixels; "points": number of points contributed}.
+        stats: view id -> {"valid", "geo", "surface_only" (geometric only thanks to the
+            surface), "photo", "mask", "kept": share of the depth map's pixels; "points": number
+            of points contributed}.
     """
 
     points: Tensor
@@ -373,6 +381,7 @@ def fuse_depth_maps(
     confidences: dict[int, Tensor] | None = None,
     masks: dict[int, Tensor] | None = None,
     cfg: FusionConfig | None = None,
+    surface_depths: dict[int, Tensor] | None = None,
 ) -> FusedPoints:
     """Filter every depth map against the others and fuse the survivors (METHOD.md 6.3).
 
@@ -395,6 +404,8 @@ def fuse_depth_maps(
         confidences: view id -> (H, W) confidence at the depth resolution, or None.
         masks: view id -> (Hm, Wm) or (1, Hm, Wm) object masks, or None.
         cfg: `FusionConfig`; defaults reproduce the released settings.
+        surface_depths: view id -> (H, W) z-depth of the optimized surface at the depth
+            resolution (<= 0 = none), used when ``cfg.surface_rel_thresh > 0``.
 
     Returns:
         `FusedPoints` (points (N, 3), colors (N, 3) uint8 or None, normals (N, 3) or None, stats).
@@ -403,8 +414,9 @@ def fuse_depth_maps(
     ids = list(depths)
     if len(ids) < 2:
         raise ValueError(f"fusion needs at least two depth maps, got {len(ids)}")
+    use_surface = surface_depths is not None and cfg.surface_rel_thresh > 0
     for name, d in (("cameras", cameras), ("images", images), ("confidences", confidences),
-                    ("masks", masks)):
+                    ("masks", masks), ("surface_depths", surface_depths if use_surface else None)):
         if d is not None and any(v not in d for v in ids):
             missing = [v for v in ids if v not in d]
             raise ValueError(f"{name} has no entry for view(s) {missing}")
@@ -430,7 +442,16 @@ def fuse_depth_maps(
             )
             count += m.int()
             d_sum += torch.where(m, d_rep.double(), torch.zeros_like(d_sum))
-        geo = valid & (count >= cfg.min_consistent)
+        support = count
+        on_surface = torch.zeros_like(valid)
+        if use_surface:
+            ds = surface_depths[ref].to(d_ref.device).float()
+            if tuple(ds.shape) != (H, W):
+                raise ValueError(f"surface_depths[{ref}] is {tuple(ds.shape)} but its depth map "
+                                 f"is {(H, W)}")
+            on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
+            support = count + on_surface.int()
+        geo = valid & (support >= cfg.min_consistent)
         keep = geo.clone()
         photo = torch.ones_like(geo)
         if confidences is not None:
@@ -468,6 +489,7 @@ def fuse_depth_maps(
         stats[ref] = {
             "valid": float(valid.sum()) / n,
             "geo": float(geo.sum()) / n,
+            "surface_only": float((valid & on_surface & (count < cfg.min_consistent)).sum()) / n,
             "photo": float((photo & valid).sum()) / n,
             "mask": float((inside & valid).sum()) / n,
             "kept": float(keep.sum()) / n,
