@@ -180,6 +180,25 @@ def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
         Pipeline(cfg, tmp_path / "b", progress=False).run()
 
 
+def test_fusion_surface_option_adds_points_on_the_surface(tiny_run, tmp_path):
+    """The fast preset's fusion counts a depth on the rendered surface as a consistent view;
+    turning it off reruns only fusion and keeps a subset of the points."""
+    import shutil
+
+    out, _, p = tiny_run
+    assert p.cfg.output.fusion_surface > 0
+    out2 = tmp_path / "nosurf"
+    shutil.copytree(out, out2)
+    cfg = load_config(out / "config.yaml")
+    cfg.output.fusion_surface = 0.0
+    p2 = Pipeline(cfg, out2, progress=False)
+    p2.run()
+    assert set(p2.timing) - {"total"} == {"fusion"}
+    n_with = len(read_ply(out / "points.ply")["points"])
+    n_without = len(read_ply(out2 / "points.ply")["points"])
+    assert n_without <= n_with
+
+
 def test_finer_stage_optimization(tiny_run, tmp_path):
     """The paper's option (METHOD.md 9.2.13): more steps against the stage-2 volumes, then
     stage 3 around the re-rendered depth; reuses the finished field and stage-1 volumes."""
@@ -195,6 +214,10 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
     assert "field" not in p2.timing and "mvs23" in p2.timing and "mesh" in p2.timing
     assert (out2 / "field" / "stage2" / "model.pt").is_file()
     assert (out2 / "field" / "stage2" / "losses.csv").is_file()
+    v = json.loads((out2 / "views.json").read_text())["inputs"][0]
+    # the refined surface's depth, which fusion's surface check then uses
+    s2 = np.load(out2 / "field" / "stage2" / "render_depth" / f"{v}.npy")
+    assert s2.shape == (120, 160) and np.isfinite(s2).all()
     v = json.loads((out2 / "views.json").read_text())["inputs"][0]
     d = np.load(out2 / "depth" / f"{v}.npy")
     assert d.shape == (120, 160) and np.isfinite(d).all()

@@ -668,6 +668,9 @@ class Pipeline:
                     "grid_resolution": getattr(model, "resolution", None)}, tmp)
         os.replace(tmp, final)
         guide2 = self._rendered_guide()
+        for v, d in guide2.items():  # the refined surface, for fusion (output.fusion_surface)
+            _save_npy(self.out / "field" / "stage2" / "render_depth" / f"{v}.npy",
+                      d.numpy().astype(np.float32))
         res3 = run_cascade(bb, scene, guide_depth=guide2, stages=(3,),
                            prev={v.view_id: v for v in res2[2]})
         return {2: res2[2], 3: res3[3]}
@@ -769,6 +772,8 @@ class Pipeline:
                             use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
         surface = None
         sdir = self.out / "field" / "render_depth"
+        if self.cfg.output.finer_stage_optimization:
+            sdir = self.out / "field" / "stage2" / "render_depth"  # the refined surface
         # the rendered guide is the surface (the soft-consistency ablation's guide is not)
         if o.fusion_surface > 0 and self.cfg.train.ablation != "soft-consistency-only" \
                 and all((sdir / f"{v}.npy").is_file() for v in self.views):
