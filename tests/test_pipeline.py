@@ -104,6 +104,23 @@ def test_chamfer_of_points_far_from_the_object(tiny_scene):
     assert near["overall"] < 0.1 * r["overall"]
     with pytest.raises(ValueError, match="on_empty"):
         synthetic_chamfer(pts, tiny_scene, views, on_empty="ignore")
+    # half of the ground truth reconstructed exactly, plus outliers just beyond the cut-off
+    half = gt[gt[:, 0] < np.median(gt[:, 0])]
+    md = near["max_dist"]
+    lo, hi = gt.min(0), gt.max(0)
+    # outliers off a corner of the GT's box: inside the scored margin, >= 1.4 max_dist from it
+    corner = hi + 0.9 * md
+    out = corner + np.random.default_rng(1).uniform(-0.05, 0.05, (len(half) // 4, 3)) * md
+    mix = np.concatenate([half, out])
+    clip = synthetic_chamfer(mix, tiny_scene, views)
+    excl = synthetic_chamfer(mix, tiny_scene, views, rule="exclude")
+    # clip: the outliers (and the missing half) count as max_dist; exclude: they are left out
+    assert excl["accuracy"] < 0.01 * md
+    assert clip["accuracy"] > excl["accuracy"] + 0.005 * md
+    assert excl["completeness"] < clip["completeness"]
+    assert clip["fscore"] == excl["fscore"]
+    with pytest.raises(ValueError, match="rule"):
+        synthetic_chamfer(pts, tiny_scene, views, rule="truncate")
 
 
 def test_rerun_reuses_finished_stages(tiny_run):

@@ -6,8 +6,10 @@ scene's ``gt_points.ply`` samples the whole object, including its back, which th
 never see; scoring completeness against it would measure the camera layout, not the method. The
 analogue of the ObsMask here: a ground-truth point counts when at least one input view sees it,
 i.e. it projects inside the image and its depth agrees with that view's ``gt_depth`` map within a
-few pixel footprints. Accuracy and completeness then follow METHOD.md 8.2 (generic two-way
-Chamfer with a cut-off), in world units (millimetres for generated scenes).
+few pixel footprints. Accuracy and completeness are two-way nearest-neighbour means with a
+cut-off, in world units (millimetres for generated scenes). By default a distance beyond the
+cut-off counts as the cut-off (clipped), so holes are paid for; ``rule="exclude"`` leaves such
+distances out of the means as the DTU and BlendedMVS evaluations do (METHOD.md 8.1, 8.2).
 """
 
 from __future__ import annotations
@@ -89,7 +91,7 @@ def _table_height(scene_dir: str | Path) -> float | None:
 
 def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int],
                       max_dist: float | None = None, threshold: float | None = None,
-                      on_empty: str = "raise") -> dict:
+                      on_empty: str = "raise", rule: str = "clip") -> dict:
     """Chamfer and F-score of ``points`` against the observed ground truth (METHOD.md 8.2).
 
     Args:
@@ -100,6 +102,11 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
             ground truth's bounding box are not scored (default 5% of the GT's bounding-box
             diagonal, the role of DTU's 20 mm cut-off on a ~400 mm object).
         threshold: F-score threshold (default 0.5% of the diagonal).
+        rule: how distances beyond ``max_dist`` enter the means: "clip" (default; each counts
+            as max_dist, so a hole in the reconstruction costs what a far outlier does) or
+            "exclude" (METHOD.md 8.1 / 8.2, the DTU and BlendedMVS evaluations: distances at or
+            above max_dist are left out of the means, so holes wider than max_dist cost
+            nothing). The F-score is the same under both.
         on_empty: when no prediction lies near the object: "raise" an `InputError`, or "clip":
             every distance is then beyond the cut-off, so accuracy = completeness = overall =
             max_dist, F-score 0 and ``pred_points`` 0 (a method that missed the object still
@@ -111,6 +118,8 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
     """
     from svolsdf.evaluate.chamfer import greedy_radius_downsample, nn_distances
 
+    if rule not in ("clip", "exclude"):
+        raise ValueError(f"rule must be 'clip' or 'exclude', got {rule!r}")
     if on_empty not in ("raise", "clip"):
         raise ValueError(f"on_empty must be 'raise' or 'clip', got {on_empty!r}")
     gt = observed_gt_points(scene_dir, views)
@@ -140,11 +149,15 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
     pred = pred[rng.permutation(len(pred))]
     pred = pred[greedy_radius_downsample(pred, r)]
     gt = gt[greedy_radius_downsample(gt[rng.permutation(len(gt))], r)]
-    # distances are clipped at max_dist (a truncated Chamfer): outliers count, but boundedly
-    d_pg = np.minimum(nn_distances(pred, gt), max_dist)
-    d_gp = np.minimum(nn_distances(gt, pred), max_dist)
-    acc, comp = float(d_pg.mean()), float(d_gp.mean())
+    # rule "clip" (a truncated Chamfer): outliers and holes count, but boundedly
+    d_pg, d_gp = nn_distances(pred, gt), nn_distances(gt, pred)
     prec, rec = float((d_pg < threshold).mean()), float((d_gp < threshold).mean())
+    if rule == "clip":
+        acc = float(np.minimum(d_pg, max_dist).mean())
+        comp = float(np.minimum(d_gp, max_dist).mean())
+    else:  # METHOD.md 8.1: means over the distances below the cut-off (max_dist if none is)
+        acc = float(d_pg[d_pg < max_dist].mean()) if (d_pg < max_dist).any() else max_dist
+        comp = float(d_gp[d_gp < max_dist].mean()) if (d_gp < max_dist).any() else max_dist
     f = 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0
     return {"accuracy": acc, "completeness": comp, "overall": (acc + comp) / 2,
             "precision": prec, "recall": rec, "fscore": f, "threshold": threshold,

@@ -7,7 +7,10 @@ Implements METHOD.md 6.3 (the released ``runner.py::filter_depth`` and
 2. A reference pixel is consistent with a source if its depth, carried to the source, sampled
    there (bilinear) and carried back, lands within ``dist_thresh`` pixels of where it started and
    within a relative depth difference ``rel_thresh``.
-3. Pixels with at least ``min_consistent`` consistent sources, a confidence above
+3. Optionally (not in METHOD.md; the fast preset's ``output.fusion_surface``), a pixel whose
+   depth lies on the optimized surface (its rendered depth in the reference view, within a
+   relative tolerance) counts as one more consistent source.
+4. Pixels with at least ``min_consistent`` consistent sources, a confidence above
    ``conf_thresh`` and inside the dilated object mask are kept; their depth is the average of the
    reference depth and the consistent reprojected depths, back-projected to world coordinates
    and coloured from the reference image.
