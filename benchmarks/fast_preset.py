@@ -49,17 +49,23 @@ def _reconstruct(scene: Path, out: Path, *args: str) -> float:
 
 def _score_ply(scene: Path, f: Path, views: list[int]) -> dict:
     """Chamfer of one PLY's points; nothing near the object scores the clip distance."""
-    from svolsdf.evaluate.synthetic import synthetic_chamfer
     from svolsdf.io.ply import read_ply
 
-    pts = read_ply(f)["points"]
+    return _score_points(scene, read_ply(f)["points"], views, f.name)
+
+
+def _score_points(scene: Path, pts, views: list[int], name: str) -> dict:
+    """Chamfer of (N, 3) world points (N may be 0); nothing near the object scores the clip
+    distance."""
+    from svolsdf.evaluate.synthetic import synthetic_chamfer
+
     r = synthetic_chamfer(pts, scene, views, on_empty="clip")
     out = {k: r[k] for k in ("accuracy", "completeness", "overall", "fscore")}
     # the DTU / BlendedMVS rule (METHOD.md 8.1): distances beyond the cut-off left out
     out["overall_dtu_rule"] = synthetic_chamfer(pts, scene, views, on_empty="clip",
                                                 rule="exclude")["overall"]
     if r["pred_points"] == 0:
-        out["error"] = (f"{f.name}: no point lies near the ground-truth object; every distance "
+        out["error"] = (f"{name}: no point lies near the ground-truth object; every distance "
                         f"is clipped at {r['max_dist']:.2f} mm")
     return out
 
@@ -98,6 +104,18 @@ def _ibr_view(out: Path) -> Path:
     return d
 
 
+def _try_mesh(p) -> tuple[float, str | None]:
+    """Extract ``p``'s mesh; returns (seconds, None), or (seconds, why) when the field has no
+    zero level set inside its box (a field early in its optimization may have none)."""
+    t0 = time.perf_counter()
+    try:
+        p.stage_mesh()
+        err = None
+    except ValueError as e:
+        err = str(e)
+    return time.perf_counter() - t0, err
+
+
 def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     """The paper preset given (d)'s wall time: MVS stage 1, then the field optimization until the
     budget (minus the mesh extraction that follows) is spent, then the mesh of that field.
@@ -132,9 +150,7 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     tr = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=p.make_sampler(prior))
     # the mesh extraction's cost, measured on the untrained model, is left out of the budget
     p._model = model
-    t0 = time.perf_counter()
-    p.stage_mesh()
-    mesh_s = time.perf_counter() - t0
+    mesh_s, _ = _try_mesh(p)
     (p.out / "mesh.ply").unlink(missing_ok=True)
     field_budget = budget_s - (time.perf_counter() - t_start - mesh_s) - mesh_s
     t0 = time.perf_counter()
@@ -149,9 +165,7 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     rate = steps / max(field_s, 1e-9)
     model.eval()
     p._model = model
-    t0 = time.perf_counter()
-    p.stage_mesh()
-    mesh_s = time.perf_counter() - t0
+    mesh_s, mesh_error = _try_mesh(p)
     wall = time.perf_counter() - t_start - mesh_s  # the first (calibration) extraction not counted
     scene_ = p.load()
     cams = scene_.cameras_unit
@@ -162,9 +176,17 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     p.render_views(small, nf[:1])
     per_ray = (time.perf_counter() - t0) / (48 * 36)
     render_s = per_ray * cams.width * cams.height * len(cams)
-    res = _score_mesh(scene, p.out, views=list(p.views))
+    if mesh_error is None:
+        res = _score_mesh(scene, p.out, views=list(p.views))
+    else:  # no surface yet: scored as an empty mesh (every distance at the clip distance)
+        import numpy as np
+
+        res = {"mesh": _score_points(scene, np.zeros((0, 3)), list(p.views), "mesh")}
+        res["mesh"]["error"] = f"no mesh: {mesh_error}"
     note = (f"paper preset (8x256 MLP, error-bounded sampler, 512 rays): {steps} of its 100,000 "
-            f"steps in {field_s:.0f} s ({rate:.3f} steps/s), then its mesh (128^3); rendering "
+            f"steps in {field_s:.0f} s ({rate:.3f} steps/s), then its mesh (128^3"
+            f"{'' if mesh_error is None else '; none: the SDF has no zero level set in the box'}"
+            f"); rendering "
             f"the guide depth of the 3 input views for the finer MVS stages would take another "
             f"~{render_s / 60:.0f} min (measured on a 48x36 view, extrapolated), so it has no "
             f"fused points at this budget.")
