@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import platform
-import resource
 
 __all__ = ["cpu_name", "peak_rss_gb"]
 
@@ -20,5 +19,8 @@ def cpu_name() -> str:
 
 
 def peak_rss_gb() -> float:
-    """Peak resident memory of this process in GiB (Linux ru_maxrss is in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    """Peak resident memory of this process in GiB (svolsdf.pipeline.peak_rss_gb: VmHWM, which,
+    unlike ru_maxrss, does not carry a parent's peak into a child process)."""
+    from svolsdf.pipeline import peak_rss_gb as _peak
+
+    return _peak()

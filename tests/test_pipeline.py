@@ -4,6 +4,8 @@ mesh), its outputs, stage reuse, and bad input."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from svolsdf.config import load_config, preset
 from svolsdf.errors import InputError
 from svolsdf.evaluate.synthetic import observed_gt_points, synthetic_chamfer
 from svolsdf.io.ply import read_ply
-from svolsdf.pipeline import Pipeline
+from svolsdf.pipeline import Pipeline, peak_rss_gb
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
 
@@ -261,3 +263,16 @@ def test_field_stage_uses_the_regressed_stage1_depth(tmp_path):
     torch.testing.assert_close(reg[0].depth, torch.full((3, 4), 1.4))
     assert vol.depth.eq(1).all()  # the stored volume is left as it is
     assert p.regressed_volumes1() is reg  # cached
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM is Linux's /proc")
+def test_peak_memory_of_a_child_does_not_include_its_parents_peak():
+    """timing.json's peak memory: a pipeline started by a process that once held ~400 MB more
+    (a benchmark) must not report that peak as its own (ru_maxrss survives fork + exec)."""
+    big = np.ones(400 * 2**20 // 8)  # 400 MiB, touched
+    big += 1
+    code = "from svolsdf.pipeline import peak_rss_gb; print(peak_rss_gb())"
+    child = float(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                                 text=True).stdout)
+    assert peak_rss_gb() > child + 0.3
+    del big

@@ -23,6 +23,7 @@ import json
 import logging
 import os
 import resource
+import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -36,7 +37,8 @@ from svolsdf.errors import InputError
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.scene import Scene
 
-__all__ = ["Pipeline", "default_views", "test_views", "working_size", "resolve_device"]
+__all__ = ["Pipeline", "default_views", "test_views", "working_size", "resolve_device",
+           "peak_rss_gb"]
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +134,23 @@ def _save_npy(path: Path, arr: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-def _peak_rss_gb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+def peak_rss_gb() -> float:
+    """Peak resident memory of this process in GiB.
+
+    Linux: the ``VmHWM`` line of /proc/self/status, which belongs to this process's own address
+    space. ``ru_maxrss`` is not used there: it survives fork + exec, so a pipeline started by a
+    process that once held 3 GB would report 3 GB (benchmarks start the pipeline that way).
+    Elsewhere: ``ru_maxrss`` (KiB on Linux and the BSDs, bytes on macOS).
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024**2  # kB
+    except OSError:
+        pass
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 1024**3 if sys.platform == "darwin" else rss / 1024**2
 
 
 # --------------------------------------------------------------------------- pipeline
@@ -202,7 +219,7 @@ class Pipeline:
 
     def _time(self, stage: str, t0: float, **extra) -> None:
         self.timing[stage] = {"seconds": round(time.perf_counter() - t0, 3),
-                              "peak_memory_gb": round(_peak_rss_gb(), 3), **extra}
+                              "peak_memory_gb": round(peak_rss_gb(), 3), **extra}
         prev = {}
         tp = self.out / "timing.json"
         if tp.is_file():
