@@ -9,6 +9,9 @@ after another in fresh processes (`svolsdf reconstruct`):
                         wall time that (d) used (stage 1, then optimization until the budget is
                         spent, then its mesh; scored by the mesh)
   (d) fast              the S-VolSDF fast preset (the default)
+  (d')                  (d)'s points without the unguided set (`output.fusion_unguided`
+                        off: the guided stages 2-3 alone, as the paper fuses); fusion
+                        rerun on a copy of (d)'s folder
 
 and scores points.ply (and mesh.ply) against the ground-truth surface the input views observe
 (`svolsdf.evaluate.synthetic.synthetic_chamfer`). Optionally (``--dtu``) it runs the fast preset
@@ -88,6 +91,28 @@ def _score(scene: Path, out: Path) -> dict:
         res["points"] = _score_ply(scene, out / "points.ply", views)
     res.update(_score_mesh(scene, out, views))
     return res
+
+
+def _guided_only(scene: Path, d_out: Path) -> dict:
+    """(d)'s points without the unguided set (`output.fusion_unguided` off): the guided stages
+    2-3 alone, as the paper fuses. A copy of (d)'s folder in which only fusion reruns."""
+    import shutil
+
+    from svolsdf.config import load_config, save_config
+
+    g = d_out.parent / (d_out.name + "_guided_only")
+    if g.exists():
+        shutil.rmtree(g)
+    shutil.copytree(d_out, g)
+    cfg = load_config(g / "config.yaml")
+    cfg.output.fusion_unguided = False
+    save_config(cfg, g / "config.yaml")
+    _reconstruct(scene, g, "--config", str(g / "config.yaml"))
+    views = json.loads((g / "views.json").read_text())["inputs"]
+    timing = json.loads((g / "timing.json").read_text())
+    return {**_score_ply(scene, g / "points.ply", views),
+            "wall_s": sum(v["seconds"] for k, v in timing.items()
+                          if k not in ("total", "unguided"))}
 
 
 def _ibr_view(out: Path) -> Path:
@@ -247,6 +272,10 @@ def main() -> None:
                 r.pop("points", None)
                 if (d / "points.ply").is_file():
                     r["points"] = _score_ply(Path(r["scene"]), d / "points.ply", views)
+                g = d.parent / (d.name + "_guided_only")
+                if "guided_only" in r and (g / "points.ply").is_file():
+                    r["guided_only"].update(_score_ply(Path(r["scene"]), g / "points.ply",
+                                                       views))
                 r.update(_score_mesh(Path(r["scene"]), d, views))
     else:
         runs, more = {}, {}
@@ -256,7 +285,10 @@ def main() -> None:
 
     def run(sc: Path, out: Path, *extra: str) -> dict:
         _reconstruct(sc, out, *extra)
-        return {**_score(sc, out), "dir": str(out), "scene": str(sc)}
+        r = {**_score(sc, out), "dir": str(out), "scene": str(sc)}
+        if (out / "unguided").is_dir():  # (d): also its points without the unguided set
+            r["guided_only"] = _guided_only(sc, out)
+        return r
 
     only = set(args.only.split(",")) if not args.rescore else set()
     if "d" in only:
@@ -328,6 +360,13 @@ def main() -> None:
                      f"{_fmt(p.get('overall'))} | {_fmt(p.get('overall_dtu_rule'))} | "
                      f"{_fmt(p.get('fscore'), 3)} | {_fmt(m.get('overall'))} | "
                      f"{_fmt(m.get('overall_dtu_rule'))} | {_fmt(r.get('steps_per_s'))} |")
+        if "guided_only" in r:
+            g = r["guided_only"]
+            lines.append(f"| {name.split()[0]}' the same, guided depth only (no unguided set) | "
+                         f"{_fmt(g['wall_s'], 0)} | - | {_fmt(g.get('accuracy'))} | "
+                         f"{_fmt(g.get('completeness'))} | {_fmt(g.get('overall'))} | "
+                         f"{_fmt(g.get('overall_dtu_rule'))} | {_fmt(g.get('fscore'), 3)} | "
+                         "- | - | - |")
     lines.append("")
     for name, r in runs.items():
         lines.append(f"- {name}: stages (s) {json.dumps(r['stages'])}"
@@ -345,6 +384,10 @@ def main() -> None:
             o = get(other, "points", key)
             if d is not None and o:
                 lines.append(f"- ratio (d)/{other} {label}: {d / o:.2f} (target {target})")
+        g = next((r for n, r in runs.items() if n.startswith("(d)")), {}).get("guided_only")
+        o = get("(a)", "points", key)
+        if g and g.get(key) is not None and o:
+            lines.append(f"- ratio (d')/(a) {label}, guided depth only: {g[key] / o:.2f}")
     for key in ("overall", "overall_dtu_rule"):
         dm, cm = get("(d)", "mesh", key), get("(c)", "mesh", key)
         if dm is not None and cm:
@@ -353,9 +396,11 @@ def main() -> None:
     if more:
         lines += ["", "## More synthetic scenes: (d) against (a)", "",
                   "| scene | (d) wall (s) | (d) peak (GB) | (d) acc / comp / Chamfer | "
-                  "(a) acc / comp / Chamfer | ratio (d)/(a) | ratio, DTU rule |",
-                  "|---|---|---|---|---|---|---|"]
+                  "(a) acc / comp / Chamfer | ratio (d)/(a) | ratio, DTU rule | "
+                  "(d') guided depth only: acc / comp / Chamfer | ratio (d')/(a) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         ratios: dict[str, list] = {"overall": [], "overall_dtu_rule": []}
+        ratios_g: list = []
         for name, r in more.items():
             pd, pa = r["d"].get("points", {}), r["a"].get("points", {})
             row = []
@@ -364,14 +409,23 @@ def main() -> None:
                 row.append(_fmt(x))
                 if x is not None:
                     rs.append(x)
+            pg = r["d"].get("guided_only", {})
+            xg = pg["overall"] / pa["overall"] if pg.get("overall") and pa.get("overall") \
+                else None
+            if xg is not None:
+                ratios_g.append(xg)
             lines.append(f"| {name} | {_fmt(r['d']['wall_s'], 0)} | {_fmt(r['d']['peak_gb'])} | "
-                         f"{_triple(pd)} | {_triple(pa)} | {' | '.join(row)} |")
+                         f"{_triple(pd)} | {_triple(pa)} | {' | '.join(row)} | "
+                         f"{_triple(pg) if pg else '-'} | {_fmt(xg)} |")
         if ratios["overall"]:
             lines.append("")
             for key, rs in ratios.items():
                 lines.append(f"- mean ratio (d)/(a) over these scenes"
                              f"{', DTU rule' if 'dtu' in key else ''}: "
                              f"{sum(rs) / len(rs):.2f} (target <= 0.75)")
+            if ratios_g:
+                lines.append(f"- mean ratio (d')/(a), guided depth only: "
+                             f"{sum(ratios_g) / len(ratios_g):.2f}")
     c = runs.get("(c) S-VolSDF paper preset, equal time")
     if c is not None:
         lines += ["", "## (c) the paper preset at (d)'s wall time", "",

@@ -276,3 +276,36 @@ def test_peak_memory_of_a_child_does_not_include_its_parents_peak():
                                  text=True).stdout)
     assert peak_rss_gb() > child + 0.3
     del big
+
+
+def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
+    """`output.fusion_unguided` (fast preset): the second depth hypothesis is exactly what the
+    backbone alone (`--mode mvs-only`) computes, the fused cloud holds both hypotheses' points,
+    and turning it off reruns only fusion."""
+    import shutil
+
+    out, _, p = tiny_run
+    assert p.cfg.output.fusion_unguided
+    cfg = load_config(out / "config.yaml")
+    cfg.train.mode = "mvs-only"
+    out_m = tmp_path / "mvs_only"
+    Pipeline(cfg, out_m, progress=False).run()
+    for v in p.views:
+        for sub in ("depth", "confidence"):
+            np.testing.assert_allclose(np.load(out / "unguided" / sub / f"{v}.npy"),
+                                       np.load(out_m / sub / f"{v}.npy"), rtol=1e-5, atol=1e-6)
+    counts = json.loads((out / "timing.json").read_text())["fusion"]["points_per_set"]
+    assert set(counts) == {"guided", "unguided"} and counts["unguided"] > 0
+    n = len(read_ply(out / "points.ply")["points"])
+    assert n == counts["guided"] + counts["unguided"]
+    # the same depth maps; the surface check (fusion_surface) can only add consistent pixels
+    assert counts["unguided"] >= len(read_ply(out_m / "points.ply")["points"])
+    out2 = tmp_path / "no_unguided"
+    shutil.copytree(out, out2)
+    cfg = load_config(out / "config.yaml")
+    cfg.output.fusion_unguided = False
+    p2 = Pipeline(cfg, out2, progress=False)
+    p2.run()
+    assert set(p2.timing) - {"total"} == {"fusion"}
+    # without the unguided maps the guided depths have fewer sources to agree with
+    assert len(read_ply(out2 / "points.ply")["points"]) <= counts["guided"]

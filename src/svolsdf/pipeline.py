@@ -7,8 +7,11 @@ Stages (ARCHITECTURE.md "Data flow"; METHOD.md 0 and 6):
 3. ``guide``: rendered z-depth of the input views, which replaces the stage-1 depth
    (METHOD.md 6.1; OUT/field/render_depth/<id>.npy).
 4. ``mvs23``: stages 2 and 3 centred on that depth (OUT/mvs/stage{2,3}, OUT/depth/<id>.npy).
-5. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, METHOD.md 6.3).
-6. ``mesh``: marching cubes of the SDF (OUT/mesh.ply).
+5. ``unguided`` (``output.fusion_unguided``, the fast preset's; not in the paper): stages 2 and 3
+   centred on the stage-1 depth, as the backbone alone runs them (OUT/unguided/depth/<id>.npy);
+   fusion takes them as every view's second depth hypothesis.
+6. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, METHOD.md 6.3).
+7. ``mesh``: marching cubes of the SDF (OUT/mesh.ply).
 
 A stage is skipped on a rerun when its marker in OUT/stages.json carries the same config hash;
 a changed config reruns that stage and everything after it. The optimization resumes from its
@@ -42,7 +45,7 @@ __all__ = ["Pipeline", "default_views", "test_views", "working_size", "resolve_d
 
 log = logging.getLogger(__name__)
 
-STAGES = ("mvs1", "field", "guide", "mvs23", "fusion", "mesh")
+STAGES = ("mvs1", "field", "guide", "mvs23", "unguided", "fusion", "mesh")
 
 
 # --------------------------------------------------------------------------- scene choices
@@ -207,11 +210,14 @@ class Pipeline:
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
         k_guide = _hash(k_field, c["output"]["low_weight_rule"])
         k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"])
+        k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
         k_fusion = _hash(k_mvs23, {k: v for k, v in c["output"].items() if k.startswith("fusion")
-                                   or k == "use_masks"})
+                                   or k == "use_masks"},
+                         k_unguided if self._wants_unguided() else None)
         k_mesh = _hash(k_field, c["output"]["mesh_resolution"], c["output"]["mesh_format"],
                        k_mvs23 if c["output"]["finer_stage_optimization"] else None)
         return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
+                "unguided": k_unguided,
                 "fusion": k_fusion, "mesh": k_mesh}
 
     def _done(self, stage: str) -> bool:
@@ -290,6 +296,7 @@ class Pipeline:
             self.stage_field()
         self.stage_guide()
         self.stage_mvs23()
+        self.stage_unguided()
         self.stage_fusion()
         if self._has_field():
             self.stage_mesh()
@@ -766,6 +773,38 @@ class Pipeline:
         self._time("mvs23", t0)
         return depths
 
+    def _wants_unguided(self) -> bool:
+        """`OutputConfig.fusion_unguided` applies: svolsdf mode, whose stages 2-3 are guided."""
+        return self.cfg.output.fusion_unguided and self.cfg.train.mode == "svolsdf"
+
+    def stage_unguided(self) -> dict[int, torch.Tensor] | None:
+        """MVS stages 2-3 centred on the stage-1 depth, the backbone alone's cascade
+        (`OutputConfig.fusion_unguided`): OUT/unguided/{depth,confidence}/<view>.npy, confidence
+        the product over stages 1-3 (METHOD.md 6.2). None when the option does not apply."""
+        if not self._wants_unguided():
+            return None
+        udir = self.out / "unguided"
+        files = {v: udir / "depth" / f"{v}.npy" for v in self.views}
+        if self._done("unguided") and all(f.is_file() for f in files.values()):
+            return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+        t0 = time.perf_counter()
+        from svolsdf.mvs.cascade import combined_confidence, run_cascade
+
+        vols1 = self._volumes1 if self._volumes1 is not None else self.stage_mvs1()
+        res = run_cascade(self.backbone(), self.load(), stages=(2, 3),
+                          prev={v.view_id: v for v in vols1})
+        depths = {}
+        for v3 in res[3]:
+            H, W = v3.depth.shape
+            per_view = [v for v in (*vols1, *res[2], v3) if v.view_id == v3.view_id]
+            depths[v3.view_id] = v3.depth.float().cpu()
+            _save_npy(files[v3.view_id], depths[v3.view_id].numpy().astype(np.float32))
+            _save_npy(udir / "confidence" / f"{v3.view_id}.npy",
+                      combined_confidence(per_view, W, H).numpy().astype(np.float32))
+        self._mark("unguided", self.keys["unguided"])
+        self._time("unguided", t0)
+        return depths
+
     # ------------------------------------------------------------------ fusion
     def stage_fusion(self) -> Path:
         path = self.out / "points.ply"
@@ -776,24 +815,38 @@ class Pipeline:
         from svolsdf.io.ply import write_points_ply
 
         scene = self.load()
-        depths = {v: torch.from_numpy(np.load(self.out / "depth" / f"{v}.npy"))
-                  for v in self.views}
-        confs = None
-        cdir = self.out / "confidence"
-        if all((cdir / f"{v}.npy").is_file() for v in self.views) \
-                and self.cfg.train.mode != "volsdf":
-            confs = {v: torch.from_numpy(np.load(cdir / f"{v}.npy")) for v in self.views}
         o = self.cfg.output
         fcfg = FusionConfig(dist_thresh=o.fusion_dist, rel_thresh=o.fusion_rel,
                             min_consistent=o.fusion_views, conf_thresh=o.fusion_conf,
                             use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
-        surface = None
         sdir = self.out / "field" / "render_depth"
         if self.cfg.output.finer_stage_optimization:
             sdir = self.out / "field" / "stage2" / "render_depth"  # the refined surface
         # the rendered guide is the surface (the soft-consistency ablation's guide is not)
-        if o.fusion_surface > 0 and self.cfg.train.ablation != "soft-consistency-only" \
-                and all((sdir / f"{v}.npy").is_file() for v in self.views):
+        use_surface = (o.fusion_surface > 0 and self.cfg.train.ablation != "soft-consistency-only"
+                       and all((sdir / f"{v}.npy").is_file() for v in self.views))
+        cams = {v: scene.cameras[[i]] for i, v in enumerate(self.views)}
+        images = {v: scene.images[i] for i, v in enumerate(self.views)}
+        masks = None
+        if scene.masks is not None and o.use_masks:
+            masks = {v: scene.masks[i, 0] for i, v in enumerate(self.views)}
+
+        def load(d: Path, sub: str) -> dict[int, torch.Tensor] | None:
+            files = {v: d / sub / f"{v}.npy" for v in self.views}
+            if not all(f.is_file() for f in files.values()):
+                return None
+            return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+
+        depths = load(self.out, "depth")
+        confs = load(self.out, "confidence") if self.cfg.train.mode != "volsdf" else None
+        alt = alt_confs = None
+        if self._wants_unguided():  # the unguided stages 2-3 as each view's second hypothesis
+            alt, alt_confs = load(self.out / "unguided", "depth"), \
+                load(self.out / "unguided", "confidence")
+            if confs is None:
+                alt_confs = None
+        surface = None
+        if use_surface:
             surface = {}
             for v in self.views:
                 ds = torch.from_numpy(np.load(sdir / f"{v}.npy")).float()
@@ -801,17 +854,20 @@ class Pipeline:
                     ds = F.interpolate(ds[None, None], size=tuple(depths[v].shape),
                                        mode="nearest")[0, 0]
                 surface[v] = ds
-        cams = {v: scene.cameras[[i]] for i, v in enumerate(self.views)}
-        images = {v: scene.images[i] for i, v in enumerate(self.views)}
-        masks = None
-        if scene.masks is not None and o.use_masks:
-            masks = {v: scene.masks[i, 0] for i, v in enumerate(self.views)}
-        fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface)
-        write_points_ply(path, fused.points.numpy(),
-                         None if fused.colors is None else fused.colors.numpy())
+        fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface,
+                                alt_depths=alt, alt_confidences=alt_confs)
+        counts = {"first": sum(fused.stats[v]["points"] for v in self.views)}
+        if alt is not None:
+            counts = {"guided": counts["first"],
+                      "unguided": sum(fused.stats[f"{v}:alt"]["points"] for v in self.views)}
+        pts = fused.points.numpy()
+        cols = None if fused.colors is None else fused.colors.numpy()
+        write_points_ply(path, pts, cols)
         self._mark("fusion", self.keys["fusion"])
-        self._time("fusion", t0, points=int(len(fused.points)))
-        log.info("fused %d points -> %s", len(fused.points), path)
+        self._time("fusion", t0, points=int(len(pts)), **({"points_per_set": counts}
+                                                           if len(counts) > 1 else {}))
+        log.info("fused %d points -> %s%s", len(pts), path, "" if len(counts) == 1 else
+                 " (" + ", ".join(f"{k} {n}" for k, n in counts.items()) + ")")
         return path
 
     # ------------------------------------------------------------------ mesh

@@ -215,3 +215,35 @@ def test_fusion_surface_counts_as_one_source():
     with pytest.raises(ValueError, match="surface_depths"):
         fuse_depth_maps(depths, cams, cfg=cfg,
                         surface_depths={v: s[:20] for v, s in surface.items()})
+
+
+def test_fusion_second_hypothesis_per_view():
+    """alt_depths: each view's second depth map is a reference too, and a source view agrees
+    when either of its maps does (counted once)."""
+    cams = three_cameras()
+    exact = {v: sphere_depth(c).float() for v, c in cams.items()}
+    # first maps: view 0 right on its left half only (no depth elsewhere), views 1 and 2 empty
+    none = {v: torch.zeros_like(d) for v, d in exact.items()}
+    first = {0: exact[0].clone(), 1: none[1], 2: none[2]}
+    first[0][:, 24:] = 0
+    # second maps: view 1 right, views 0 and 2 empty
+    alt = {0: none[0], 1: exact[1].clone(), 2: none[2]}
+    plain = fuse_depth_maps(first, cams)
+    assert plain.points.shape[0] == 0  # no two first maps overlap
+    out = fuse_depth_maps(first, cams, alt_depths=alt)
+    assert set(out.stats) == {0, 1, 2, "0:alt", "1:alt", "2:alt"}
+    # view 0's first map agrees with view 1's second on its left half, not its right
+    assert out.stats[0]["points"] > 50
+    n0 = out.stats[0]["points"]
+    u, _ = cams[0].project(out.points[:n0].double())
+    assert (u[0, :, 0] < 24.5).all()
+    # view 1's second map is the reference too and agrees with view 0's first
+    assert out.stats["1:alt"]["points"] > 50
+    assert out.stats[2]["points"] == 0 and out.stats["2:alt"]["points"] == 0
+    assert out.points.shape[0] == sum(s["points"] for s in out.stats.values())
+    # a source view counts once: with min_consistent 2, view 1's second map needs views 0 and 2
+    two = fuse_depth_maps(first, cams, alt_depths=alt, cfg=FusionConfig(min_consistent=2))
+    assert two.stats["1:alt"]["points"] == 0
+    with pytest.raises(ValueError, match="alt_confidences"):
+        fuse_depth_maps(first, cams, confidences={v: torch.ones(40, 48) for v in cams},
+                        alt_depths=alt)

@@ -385,6 +385,8 @@ def fuse_depth_maps(
     masks: dict[int, Tensor] | None = None,
     cfg: FusionConfig | None = None,
     surface_depths: dict[int, Tensor] | None = None,
+    alt_depths: dict[int, Tensor] | None = None,
+    alt_confidences: dict[int, Tensor] | None = None,
 ) -> FusedPoints:
     """Filter every depth map against the others and fuse the survivors (METHOD.md 6.3).
 
@@ -394,6 +396,13 @@ def fuse_depth_maps(
     and ``cfg.use_masks``). Its fused depth is
     (d_ref + sum of consistent reprojected d) / (1 + #consistent), back-projected with the
     reference camera into world coordinates (the cameras' units).
+
+    With ``alt_depths`` every view has a second depth hypothesis (the pipeline's unguided MVS
+    stages 2-3, `OutputConfig.fusion_unguided`; an extension of METHOD.md 6.3). Each hypothesis
+    of each view is a reference in turn; a source view is consistent when either of its
+    hypotheses agrees (it still counts once, and its reprojected depth is the first hypothesis
+    that agrees, ``depths`` before ``alt_depths``). The points of both are returned, the
+    ``depths`` references' first.
 
     Depth maps may be at another resolution than the cameras, images and masks: cameras are
     resized to the depth size (`Cameras.resize`), masks are dilated at their own resolution and
@@ -409,100 +418,135 @@ def fuse_depth_maps(
         cfg: `FusionConfig`; defaults reproduce the released settings.
         surface_depths: view id -> (H, W) z-depth of the optimized surface at the depth
             resolution (<= 0 = none), used when ``cfg.surface_rel_thresh > 0``.
+        alt_depths: view id -> (H2, W2) second z-depth hypothesis, or None.
+        alt_confidences: view id -> (H2, W2) confidence of ``alt_depths``; needed with
+            ``alt_depths`` when ``confidences`` are given.
 
     Returns:
-        `FusedPoints` (points (N, 3), colors (N, 3) uint8 or None, normals (N, 3) or None, stats).
+        `FusedPoints` (points (N, 3), colors (N, 3) uint8 or None, normals (N, 3) or None,
+        stats: keyed by view id, and by "<view id>:alt" for the second hypotheses).
     """
     cfg = cfg or FusionConfig()
     ids = list(depths)
     if len(ids) < 2:
         raise ValueError(f"fusion needs at least two depth maps, got {len(ids)}")
     use_surface = surface_depths is not None and cfg.surface_rel_thresh > 0
+    if alt_depths is not None and confidences is not None and alt_confidences is None:
+        raise ValueError("alt_depths with confidences needs alt_confidences")
+    use_alt = alt_depths is not None
     for name, d in (("cameras", cameras), ("images", images), ("confidences", confidences),
-                    ("masks", masks), ("surface_depths", surface_depths if use_surface else None)):
+                    ("masks", masks), ("surface_depths", surface_depths if use_surface else None),
+                    ("alt_depths", alt_depths),
+                    ("alt_confidences", alt_confidences if confidences is not None and use_alt
+                     else None)):
         if d is not None and any(v not in d for v in ids):
             missing = [v for v in ids if v not in d]
             raise ValueError(f"{name} has no entry for view(s) {missing}")
     for v in ids:
         _check_depth(depths[v], f"depths[{v}]")
         _check_camera(cameras[v], f"cameras[{v}]")
+        if use_alt:
+            _check_depth(alt_depths[v], f"alt_depths[{v}]")
+    # view id -> its hypotheses, primary first
+    hyps = {v: [depths[v]] + ([alt_depths[v]] if use_alt else []) for v in ids}
+    confs = {v: [confidences[v]] + ([alt_confidences[v]] if use_alt else [])
+             for v in ids} if confidences is not None else None
 
     all_pts, all_cols, all_nrm = [], [], []
     stats: dict = {}
-    for ref in ids:
-        d_ref = depths[ref].float()
-        H, W = d_ref.shape
-        cam_ref = _at_size(cameras[ref], d_ref)
-        valid = torch.isfinite(d_ref) & (d_ref > 0)
-        count = torch.zeros(H, W, dtype=torch.int32, device=d_ref.device)
-        d_sum = torch.where(valid, d_ref, torch.zeros_like(d_ref)).double()
-        for src in ids:
-            if src == ref:
-                continue
-            m, d_rep, _ = check_geometric_consistency(
-                d_ref, cam_ref, depths[src].float().to(d_ref.device), cameras[src],
-                cfg.dist_thresh, cfg.rel_thresh,
-            )
-            count += m.int()
-            d_sum += torch.where(m, d_rep.double(), torch.zeros_like(d_sum))
-        support = count
-        on_surface = torch.zeros_like(valid)
-        if use_surface:
-            ds = surface_depths[ref].to(d_ref.device).float()
-            if tuple(ds.shape) != (H, W):
-                raise ValueError(f"surface_depths[{ref}] is {tuple(ds.shape)} but its depth map "
-                                 f"is {(H, W)}")
-            on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
-            support = count + on_surface.int()
-        geo = valid & (support >= cfg.min_consistent)
-        keep = geo.clone()
-        photo = torch.ones_like(geo)
-        if confidences is not None:
-            conf = confidences[ref].to(d_ref.device)
-            conf = conf.reshape(conf.shape[-2:])
-            if tuple(conf.shape) != (H, W):
-                raise ValueError(
-                    f"confidences[{ref}] is {tuple(conf.shape)} but its depth map is {(H, W)}"
-                )
-            photo = conf > cfg.conf_thresh
-            keep &= photo
-        inside = torch.ones_like(geo)
-        if masks is not None and cfg.use_masks:
-            dil = dilate_mask(masks[ref], cfg.mask_dilation)
-            inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
-            keep &= inside
-        fused = (d_sum / (1 + count).double()).float()  # METHOD.md 6.3, "Fused depth"
-
-        uv = cam_ref.pixel_grid(device=d_ref.device, dtype=torch.float64).reshape(1, -1, 2)
-        cam64 = cam_ref.to(device=d_ref.device, dtype=torch.float64)
-        pts_map = cam64.unproject(uv, fused.double().reshape(1, -1))[0].reshape(H, W, 3)
-        all_pts.append(pts_map[keep].float())
-        if images is not None:
-            img = images[ref]
-            if img.dtype == torch.uint8:
-                img = img.float() / 255.0
-            img = _image_at(img.to(d_ref.device), H, W)
-            col = (img.permute(1, 2, 0)[keep].clamp(0, 1) * 255.0).round().to(torch.uint8)
-            all_cols.append(col)
-        if cfg.estimate_normals:
-            pm = torch.where(keep[..., None], pts_map, torch.full_like(pts_map, float("nan")))
-            nrm = _normals_from_points(pm, cam64.centers[0])
-            all_nrm.append(torch.nan_to_num(nrm[keep], nan=0.0).float())
-        n = H * W
-        stats[ref] = {
-            "valid": float(valid.sum()) / n,
-            "geo": float(geo.sum()) / n,
-            "surface_only": float((valid & on_surface & (count < cfg.min_consistent)).sum()) / n,
-            "photo": float((photo & valid).sum()) / n,
-            "mask": float((inside & valid).sum()) / n,
-            "kept": float(keep.sum()) / n,
-            "points": int(keep.sum()),
-        }
-        log.info(
-            "fusion: view %s keeps %.1f%% of pixels (valid %.1f%%, geometric %.1f%%)",
-            ref, 100 * stats[ref]["kept"], 100 * stats[ref]["valid"], 100 * stats[ref]["geo"],
-        )
+    for h in range(2 if use_alt else 1):
+        for ref in ids:
+            key = ref if h == 0 else f"{ref}:alt"
+            r = _fuse_reference(ref, h, hyps, cameras, images, confs, masks, cfg,
+                                surface_depths if use_surface else None)
+            all_pts.append(r["points"])
+            if r["colors"] is not None:
+                all_cols.append(r["colors"])
+            if r["normals"] is not None:
+                all_nrm.append(r["normals"])
+            stats[key] = r["stats"]
+            log.info("fusion: view %s keeps %.1f%% of pixels (valid %.1f%%, geometric %.1f%%)",
+                     key, 100 * r["stats"]["kept"], 100 * r["stats"]["valid"],
+                     100 * r["stats"]["geo"])
     points = torch.cat(all_pts, 0)
     colors = torch.cat(all_cols, 0) if images is not None else None
     normals = torch.cat(all_nrm, 0) if cfg.estimate_normals else None
     return FusedPoints(points, colors, normals, stats)
+
+
+def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
+                    cameras: dict[int, Cameras], images: dict[int, Tensor] | None,
+                    confs: dict[int, list[Tensor]] | None, masks: dict[int, Tensor] | None,
+                    cfg: FusionConfig, surface_depths: dict[int, Tensor] | None) -> dict:
+    """Hypothesis ``h`` of view ``ref`` as the reference of `fuse_depth_maps`: its kept points
+    (N, 3), colours (N, 3) uint8 or None, normals (N, 3) or None and stats."""
+    d_ref = hyps[ref][h].float()
+    H, W = d_ref.shape
+    cam_ref = _at_size(cameras[ref], d_ref)
+    valid = torch.isfinite(d_ref) & (d_ref > 0)
+    count = torch.zeros(H, W, dtype=torch.int32, device=d_ref.device)
+    d_sum = torch.where(valid, d_ref, torch.zeros_like(d_ref)).double()
+    for src in hyps:
+        if src == ref:
+            continue
+        agree = torch.zeros_like(valid)  # a source view counts once, whichever hypothesis agrees
+        for d_src in hyps[src]:
+            m, d_rep, _ = check_geometric_consistency(
+                d_ref, cam_ref, d_src.float().to(d_ref.device), cameras[src],
+                cfg.dist_thresh, cfg.rel_thresh,
+            )
+            new = m & ~agree
+            d_sum += torch.where(new, d_rep.double(), torch.zeros_like(d_sum))
+            agree |= m
+        count += agree.int()
+    support = count
+    on_surface = torch.zeros_like(valid)
+    if surface_depths is not None:
+        ds = surface_depths[ref].to(d_ref.device).float()
+        if tuple(ds.shape) != (H, W):
+            raise ValueError(f"surface_depths[{ref}] is {tuple(ds.shape)} but its depth map "
+                             f"({'alt_depths' if h else 'depths'}[{ref}]) is {(H, W)}")
+        on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
+        support = count + on_surface.int()
+    geo = valid & (support >= cfg.min_consistent)
+    keep = geo.clone()
+    photo = torch.ones_like(geo)
+    if confs is not None:
+        conf = confs[ref][h].to(d_ref.device)
+        conf = conf.reshape(conf.shape[-2:])
+        if tuple(conf.shape) != (H, W):
+            name = "confidences" if h == 0 else "alt_confidences"
+            raise ValueError(f"{name}[{ref}] is {tuple(conf.shape)} but its depth map is {(H, W)}")
+        photo = conf > cfg.conf_thresh
+        keep &= photo
+    inside = torch.ones_like(geo)
+    if masks is not None and cfg.use_masks:
+        dil = dilate_mask(masks[ref], cfg.mask_dilation)
+        inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
+        keep &= inside
+    fused = (d_sum / (1 + count).double()).float()  # METHOD.md 6.3, "Fused depth"
+
+    uv = cam_ref.pixel_grid(device=d_ref.device, dtype=torch.float64).reshape(1, -1, 2)
+    cam64 = cam_ref.to(device=d_ref.device, dtype=torch.float64)
+    pts_map = cam64.unproject(uv, fused.double().reshape(1, -1))[0].reshape(H, W, 3)
+    col = nrm = None
+    if images is not None:
+        img = images[ref]
+        if img.dtype == torch.uint8:
+            img = img.float() / 255.0
+        img = _image_at(img.to(d_ref.device), H, W)
+        col = (img.permute(1, 2, 0)[keep].clamp(0, 1) * 255.0).round().to(torch.uint8)
+    if cfg.estimate_normals:
+        pm = torch.where(keep[..., None], pts_map, torch.full_like(pts_map, float("nan")))
+        nrm = torch.nan_to_num(_normals_from_points(pm, cam64.centers[0])[keep], nan=0.0).float()
+    n = H * W
+    stats = {
+        "valid": float(valid.sum()) / n,
+        "geo": float(geo.sum()) / n,
+        "surface_only": float((valid & on_surface & (count < cfg.min_consistent)).sum()) / n,
+        "photo": float((photo & valid).sum()) / n,
+        "mask": float((inside & valid).sum()) / n,
+        "kept": float(keep.sum()) / n,
+        "points": int(keep.sum()),
+    }
+    return {"points": pts_map[keep].float(), "colors": col, "normals": nrm, "stats": stats}
