@@ -79,9 +79,9 @@ def gce_weight_loss(
         # w + eps: d(w^q)/dw is infinite at w = 0 (every empty sample), which would make the
         # step's gradient NaN; eps = the released form's 1e-8 (METHOD.md 9.2.4). Negatives are
         # rounded to 0 with the gradient passed straight through: at exactly w = 0, clamp_min's
-        # own gradient depends on the torch version (the labelled empty sample of
-        # tests/optimize/test_losses.py got gradient 0 under torch 2.14.1), and without it the
-        # loss cannot pull up the empty samples it labels
+        # own gradient depends on the torch version (1 up to 2.13, 0 from 2.14: pytorch/pytorch
+        # issue 195931; tests/optimize/test_losses.py caught it), and without it the loss cannot
+        # pull up the empty samples it labels
         w_pos = w + (w.clamp_min(0.0) - w).detach()
         per = p * (1.0 - (w_pos + _LOG_EPS) ** q) / q
     elif q == 1:
