@@ -362,7 +362,8 @@ def main() -> None:
                      f"{_fmt(m.get('overall_dtu_rule'))} | {_fmt(r.get('steps_per_s'))} |")
         if "guided_only" in r:
             g = r["guided_only"]
-            lines.append(f"| {name.split()[0]}' the same, guided depth only (no unguided set) | "
+            lines.append(f"| {name.split()[0][:-1]}') the same, guided depth only "
+                         "(no unguided set) | "
                          f"{_fmt(g['wall_s'], 0)} | - | {_fmt(g.get('accuracy'))} | "
                          f"{_fmt(g.get('completeness'))} | {_fmt(g.get('overall'))} | "
                          f"{_fmt(g.get('overall_dtu_rule'))} | {_fmt(g.get('fscore'), 3)} | "

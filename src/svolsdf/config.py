@@ -224,8 +224,8 @@ def _fast() -> Config:
     # scenes (benchmarks/results/fast_preset.md); 0.1 % gave 1.81 / 1.49
     c.output.fusion_surface = 5e-4
     # the unguided stages 2-3 as every view's second depth hypothesis in fusion: points Chamfer
-    # 1.79 -> 1.43 mm (seed 0) and 1.50 -> 1.30 mm (seed 3) on the same depth maps, for ~30 s
-    # more (benchmarks/results/fast_preset.md)
+    # 1.76 -> 1.45 mm (seed 0), 1.50 -> 1.28, 1.39 -> 1.22, 2.61 -> 2.35 on three more synthetic
+    # scenes, for ~30 s more (benchmarks/results/fast_preset.md)
     c.output.fusion_unguided = True
     return c
 
