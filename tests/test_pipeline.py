@@ -4,6 +4,7 @@ mesh), its outputs, stage reuse, and bad input."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -309,3 +310,21 @@ def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
     assert set(p2.timing) - {"total"} == {"fusion"}
     # without the unguided maps the guided depths have fewer sources to agree with
     assert len(read_ply(out2 / "points.ply")["points"]) <= counts["guided"]
+
+
+def test_set_threads(monkeypatch):
+    """--threads N is used as given; 0 is the cores this process may run on, unless
+    OMP_NUM_THREADS is set."""
+    from svolsdf.pipeline import set_threads
+
+    before = torch.get_num_threads()
+    try:
+        assert set_threads(1) == 1
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+        if hasattr(os, "sched_getaffinity"):
+            assert set_threads(0) == len(os.sched_getaffinity(0))
+        torch.set_num_threads(1)
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        assert set_threads(0) == 1  # left to OMP_NUM_THREADS
+    finally:
+        torch.set_num_threads(before)

@@ -241,6 +241,8 @@ def reconstruct(
     steps: Annotated[int | None, typer.Option("--steps", help="Optimization steps.")] = None,
     device: Annotated[str | None, typer.Option(
         "--device", help="auto (default), cpu or cuda.")] = None,
+    threads: Annotated[int | None, typer.Option(
+        "--threads", help="torch CPU threads (default: the cores this process may use).")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="A config.yaml (e.g. from an earlier OUT) to start from.")] = None,
     mesh_resolution: Annotated[int | None, typer.Option(
@@ -263,7 +265,7 @@ def reconstruct(
         "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
         "train.mode": mode, "train.ablation": ablation, "train.steps": steps,
         "device": device, "output.mesh_resolution": mesh_resolution, "train.seed": seed,
-        "field.background": background,
+        "field.background": background, "threads": threads,
     })
     summary = Pipeline(cfg, out, progress=not no_progress).run()
     typer.echo(f"points: {summary['points']}")

@@ -196,6 +196,9 @@ class Config:
     """fast (default; minutes on a CPU) | paper (METHOD.md constants; a GPU)."""
     device: str = "auto"
     """auto | cpu | cuda."""
+    threads: int = 0
+    """torch intra-op threads; 0 = the cores this process may run on (its CPU affinity), unless
+    OMP_NUM_THREADS is set, which then decides (`svolsdf.pipeline.set_threads`)."""
     scene: SceneConfig = dc_field(default_factory=SceneConfig)
     mvs: MVSConfig = dc_field(default_factory=MVSConfig)
     field: FieldConfig = dc_field(default_factory=FieldConfig)

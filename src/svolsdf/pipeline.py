@@ -41,7 +41,7 @@ from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.scene import Scene
 
 __all__ = ["Pipeline", "default_views", "test_views", "working_size", "resolve_device",
-           "peak_rss_gb"]
+           "peak_rss_gb", "set_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +154,26 @@ def peak_rss_gb() -> float:
         pass
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / 1024**3 if sys.platform == "darwin" else rss / 1024**2
+
+
+def set_threads(n: int = 0) -> int:
+    """Set torch's intra-op threads and return the number in use.
+
+    ``n`` > 0 is used as given. ``n`` = 0 means the number of cores this process may run on:
+    ``os.sched_getaffinity``, which sees a container's cpuset where ``os.cpu_count`` reports the
+    whole host. torch's own default counts physical cores, which can be more than a container
+    may use. With ``n`` = 0 and OMP_NUM_THREADS set, torch keeps what that variable chose.
+    """
+    if n <= 0:
+        if os.environ.get("OMP_NUM_THREADS"):
+            return torch.get_num_threads()
+        try:
+            n = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            n = os.cpu_count() or 1
+    if n != torch.get_num_threads():
+        torch.set_num_threads(n)
+    return torch.get_num_threads()
 
 
 # --------------------------------------------------------------------------- pipeline
@@ -280,8 +300,9 @@ class Pipeline:
         (self.out / "views.json").write_text(json.dumps(
             {"inputs": self.views, "test": self.test_view_ids,
              "size": [scene.width, scene.height], "scene": str(self.cfg.scene.path)}, indent=1))
-        log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s", scene.path, self.views,
-                 scene.width, scene.height, self.cfg.train.mode, self.cfg.preset)
+        log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s, %d torch thread(s)",
+                 scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,
+                 self.cfg.preset, set_threads(self.cfg.threads))
         mode = self.cfg.train.mode
         if self.cfg.output.finer_stage_optimization and (
                 mode != "svolsdf" or self.cfg.train.ablation is not None):
