@@ -159,10 +159,10 @@ def peak_rss_gb() -> float:
 def set_threads(n: int = 0) -> int:
     """Set torch's intra-op threads and return the number in use.
 
-    ``n`` > 0 is used as given. ``n`` = 0 means the number of cores this process may run on:
-    ``os.sched_getaffinity``, which sees a container's cpuset where ``os.cpu_count`` reports the
-    whole host. torch's own default counts physical cores, which can be more than a container
-    may use. With ``n`` = 0 and OMP_NUM_THREADS set, torch keeps what that variable chose.
+    ``n`` > 0 is used as given. ``n`` = 0 means the number of cores this process may run on,
+    ``os.sched_getaffinity`` (it sees a container's cpuset or `taskset`, where ``os.cpu_count``
+    reports the whole host; a CPU quota it does not see: pass ``n`` then). With ``n`` = 0 and
+    OMP_NUM_THREADS set, torch keeps what that variable chose.
     """
     if n <= 0:
         if os.environ.get("OMP_NUM_THREADS"):
