@@ -200,19 +200,27 @@ def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
         Pipeline(cfg, tmp_path / "b", progress=False).run()
 
 
+def _rerun_on_copy(out, dest, **output):
+    """Copy the finished run ``out`` to ``dest``, set ``cfg.output.<key> = value`` for each of
+    ``output`` and run the pipeline there (finished stages are reused); returns the Pipeline."""
+    import shutil
+
+    shutil.copytree(out, dest)
+    cfg = load_config(out / "config.yaml")
+    for k, v in output.items():
+        setattr(cfg.output, k, v)
+    p2 = Pipeline(cfg, dest, progress=False)
+    p2.run()
+    return p2
+
+
 def test_fusion_surface_option_adds_points_on_the_surface(tiny_run, tmp_path):
     """The fast preset's fusion counts a depth on the rendered surface as a consistent view;
     turning it off reruns only fusion and keeps a subset of the points."""
-    import shutil
-
     out, _, p = tiny_run
     assert p.cfg.output.fusion_surface > 0
     out2 = tmp_path / "nosurf"
-    shutil.copytree(out, out2)
-    cfg = load_config(out / "config.yaml")
-    cfg.output.fusion_surface = 0.0
-    p2 = Pipeline(cfg, out2, progress=False)
-    p2.run()
+    p2 = _rerun_on_copy(out, out2, fusion_surface=0.0)
     assert set(p2.timing) - {"total"} == {"fusion"}
     n_with = len(read_ply(out / "points.ply")["points"])
     n_without = len(read_ply(out2 / "points.ply")["points"])
@@ -222,15 +230,9 @@ def test_fusion_surface_option_adds_points_on_the_surface(tiny_run, tmp_path):
 def test_finer_stage_optimization(tiny_run, tmp_path):
     """The paper's option (METHOD.md 9.2.13): more steps against the stage-2 volumes, then
     stage 3 around the re-rendered depth; reuses the finished field and stage-1 volumes."""
-    import shutil
-
     out, _, p = tiny_run
     out2 = tmp_path / "finer"
-    shutil.copytree(out, out2)
-    cfg = load_config(out / "config.yaml")
-    cfg.output.finer_stage_optimization = True
-    p2 = Pipeline(cfg, out2, progress=False)
-    p2.run()
+    p2 = _rerun_on_copy(out, out2, finer_stage_optimization=True)
     assert "field" not in p2.timing and "mvs23" in p2.timing and "mesh" in p2.timing
     assert (out2 / "field" / "stage2" / "model.pt").is_file()
     assert (out2 / "field" / "stage2" / "losses.csv").is_file()
@@ -283,7 +285,6 @@ def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
     """`output.fusion_unguided` (fast preset): the second depth hypothesis is exactly what the
     backbone alone (`--mode mvs-only`) computes, the fused cloud holds both hypotheses' points,
     and turning it off reruns only fusion."""
-    import shutil
 
     out, _, p = tiny_run
     assert p.cfg.output.fusion_unguided
@@ -302,11 +303,7 @@ def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
     # the same depth maps; the surface check (fusion_surface) can only add consistent pixels
     assert counts["unguided"] >= len(read_ply(out_m / "points.ply")["points"])
     out2 = tmp_path / "no_unguided"
-    shutil.copytree(out, out2)
-    cfg = load_config(out / "config.yaml")
-    cfg.output.fusion_unguided = False
-    p2 = Pipeline(cfg, out2, progress=False)
-    p2.run()
+    p2 = _rerun_on_copy(out, out2, fusion_unguided=False)
     assert set(p2.timing) - {"total"} == {"fusion"}
     # without the unguided maps the guided depths have fewer sources to agree with
     assert len(read_ply(out2 / "points.ply")["points"]) <= counts["guided"]

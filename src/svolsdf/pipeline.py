@@ -300,9 +300,10 @@ class Pipeline:
         (self.out / "views.json").write_text(json.dumps(
             {"inputs": self.views, "test": self.test_view_ids,
              "size": [scene.width, scene.height], "scene": str(self.cfg.scene.path)}, indent=1))
+        threads = set_threads(self.cfg.threads)
         log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s, %d torch thread(s)",
                  scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,
-                 self.cfg.preset, set_threads(self.cfg.threads))
+                 self.cfg.preset, threads)
         mode = self.cfg.train.mode
         if self.cfg.output.finer_stage_optimization and (
                 mode != "svolsdf" or self.cfg.train.ablation is not None):
@@ -809,19 +810,13 @@ class Pipeline:
         if self._done("unguided") and all(f.is_file() for f in files.values()):
             return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
         t0 = time.perf_counter()
-        from svolsdf.mvs.cascade import combined_confidence, run_cascade
+        from svolsdf.mvs.cascade import run_cascade, save_cascade
 
         vols1 = self._volumes1 if self._volumes1 is not None else self.stage_mvs1()
         res = run_cascade(self.backbone(), self.load(), stages=(2, 3),
                           prev={v.view_id: v for v in vols1})
-        depths = {}
-        for v3 in res[3]:
-            H, W = v3.depth.shape
-            per_view = [v for v in (*vols1, *res[2], v3) if v.view_id == v3.view_id]
-            depths[v3.view_id] = v3.depth.float().cpu()
-            _save_npy(files[v3.view_id], depths[v3.view_id].numpy().astype(np.float32))
-            _save_npy(udir / "confidence" / f"{v3.view_id}.npy",
-                      combined_confidence(per_view, W, H).numpy().astype(np.float32))
+        save_cascade({1: vols1, **res}, udir, volumes=False)  # depth, confidence over 1-3
+        depths = {v.view_id: v.depth.float().cpu() for v in res[3]}
         self._mark("unguided", self.keys["unguided"])
         self._time("unguided", t0)
         return depths
@@ -877,18 +872,17 @@ class Pipeline:
                 surface[v] = ds
         fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface,
                                 alt_depths=alt, alt_confidences=alt_confs)
-        counts = {"first": sum(fused.stats[v]["points"] for v in self.views)}
+        extra = {}
         if alt is not None:
-            counts = {"guided": counts["first"],
-                      "unguided": sum(fused.stats[f"{v}:alt"]["points"] for v in self.views)}
+            extra["points_per_set"] = {
+                "guided": sum(fused.stats[v]["points"] for v in self.views),
+                "unguided": sum(fused.stats[f"{v}:alt"]["points"] for v in self.views)}
         pts = fused.points.numpy()
         cols = None if fused.colors is None else fused.colors.numpy()
         write_points_ply(path, pts, cols)
         self._mark("fusion", self.keys["fusion"])
-        self._time("fusion", t0, points=int(len(pts)), **({"points_per_set": counts}
-                                                           if len(counts) > 1 else {}))
-        log.info("fused %d points -> %s%s", len(pts), path, "" if len(counts) == 1 else
-                 " (" + ", ".join(f"{k} {n}" for k, n in counts.items()) + ")")
+        self._time("fusion", t0, points=int(len(pts)), **extra)
+        log.info("fused %d points -> %s %s", len(pts), path, extra.get("points_per_set", ""))
         return path
 
     # ------------------------------------------------------------------ mesh

@@ -93,20 +93,21 @@ def _save_npy(path: Path, arr: np.ndarray) -> None:
 
 
 def save_cascade(result: dict[int, list[ProbabilityVolume]], out_dir: Path | str,
-                 picture=None) -> dict[int, dict[str, Path]]:
+                 picture=None, volumes: bool = True) -> dict[int, dict[str, Path]]:
     """Write the cascade's outputs under ``out_dir``.
 
-    Files: ``mvs/stage{k}/{view_id}.npz`` (`ProbabilityVolume.save`, compressed) for every stage;
-    for the last stage run: ``depth/{view_id}.npy`` (z-depth, world units, float32, at its size),
-    ``confidence/{view_id}.npy`` (product over stages, METHOD.md 6.2) and, when ``picture`` is
-    given, ``depth/{view_id}.png`` written by ``picture(depth (H,W) ndarray, path)``.
+    Files: ``mvs/stage{k}/{view_id}.npz`` (`ProbabilityVolume.save`, compressed) for every stage
+    when ``volumes``; for the last stage run: ``depth/{view_id}.npy`` (z-depth, world units,
+    float32, at its size), ``confidence/{view_id}.npy`` (product over stages, METHOD.md 6.2)
+    and, when ``picture`` is given, ``depth/{view_id}.png`` written by
+    ``picture(depth (H,W) ndarray, path)``.
 
     Returns:
         view id -> {"depth": path, "confidence": path}.
     """
     out_dir = Path(out_dir)
     files: dict[int, dict[str, Path]] = {}
-    for k, vols in result.items():
+    for k, vols in result.items() if volumes else ():
         d = out_dir / "mvs" / f"stage{k}"
         d.mkdir(parents=True, exist_ok=True)
         for v in vols:
