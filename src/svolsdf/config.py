@@ -87,6 +87,10 @@ class FieldConfig:
     init: str = "mvs"
     """grid: initial surface. mvs: signed distance of the fused stage-1 MVS depth (fast preset,
     svolsdf mode; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2)."""
+    init_unverified_weight: float = 0.0
+    """grid, init = mvs: vote weight (times the MVS confidence) of the stage-1 depths that no
+    other view confirms, in the initial surface (field/init.py). 0 = they do not vote: a region
+    only one view sees then starts at the hull the other views' free space leaves."""
 
 
 @dataclass
@@ -159,6 +163,14 @@ class OutputConfig:
     """Marching-cubes grid resolution in the unit frame."""
     mesh_format: str = "ply"
     """ply | obj."""
+    mesh_cull_unseen: bool = False
+    """Mesh: also remove the faces no input view sees, i.e. whose centroid lies more than
+    ``mesh_cull_tol`` behind the field's rendered depth in every view that contains it
+    (`svolsdf.fusion.mesh.cull_unseen`). Off as released (mask culling only, METHOD.md 8.3).
+    The fast preset turns it on: the interior of a sparse-view reconstruction is unconstrained
+    and may hold cavities (benchmarks/results/fast_preset.md, session 8)."""
+    mesh_cull_tol: float = 0.01
+    """Mesh: relative depth slack of ``mesh_cull_unseen``."""
     fusion_dist: float = 1.0
     """Fusion: reprojection distance threshold in pixels (METHOD.md 6.3)."""
     fusion_rel: float = 0.01
@@ -230,6 +242,13 @@ def _fast() -> Config:
     # 1.76 -> 1.45 mm (seed 0), 1.50 -> 1.28, 1.39 -> 1.22, 2.61 -> 2.35 on three more synthetic
     # scenes, for ~30 s more (benchmarks/results/fast_preset.md)
     c.output.fusion_unguided = True
+    # stage-1 depths no other view confirms still vote (weight 0.05 x confidence) in the SDF
+    # grid's initial surface: points Chamfer 1.45 -> 1.39 mm (seed 0), 1.28 -> 1.24 (seed 3),
+    # 1.22 -> 1.22 (blobs 7), 2.35 -> 2.19 (seed 11) (benchmarks/results/fast_preset.md)
+    c.field.init_unverified_weight = 0.05
+    # and the mesh keeps the surface the input views see: with the line above, the unseen
+    # interior holds cavities (mesh Chamfer 3.8 -> 2.6 / 3.3 -> 2.1 / 3.8 -> 2.0 / 4.2 -> 2.9)
+    c.output.mesh_cull_unseen = True
     return c
 
 

@@ -235,7 +235,10 @@ class Pipeline:
                                    or k == "use_masks"},
                          k_unguided if self._wants_unguided() else None)
         k_mesh = _hash(k_field, c["output"]["mesh_resolution"], c["output"]["mesh_format"],
-                       k_mvs23 if c["output"]["finer_stage_optimization"] else None)
+                       k_mvs23 if c["output"]["finer_stage_optimization"] else None,
+                       c["output"]["use_masks"],
+                       (k_guide, c["output"]["mesh_cull_tol"]) if c["output"]["mesh_cull_unseen"]
+                       else None)
         return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
                 "unguided": k_unguided,
                 "fusion": k_fusion, "mesh": k_mesh}
@@ -563,7 +566,8 @@ class Pipeline:
 
                 scene = self.load()
                 init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
-                                   scene.masks if self.cfg.output.use_masks else None)
+                                   scene.masks if self.cfg.output.use_masks else None,
+                                   unverified_weight=self.cfg.field.init_unverified_weight)
         trainer = Trainer(model, self.train_data(), tcfg, prior=prior,
                           sampler=self.make_sampler(prior), out_dir=fdir, device=self.device,
                           grid_schedule=self._grid_schedule())
@@ -886,6 +890,22 @@ class Pipeline:
         return path
 
     # ------------------------------------------------------------------ mesh
+    def _mesh_cull_depths(self, refined: Path | None) -> torch.Tensor | None:
+        """(V, H, W) rendered depth of the input views (the refined field's with
+        ``refined``), for `cull_unseen`; None when it is missing or is not the surface (the
+        soft-consistency ablation's guide)."""
+        if self.cfg.train.ablation == "soft-consistency-only":
+            return None
+        sdir = self.out / "field" / ("stage2/render_depth" if refined is not None
+                                     and refined.is_file() else "render_depth")
+        files = [sdir / f"{v}.npy" for v in self.views]
+        if not all(f.is_file() for f in files):
+            return None
+        maps = [torch.from_numpy(np.load(f)).float() for f in files]
+        if len({tuple(m.shape) for m in maps}) != 1:
+            return None
+        return torch.stack(maps)
+
     def stage_mesh(self) -> Path:
         o = self.cfg.output
         path = self.out / ("mesh.obj" if o.mesh_format == "obj" else "mesh.ply")
@@ -896,6 +916,7 @@ class Pipeline:
             colors_from_fn,
             cull_by_frusta,
             cull_by_masks,
+            cull_unseen,
             extract_mesh,
             largest_component,
             model_colour_fn,
@@ -929,6 +950,18 @@ class Pipeline:
             dil = max(2, round(12 * scene.width / 1600))  # METHOD.md 6.3's 12 px at 1600 wide
             vw, f, idx = cull_by_masks(vw, f, scene.cameras, scene.masks, dilation=dil)
             v = v[idx]
+        if o.mesh_cull_unseen:
+            depths = self._mesh_cull_depths(refined if o.finer_stage_optimization else None)
+            if depths is None:
+                log.warning("mesh: no rendered depth of the input views; faces hidden from "
+                            "every view are kept")
+            else:
+                vw2, f2, idx = cull_unseen(vw, f, scene.cameras, depths, o.mesh_cull_tol)
+                if len(f2):
+                    vw, f, v = vw2, f2, v[idx]
+                else:
+                    log.warning("mesh: no face is visible in the rendered depth; visibility "
+                                "culling skipped")
         vw, f, idx = largest_component(vw, f, return_index=True)
         v = v[idx]
         cols = None

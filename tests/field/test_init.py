@@ -80,3 +80,37 @@ def test_signed_distance_from_signs_known_values():
     inside[:, :, :4] = True  # a wall at x between nodes 3 and 4
     d = signed_distance_from_signs(inside, (1.0, 1.0, 1.0))
     np.testing.assert_allclose(d[2, 2], [-3.5, -2.5, -1.5, -0.5, 0.5, 1.5, 2.5, 3.5, 4.5])
+
+
+def _one_sided_volumes():
+    """Two cameras see the front of the sphere; a third, opposite them, alone sees its back."""
+    eyes = [(0.0, 0.0, -4.0), (1.2, 0.2, -3.8), (0.3, -0.2, 4.0)]
+    cams = make_cameras(48, 36, eyes=eyes)
+    _, depth, _ = raycast(cams, spheres=[((0.0, 0.0, 0.0), R)])
+    vols = []
+    for i in range(len(cams)):
+        d = torch.where(torch.isfinite(depth[i]), depth[i], torch.full_like(depth[i], 6.0)).float()
+        vols.append(ProbabilityVolume(depths=torch.stack([d * 0.99, d * 1.01]),
+                                      prob=torch.full((2, *d.shape), 0.5), depth=d,
+                                      confidence=torch.ones_like(d), cameras=cams[[i]],
+                                      view_id=i))
+    return vols
+
+
+def test_unverified_depth_places_a_surface_only_one_view_sees():
+    """With unverified_weight = 0 the back of the sphere (seen by one view) starts at the hull
+    the front views leave (inside up to the box); with a small weight, on the surface."""
+    torch.manual_seed(0)
+    norm = Normalization(torch.zeros(3, dtype=torch.float64), 1.0, 3.0)
+    g = torch.randn(4000, 3)
+    p = g / g.norm(dim=-1, keepdim=True) * R
+    back = p[p[:, 2] > 0.5]
+    res = {}
+    for w in (0.0, 0.05):
+        model = _field()
+        init_grid_from_mvs(model, _one_sided_volumes(), norm, unverified_weight=w)
+        with torch.no_grad():
+            res[w] = (model.sdf(back).abs().median(), model.sdf(back * 1.3).median())
+    cell = float(model.cell_size.mean())
+    assert res[0.0][0] > 3 * cell and res[0.0][1] < 0  # filled beyond the back surface
+    assert res[0.05][0] < cell and res[0.05][1] > 0, res

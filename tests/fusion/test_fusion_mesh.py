@@ -14,6 +14,7 @@ from svolsdf.fusion.mesh import (
     colors_from_images,
     cull_by_frusta,
     cull_by_masks,
+    cull_unseen,
     extract_mesh,
     largest_component,
     model_colour_fn,
@@ -207,6 +208,31 @@ def test_cull_by_frusta_and_masks():
     assert len(f5) == len(f)
     _, f6, _ = cull_by_masks(v, f, cams2, masks2, dilation=0, mode="any")
     assert len(f6) == len(f3)
+
+
+def test_cull_unseen_keeps_the_seen_side_and_drops_hidden_cavities():
+    """A sphere with a cavity inside, one camera in front: the half facing the camera stays,
+    the far half and the cavity (hidden from the camera) go."""
+    cam = look_at_camera((0.0, 0.0, -4.0), W=64, H=48, f=60.0)
+    outer = sphere_sdf(r=1.0)
+    cavity = sphere_sdf(r=0.4)
+    v, f = extract_mesh(lambda x: torch.maximum(outer(x), -cavity(x)), bounds=1.2, resolution=40)
+    depth = sphere_depth(cam, center=torch.zeros(3, dtype=torch.float64), radius=1.0)
+    v2, f2, idx = cull_unseen(v, f, cam, depth[None], rel_tol=0.01)
+    torch.testing.assert_close(v2, v[idx])
+    c = v2[f2].double().mean(1)
+    r = c.norm(dim=-1)
+    assert (r > 0.9).all(), "a face of the cavity survived"
+    assert (c[:, 2] < 0.2).all(), "a face on the far side survived"
+    # the near cap is kept: faces of the original mesh with centroid z < -0.5 all survive
+    c0 = v[f].double().mean(1)
+    near = (c0[:, 2] < -0.5) & (c0.norm(dim=-1) > 0.9)
+    assert len(f2) >= int(near.sum()) > 0
+    # no depth anywhere: nothing is seen
+    _, f3, _ = cull_unseen(v, f, cam, torch.zeros_like(depth)[None])
+    assert len(f3) == 0
+    with pytest.raises(ValueError, match="depths must be"):
+        cull_unseen(v, f, cam, depth)
 
 
 def test_save_mesh_ply_and_obj(tmp_path):

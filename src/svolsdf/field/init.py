@@ -7,7 +7,11 @@ signed distance built from the stage-1 depth maps:
 
 1. Each view's expected depth (METHOD.md 2.4) is kept where it is geometrically consistent with
    at least one other view (the fusion test of METHOD.md 6.3, at the stage-1 resolution) and, when
-   the scene has them, inside the (dilated) object mask.
+   the scene has them, inside the (dilated) object mask. With ``unverified_weight`` w > 0 (the
+   fast preset) the depths that fail the test still vote, with w times their confidence: a part
+   of the object that only one view sees has no consistent depth, and without its own votes it
+   starts at the hull the other views' free space leaves, in front of the true surface, where
+   three views' losses cannot move it (benchmarks/results/fast_preset.md, session 8).
 2. Truncated signed-distance fusion (Curless and Levoy 1996): every grid node projects into each
    view; s = d(u, v) - z is its signed distance along the ray to that view's surface (> 0 in
    front, i.e. outside). Views where the node lies more than ``trunc`` behind the surface do not
@@ -39,13 +43,16 @@ log = logging.getLogger(__name__)
 
 
 def consistent_depths(volumes: list[ProbabilityVolume], masks: Tensor | None = None,
-                      min_views: int = 1) -> tuple[list[Tensor], list[Tensor]]:
-    """Stage-1 depths with the inconsistent pixels removed.
+                      min_views: int = 1, unverified_weight: float = 0.0
+                      ) -> tuple[list[Tensor], list[Tensor]]:
+    """Stage-1 depths with the inconsistent pixels removed or down-weighted.
 
     Args:
         volumes: V stage-1 `ProbabilityVolume` (depth (H, W) world z-depth, confidence, cameras).
         masks: optional (V, 1, Hm, Wm) object masks in [0, 1] of the same views.
         min_views: consistent source views a pixel needs (METHOD.md 6.3).
+        unverified_weight: 0 removes the pixels that fail the test; w > 0 keeps them with weight
+            w * confidence (inside the mask).
 
     Returns:
         depths: V tensors (H, W), 0 where rejected; weights: V tensors (H, W) confidence.
@@ -60,13 +67,19 @@ def consistent_depths(volumes: list[ProbabilityVolume], masks: Tensor | None = N
                 ok = check_geometric_consistency(v.depth, v.cameras, u.depth, u.cameras)[0]
                 cnt += ok.long()
         keep = cnt >= min_views
+        inside = torch.ones_like(keep)
         if masks is not None:
             m = F.interpolate(masks[i:i + 1].float(), size=v.depth.shape, mode="bilinear",
                               align_corners=False)[0, 0] > 0.5
-            keep &= dilate_mask(m, 2)
+            inside = dilate_mask(m, 2)
+        keep &= inside
+        w = torch.where(keep, v.confidence.clamp_min(1e-3), torch.zeros_like(v.depth))
+        if unverified_weight > 0:
+            extra = inside & ~keep & torch.isfinite(v.depth) & (v.depth > 0)
+            w = torch.where(extra, unverified_weight * v.confidence.clamp_min(1e-3), w)
+            keep |= extra
         depths.append(torch.where(keep, v.depth, torch.zeros_like(v.depth)))
-        weights.append(torch.where(keep, v.confidence.clamp_min(1e-3),
-                                   torch.zeros_like(v.depth)))
+        weights.append(w)
     return depths, weights
 
 
@@ -135,7 +148,7 @@ def signed_distance_from_signs(inside: np.ndarray, spacing: tuple[float, float, 
 @torch.no_grad()
 def init_grid_from_mvs(model, volumes: list[ProbabilityVolume], normalization: Normalization,
                        masks: Tensor | None = None, trunc_cells: float = 4.0,
-                       chunk: int = 1 << 18) -> float:
+                       chunk: int = 1 << 18, unverified_weight: float = 0.0) -> float:
     """Set ``model.sdf_grid`` (a `GridSDFField`) from stage-1 MVS depth (module docstring).
 
     Args:
@@ -145,11 +158,13 @@ def init_grid_from_mvs(model, volumes: list[ProbabilityVolume], normalization: N
         masks: optional (V, 1, H, W) masks of the same views.
         trunc_cells: truncation in grid cells.
         chunk: nodes per projection batch.
+        unverified_weight: vote weight (times the confidence) of the depths that fail the
+            consistency test (module docstring, step 1); 0 = they do not vote.
 
     Returns:
         the share of nodes inside the initial surface.
     """
-    depths, weights = consistent_depths(volumes, masks)
+    depths, weights = consistent_depths(volumes, masks, unverified_weight=unverified_weight)
     cell = float(model.cell_size.mean())
     trunc = trunc_cells * cell * normalization.scale
     shape = model.grid_shape

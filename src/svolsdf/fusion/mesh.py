@@ -36,6 +36,7 @@ __all__ = [
     "colors_from_images",
     "cull_by_frusta",
     "cull_by_masks",
+    "cull_unseen",
     "extract_mesh",
     "largest_component",
     "model_colour_fn",
@@ -533,6 +534,54 @@ def cull_by_masks(
         remove = seen.any(dim=0) & (outside | ~seen).all(dim=0)
     log.info("mask culling (%s) removes %d of %d faces", mode, int(remove.sum()), len(faces))
     return submesh(vertices, faces, ~remove)
+
+
+def cull_unseen(
+    vertices: Tensor,
+    faces: Tensor,
+    cameras: Cameras,
+    depths: Tensor,
+    rel_tol: float = 0.01,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Remove faces that no view sees: the centroid lies behind the view's surface depth.
+
+    A face is kept when, in at least one view whose image contains its centroid, the
+    centroid's z-depth is at most ``(1 + rel_tol)`` times that view's depth at the projected
+    pixel (nearest pixel; a view without depth there, <= 0, does not see it). The depths are
+    the field's rendered depths of the input views (OUT/field/render_depth), so what remains is
+    the surface the views observe; parts hidden from every view, such as cavities inside the
+    object that nothing constrains, go. A mask-free twin of the DTU evaluations' culling
+    (METHOD.md 8.3) for surfaces occluded rather than outside the masks.
+
+    Args:
+        vertices: (V, 3) world points; faces: (F, 3).
+        cameras: `Cameras` with N views.
+        depths: (N, H, W) z-depth maps of those views (any resolution).
+        rel_tol: relative depth slack (the rendered depth is an expectation, not the exact
+            first hit).
+
+    Returns:
+        vertices (V', 3), faces (F', 3), vertex_index (V',) as `submesh`.
+    """
+    vertices, faces = _check_mesh(vertices, faces)
+    if depths.ndim != 3 or depths.shape[0] != len(cameras):
+        raise ValueError(f"depths must be ({len(cameras)}, H, W), got {tuple(depths.shape)}")
+    c = _centroids(vertices, faces)
+    cams = cameras.to(dtype=torch.float64)
+    seen = torch.zeros(len(faces), dtype=torch.bool)
+    for v in range(len(cams)):
+        d = depths[v].double()
+        cam = cams[v].resize(d.shape[1], d.shape[0])
+        uv, z = cam.project(c)
+        uv, z = uv[0], z[0]
+        s = _in_image(uv, z, cam.width, cam.height)
+        ij = uv.round().long()
+        ij[:, 0] = ij[:, 0].clamp(0, cam.width - 1)
+        ij[:, 1] = ij[:, 1].clamp(0, cam.height - 1)
+        dv = d[ij[:, 1], ij[:, 0]]
+        seen |= s & (dv > 0) & (z <= (1 + rel_tol) * dv)
+    log.info("visibility culling keeps %d of %d faces", int(seen.sum()), len(faces))
+    return submesh(vertices, faces, seen)
 
 
 # ---------------------------------------------------------------------------------------------
