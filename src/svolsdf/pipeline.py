@@ -950,6 +950,10 @@ class Pipeline:
             dil = max(2, round(12 * scene.width / 1600))  # METHOD.md 6.3's 12 px at 1600 wide
             vw, f, idx = cull_by_masks(vw, f, scene.cameras, scene.masks, dilation=dil)
             v = v[idx]
+        vw, f, idx = largest_component(vw, f, return_index=True)
+        v = v[idx]
+        # after the largest component: culling splits the surface where no view looked, and
+        # the parts it leaves are all observed (benchmarks/results/fast_preset.md, session 8)
         if o.mesh_cull_unseen:
             depths = self._mesh_cull_depths(refined if o.finer_stage_optimization else None)
             if depths is None:
@@ -962,8 +966,6 @@ class Pipeline:
                 else:
                     log.warning("mesh: no face is visible in the rendered depth; visibility "
                                 "culling skipped")
-        vw, f, idx = largest_component(vw, f, return_index=True)
-        v = v[idx]
         cols = None
         try:
             cols = colors_from_fn(v, vertex_normals(v, f), model_colour_fn(model), device=dev)
