@@ -89,8 +89,9 @@ class FieldConfig:
     svolsdf mode; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2)."""
     init_unverified_weight: float = 0.0
     """grid, init = mvs: vote weight (times the MVS confidence) of the stage-1 depths that no
-    other view confirms, in the initial surface (field/init.py). 0 = they do not vote: a region
-    only one view sees then starts at the hull the other views' free space leaves."""
+    other view confirms, in the initial surface (field/init.py); only inside the object masks,
+    so scenes without masks keep the 0 rule. 0 = they do not vote: a region only one view sees
+    then starts at the hull the other views' free space leaves."""
 
 
 @dataclass

@@ -105,12 +105,15 @@ def test_unverified_depth_places_a_surface_only_one_view_sees():
     g = torch.randn(4000, 3)
     p = g / g.norm(dim=-1, keepdim=True) * R
     back = p[p[:, 2] > 0.5]
+    masks = torch.ones(3, 1, 36, 48)
     res = {}
-    for w in (0.0, 0.05):
+    for w, m in ((0.0, masks), (0.05, masks), (0.05, None)):
         model = _field()
-        init_grid_from_mvs(model, _one_sided_volumes(), norm, unverified_weight=w)
+        init_grid_from_mvs(model, _one_sided_volumes(), norm, masks=m, unverified_weight=w)
         with torch.no_grad():
-            res[w] = (model.sdf(back).abs().median(), model.sdf(back * 1.3).median())
+            res[w, m is None] = (model.sdf(back).abs().median(), model.sdf(back * 1.3).median())
     cell = float(model.cell_size.mean())
-    assert res[0.0][0] > 3 * cell and res[0.0][1] < 0  # filled beyond the back surface
-    assert res[0.05][0] < cell and res[0.05][1] > 0, res
+    assert res[0.0, False][0] > 3 * cell and res[0.0, False][1] < 0  # filled beyond the back
+    assert res[0.05, False][0] < cell and res[0.05, False][1] > 0, res
+    # without masks the unconfirmed depths do not vote (they would be mostly background)
+    assert res[0.05, True] == res[0.0, False]

@@ -8,7 +8,8 @@ signed distance built from the stage-1 depth maps:
 1. Each view's expected depth (METHOD.md 2.4) is kept where it is geometrically consistent with
    at least one other view (the fusion test of METHOD.md 6.3, at the stage-1 resolution) and, when
    the scene has them, inside the (dilated) object mask. With ``unverified_weight`` w > 0 (the
-   fast preset) the depths that fail the test still vote, with w times their confidence: a part
+   fast preset) and masks, the depths inside the mask that fail the test still vote, with w times
+   their confidence (without masks they would be mostly background): a part
    of the object that only one view sees has no consistent depth, and without its own votes it
    starts at the hull the other views' free space leaves, in front of the true surface, where
    three views' losses cannot move it (benchmarks/results/fast_preset.md, session 8).
@@ -51,8 +52,10 @@ def consistent_depths(volumes: list[ProbabilityVolume], masks: Tensor | None = N
         volumes: V stage-1 `ProbabilityVolume` (depth (H, W) world z-depth, confidence, cameras).
         masks: optional (V, 1, Hm, Wm) object masks in [0, 1] of the same views.
         min_views: consistent source views a pixel needs (METHOD.md 6.3).
-        unverified_weight: 0 removes the pixels that fail the test; w > 0 keeps them with weight
-            w * confidence (inside the mask).
+        unverified_weight: 0 removes the pixels that fail the test; w > 0 keeps those inside
+            the (dilated) mask with weight w * confidence. Needs ``masks``: without them the
+            unconfirmed depths are mostly background, which would vote for surfaces in empty
+            space, so they are removed as with 0.
 
     Returns:
         depths: V tensors (H, W), 0 where rejected; weights: V tensors (H, W) confidence.
@@ -74,7 +77,7 @@ def consistent_depths(volumes: list[ProbabilityVolume], masks: Tensor | None = N
             inside = dilate_mask(m, 2)
         keep &= inside
         w = torch.where(keep, v.confidence.clamp_min(1e-3), torch.zeros_like(v.depth))
-        if unverified_weight > 0:
+        if unverified_weight > 0 and masks is not None:
             extra = inside & ~keep & torch.isfinite(v.depth) & (v.depth > 0)
             w = torch.where(extra, unverified_weight * v.confidence.clamp_min(1e-3), w)
             keep |= extra
