@@ -459,6 +459,18 @@ def _centroids(vertices: Tensor, faces: Tensor) -> Tensor:
     return vertices.double()[faces].mean(dim=1)
 
 
+def _pixel_at(cam: Cameras, points: Tensor, image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Nearest-pixel value of ``image`` (H, W) at the projections of ``points`` (N, 3) into
+    the one-view ``cam`` (resized to the image): (in_image (N,) bool, value (N,), z (N,))."""
+    cam = cam.resize(image.shape[1], image.shape[0])
+    uv, z = cam.project(points)
+    uv, z = uv[0], z[0]
+    ij = uv.round().long()
+    ij[:, 0] = ij[:, 0].clamp(0, cam.width - 1)
+    ij[:, 1] = ij[:, 1].clamp(0, cam.height - 1)
+    return _in_image(uv, z, cam.width, cam.height), image[ij[:, 1], ij[:, 0]], z
+
+
 def cull_by_frusta(
     vertices: Tensor, faces: Tensor, cameras: Cameras, near: float = 0.0
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -517,15 +529,7 @@ def cull_by_masks(
     seen = torch.zeros(len(cams), len(faces), dtype=torch.bool)
     outside = torch.zeros_like(seen)
     for v in range(len(cams)):
-        m = dilate_mask(masks[v], dilation)
-        cam = cams[v].resize(m.shape[1], m.shape[0])
-        uv, z = cam.project(c)
-        uv, z = uv[0], z[0]
-        s = _in_image(uv, z, cam.width, cam.height)
-        ij = uv.round().long()
-        ij[:, 0] = ij[:, 0].clamp(0, cam.width - 1)
-        ij[:, 1] = ij[:, 1].clamp(0, cam.height - 1)
-        inside = m[ij[:, 1], ij[:, 0]]
+        s, inside, _ = _pixel_at(cams[v], c, dilate_mask(masks[v], dilation))
         seen[v] = s
         outside[v] = s & ~inside
     if mode == "any":
@@ -570,15 +574,7 @@ def cull_unseen(
     cams = cameras.to(dtype=torch.float64)
     seen = torch.zeros(len(faces), dtype=torch.bool)
     for v in range(len(cams)):
-        d = depths[v].double()
-        cam = cams[v].resize(d.shape[1], d.shape[0])
-        uv, z = cam.project(c)
-        uv, z = uv[0], z[0]
-        s = _in_image(uv, z, cam.width, cam.height)
-        ij = uv.round().long()
-        ij[:, 0] = ij[:, 0].clamp(0, cam.width - 1)
-        ij[:, 1] = ij[:, 1].clamp(0, cam.height - 1)
-        dv = d[ij[:, 1], ij[:, 0]]
+        s, dv, z = _pixel_at(cams[v], c, depths[v].double())
         seen |= s & (dv > 0) & (z <= (1 + rel_tol) * dv)
     log.info("visibility culling keeps %d of %d faces", int(seen.sum()), len(faces))
     return submesh(vertices, faces, seen)
