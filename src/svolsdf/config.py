@@ -245,7 +245,8 @@ def _fast() -> Config:
     c.output.fusion_unguided = True
     # stage-1 depths no other view confirms still vote (weight 0.05 x confidence) in the SDF
     # grid's initial surface: points Chamfer 1.45 -> 1.39 mm (seed 0), 1.28 -> 1.24 (seed 3),
-    # 1.22 -> 1.22 (blobs 7), 2.35 -> 2.19 (seed 11) (benchmarks/results/fast_preset.md)
+    # 1.22 -> 1.22 (blobs 7), 2.35 -> 2.19 (seed 11); a trade: F-score -0.005 to -0.01 and the
+    # DTU-rule Chamfer worse on three of the four (benchmarks/results/fast_preset.md, session 8)
     c.field.init_unverified_weight = 0.05
     # and the mesh keeps the surface the input views see: with the line above, the unseen
     # interior holds cavities (mesh Chamfer 3.8 -> 2.6 / 3.3 -> 2.1 / 3.8 -> 2.0 / 4.2 -> 2.9)
