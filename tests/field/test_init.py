@@ -20,8 +20,12 @@ from synth import make_cameras, raycast  # noqa: E402
 R = 0.8  # sphere radius at the origin (world = unit frame here: centre 0, scale 1)
 
 
-def _volumes(noise_view: int | None = None):
-    eyes = [(0.0, 0.0, -4.0), (1.2, 0.2, -3.8), (-1.1, -0.4, -3.8)]
+# two cameras see the front of the sphere; the third, opposite them, alone sees its back
+ONE_SIDED = [(0.0, 0.0, -4.0), (1.2, 0.2, -3.8), (0.3, -0.2, 4.0)]
+
+
+def _volumes(noise_view: int | None = None, eyes=None):
+    eyes = eyes or [(0.0, 0.0, -4.0), (1.2, 0.2, -3.8), (-1.1, -0.4, -3.8)]
     cams = make_cameras(48, 36, eyes=eyes)
     _, depth, _ = raycast(cams, spheres=[((0.0, 0.0, 0.0), R)])
     vols = []
@@ -82,21 +86,6 @@ def test_signed_distance_from_signs_known_values():
     np.testing.assert_allclose(d[2, 2], [-3.5, -2.5, -1.5, -0.5, 0.5, 1.5, 2.5, 3.5, 4.5])
 
 
-def _one_sided_volumes():
-    """Two cameras see the front of the sphere; a third, opposite them, alone sees its back."""
-    eyes = [(0.0, 0.0, -4.0), (1.2, 0.2, -3.8), (0.3, -0.2, 4.0)]
-    cams = make_cameras(48, 36, eyes=eyes)
-    _, depth, _ = raycast(cams, spheres=[((0.0, 0.0, 0.0), R)])
-    vols = []
-    for i in range(len(cams)):
-        d = torch.where(torch.isfinite(depth[i]), depth[i], torch.full_like(depth[i], 6.0)).float()
-        vols.append(ProbabilityVolume(depths=torch.stack([d * 0.99, d * 1.01]),
-                                      prob=torch.full((2, *d.shape), 0.5), depth=d,
-                                      confidence=torch.ones_like(d), cameras=cams[[i]],
-                                      view_id=i))
-    return vols
-
-
 def test_unverified_depth_places_a_surface_only_one_view_sees():
     """With unverified_weight = 0 the back of the sphere (seen by one view) starts at the hull
     the front views leave (inside up to the box); with a small weight, on the surface."""
@@ -109,7 +98,7 @@ def test_unverified_depth_places_a_surface_only_one_view_sees():
     res = {}
     for w, m in ((0.0, masks), (0.05, masks), (0.05, None)):
         model = _field()
-        init_grid_from_mvs(model, _one_sided_volumes(), norm, masks=m, unverified_weight=w)
+        init_grid_from_mvs(model, _volumes(eyes=ONE_SIDED), norm, masks=m, unverified_weight=w)
         with torch.no_grad():
             res[w, m is None] = (model.sdf(back).abs().median(), model.sdf(back * 1.3).median())
     cell = float(model.cell_size.mean())
