@@ -14,14 +14,30 @@ after another in fresh processes (`svolsdf reconstruct`):
                         rerun on a copy of (d)'s folder
 
 and scores points.ply (and mesh.ply) against the ground-truth surface the input views observe
-(`svolsdf.evaluate.synthetic.synthetic_chamfer`). Optionally (``--dtu``) it runs the fast preset
-on ../shared/data/dtu_scan65 and reports its times. Results go to a Markdown file with the
+(`svolsdf.evaluate.synthetic.synthetic_chamfer`). Results go to a Markdown file with the
 machine and the command.
+
+More scenes, (a) and (d) only, one table row each with the ratio:
+  --more SEED:OBJECT ...   synthetic scenes generated here (`svolsdf synth`)
+  --scenes PATH ...        any scene folder with exact ground truth in the layout `svolsdf synth`
+                           writes (cameras.npz, image/, mask/, gt_points.ply, gt_depth/)
+
+Real DTU scans (IDR layout, as ../shared/data/dtu_scan65):
+  --dtu                    the fast preset on ../shared/data/dtu_scan65
+  --dtu-scenes PATH ...    the fast preset on these scans
+  For each: stage times, peak memory, held-out PSNR / SSIM / LPIPS (volume rendering and IBR).
+  With --dtu-gt ROOT (DTU's ObsMask/, Points/stl/; the scan number comes from the folder name,
+  e.g. dtu_scan24), also (a) the MVS backbone alone, and both scored by the DTU protocol
+  (`svolsdf evaluate --dtu-gt`), with the ratio (d)/(a).
 
 Usage:
     python benchmarks/fast_preset.py [--size 768x576] [--seed 0] [--out /tmp/fast_bench]
-        [--results benchmarks/results/fast_preset.md] [--only a,b,c,d] [--dtu]
-        [--more 3:random 7:blobs ...]
+        [--results benchmarks/results/fast_preset.md] [--only a,b,c,d]
+        [--more 3:random 7:blobs ...] [--scenes PATH ...]
+        [--dtu] [--dtu-scenes PATH ...] [--dtu-gt ROOT]
+
+Everything is cached in OUT: a rerun reuses the finished pipeline stages (`svolsdf reconstruct`
+resumes), and the wall time reported is the sum of the stages' recorded times.
 """
 
 from __future__ import annotations
@@ -220,6 +236,59 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
             **res}
 
 
+def _ratio(d: dict, a: dict) -> float | None:
+    return d["overall"] / a["overall"] if d.get("overall") and a.get("overall") else None
+
+
+def _dtu_chamfer(out: Path, gt: Path) -> dict:
+    """`svolsdf evaluate OUT --dtu-gt GT` (the DTU protocol, METHOD.md 8.1): points and mesh."""
+    subprocess.run([sys.executable, "-m", "svolsdf", "evaluate", str(out), "--dtu-gt", str(gt),
+                    "--no-report"], check=True)
+    m = json.loads((out / "metrics.json").read_text())
+    return {"points": m.get("chamfer") or {}, "mesh": m.get("chamfer_mesh") or {}}
+
+
+def _dtu_scan(sc: Path, root: Path, n_test: int, gt: Path | None) -> dict:
+    """The fast preset on one real DTU scan: times, peak memory, held-out image metrics; with
+    ``gt`` also (a) the MVS backbone alone and both scored by the DTU protocol."""
+    out = root / f"{sc.name}_fast"
+    _reconstruct(sc, out)
+    views = json.loads((out / "views.json").read_text())
+    res: dict = {"timing": json.loads((out / "timing.json").read_text()),
+                 "inputs": views["inputs"]}
+    if gt is not None:
+        # before the renders exist, so evaluate scores the geometry only
+        d = _dtu_chamfer(out, gt)
+        a_out = root / f"{sc.name}_a"
+        _reconstruct(sc, a_out, "--mode", "mvs-only")
+        a_t = json.loads((a_out / "timing.json").read_text())
+        a = _dtu_chamfer(a_out, gt)
+        res["chamfer"] = {"gt": str(gt), "d": d["points"], "d_mesh": d["mesh"],
+                          "a": a["points"],
+                          "a_wall_s": sum(v["seconds"] for k, v in a_t.items() if k != "total")}
+    test = views.get("test", [])[:n_test]
+    ids = [str(v) for v in test]
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "svolsdf", "render", str(out), "--views", *ids,
+                    "--ibr"], check=True)
+    res["render_s_per_view"] = (time.perf_counter() - t0) / max(len(ids), 1)
+    ev = {}
+    for folder in ("renders", "renders_ibr"):
+        # evaluate reads OUT/renders; point it at the IBR images through a sibling run dir
+        src = out if folder == "renders" else _ibr_view(out)
+        subprocess.run([sys.executable, "-m", "svolsdf", "evaluate", str(src), "--views",
+                        *ids, "--no-report"], check=True)
+        m = json.loads((src / "metrics.json").read_text())["images"]
+        ev[folder] = {k: m[k]["mean"] for k in ("psnr", "ssim", "lpips")}
+    res["images"] = ev
+    res["test_views"] = test
+    from PIL import Image
+
+    with Image.open(out / "renders" / f"{test[0]}.png") as im:  # the working size
+        res["size"] = f"{im.width}x{im.height}"
+    return res
+
+
 def _fmt(x, nd=2):
     return "-" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
 
@@ -242,7 +311,15 @@ def main() -> None:
     ap.add_argument("--rescore", action="store_true",
                     help="score the runs saved in OUT/fast_preset.json again and rewrite the "
                          "results, without reconstructing")
+    ap.add_argument("--scenes", nargs="*", type=Path, default=[], metavar="PATH",
+                    help="more scene folders with exact ground truth (the layout of `svolsdf "
+                         "synth`: gt_points.ply, gt_depth/); (a) and (d) run on each")
     ap.add_argument("--dtu", action="store_true", help="also the fast preset on dtu_scan65")
+    ap.add_argument("--dtu-scenes", nargs="*", type=Path, default=[], metavar="PATH",
+                    help="more real DTU scans in the IDR layout (as dtu_scan65)")
+    ap.add_argument("--dtu-gt", type=Path, default=None, metavar="ROOT",
+                    help="DTU ground-truth root (ObsMask/, Points/stl/): also run (a) on the "
+                         "DTU scans and score (a) and (d) by the DTU protocol")
     ap.add_argument("--dtu-test-views", type=int, default=5,
                     help="held-out DTU views rendered and scored")
     args = ap.parse_args()
@@ -264,7 +341,7 @@ def main() -> None:
     if args.rescore:
         # score the finished runs again (e.g. after a change of the evaluation), keep the rest
         saved = json.loads(dump.read_text())
-        runs, more = saved["runs"], saved["more"]
+        runs, more, dtu = saved["runs"], saved["more"], saved.get("dtu", {})
         for r in [*runs.values(), *(x for m in more.values() for x in m.values())]:
             if r.get("dir"):
                 d = Path(r["dir"])
@@ -278,10 +355,10 @@ def main() -> None:
                                                        views))
                 r.update(_score_mesh(Path(r["scene"]), d, views))
     else:
-        runs, more = {}, {}
+        runs, more, dtu = {}, {}, {}
 
     def save() -> None:
-        dump.write_text(json.dumps({"runs": runs, "more": more}, indent=1))
+        dump.write_text(json.dumps({"runs": runs, "more": more, "dtu": dtu}, indent=1))
 
     def run(sc: Path, out: Path, *extra: str) -> dict:
         _reconstruct(sc, out, *extra)
@@ -309,35 +386,32 @@ def main() -> None:
                                 runs.get("(d) S-VolSDF fast preset", {}).get("wall_s") or 300.0),
             "dir": str(c_out), "scene": str(scene)}
         save()
-    for item in args.more if not args.rescore else []:
+    extra_scenes = []
+    for item in args.more:
         seed, _, obj = item.partition(":")
-        sc = make(int(seed), obj or "random")
+        extra_scenes.append((f"seed {seed}, {obj or 'random'}",
+                             lambda seed=seed, obj=obj: make(int(seed), obj or "random")))
+    for path in args.scenes:
+        path = path.resolve()  # the scene path enters the stage keys: keep it stable
+        for f in ("gt_points.ply", "gt_depth"):
+            if not (path / f).exists():
+                sys.exit(f"--scenes {path}: no {f} (a scene with exact ground truth in the "
+                         "layout `svolsdf synth` writes is needed)")
+        extra_scenes.append((path.name, lambda path=path: path))
+    for name, get_scene in extra_scenes if not args.rescore else []:
+        sc = get_scene()
         r = {}
         for tag, extra in (("d", ()), ("a", ("--mode", "mvs-only"))):
             r[tag] = run(sc, args.out / f"{sc.name}_{tag}", *extra)
-        more[f"seed {seed}, {obj or 'random'}"] = r
+        more[name] = r
         save()
-    dtu = None
-    if args.dtu and (SHARED / "data/dtu_scan65").is_dir():
-        out = args.out / "dtu65_fast"
-        _reconstruct(SHARED / "data/dtu_scan65", out)
-        dtu = {"timing": json.loads((out / "timing.json").read_text())}
-        test = json.loads((out / "views.json").read_text())["test"][: args.dtu_test_views]
-        ids = [str(v) for v in test]
-        t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "svolsdf", "render", str(out), "--views", *ids,
-                        "--ibr"], check=True)
-        dtu["render_s_per_view"] = (time.perf_counter() - t0) / max(len(ids), 1)
-        ev = {}
-        for folder in ("renders", "renders_ibr"):
-            # evaluate reads OUT/renders; point it at the IBR images through a sibling run dir
-            src = out if folder == "renders" else _ibr_view(out)
-            subprocess.run([sys.executable, "-m", "svolsdf", "evaluate", str(src), "--views",
-                            *ids, "--no-report"], check=True)
-            m = json.loads((src / "metrics.json").read_text())["images"]
-            ev[folder] = {k: m[k]["mean"] for k in ("psnr", "ssim", "lpips")}
-        dtu["images"] = ev
-        dtu["test_views"] = test
+    dtu_scenes = ([SHARED / "data/dtu_scan65"] if args.dtu else []) + list(args.dtu_scenes)
+    for sc in dtu_scenes:
+        sc = sc.resolve()
+        if not sc.is_dir():
+            sys.exit(f"DTU scene {sc} does not exist")
+        dtu[sc.name] = _dtu_scan(sc, args.out, args.dtu_test_views, args.dtu_gt)
+        save()
 
     lines = ["# Fast preset benchmark (issue 5)", "",
              f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}, torch threads = default "
@@ -431,21 +505,32 @@ def main() -> None:
     if c is not None:
         lines += ["", "## (c) the paper preset at (d)'s wall time", "",
                   f"- {c['note']}"]
-    if dtu is not None:
-        t = dtu["timing"]
+    for name, r in dtu.items():
+        t = r["timing"]
         # "total" is the last invocation's wall time (a rerun that reuses every stage writes
         # ~2 s); the sum of the stages is the pipeline's cost
         st = {k: v["seconds"] for k, v in t.items() if k != "total"}
-        lines += ["", "## dtu_scan65, fast preset (views 25 22 28, 768x576)", "",
+        lines += ["", f"## {name}, fast preset (views {' '.join(map(str, r['inputs']))}, "
+                  f"{r['size']})", "",
                   f"- stages (s): {json.dumps(st)}; sum {sum(st.values()):.0f} s",
                   f"- peak memory: {max(v.get('peak_memory_gb', 0) for v in t.values()):.2f} GB",
-                  f"- held-out views {dtu['test_views']} (the first {len(dtu['test_views'])} of "
-                  "the DTU test protocol's), masked as the paper evaluates (evaluate/images.py):",
-                  f"  - volume rendering: {json.dumps(dtu['images']['renders'])}",
-                  f"  - image-based rendering: {json.dumps(dtu['images']['renders_ibr'])}",
+                  f"- held-out views {r['test_views']} (the first {len(r['test_views'])} of "
+                  "the scene's test views), masked as the paper evaluates (evaluate/images.py):",
+                  f"  - volume rendering: {json.dumps(r['images']['renders'])}",
+                  f"  - image-based rendering: {json.dumps(r['images']['renders_ibr'])}",
                   f"  - render time per view (VR + IBR, incl. loading): "
-                  f"{dtu['render_s_per_view']:.1f} s"]
-    else:
+                  f"{r['render_s_per_view']:.1f} s"]
+        if r.get("chamfer"):
+            c = r["chamfer"]
+            lines += [f"- DTU protocol ({c['gt']}), points acc / comp / Chamfer (mm): "
+                      f"(d) {_triple(c['d'])}, (a) MVS backbone alone {_triple(c['a'])} "
+                      f"({c['a_wall_s']:.0f} s); ratio (d)/(a) "
+                      f"{_fmt(_ratio(c['d'], c['a']))} (target <= 0.75)"]
+            if c.get("d_mesh"):
+                lines[-1] += f"; (d) mesh {_triple(c['d_mesh'])}"
+        else:
+            lines += ["- Chamfer: no DTU ground truth given (`--dtu-gt ROOT`)"]
+    if not dtu:
         lines += ["", "## dtu_scan65", "",
                   "The fast preset's times, peak memory and held-out PSNR / SSIM / LPIPS on "
                   "dtu_scan65 (views 25 22 28, all 25 DTU test views) are measured by "
@@ -458,8 +543,8 @@ def main() -> None:
         i = old.find("\n## Notes")
         notes = old[i:] if i >= 0 else ""
     args.results.write_text("\n".join(lines) + "\n" + notes)
-    (args.results.with_suffix(".json")).write_text(json.dumps({"runs": runs, "more": more},
-                                                              indent=1))
+    (args.results.with_suffix(".json")).write_text(
+        json.dumps({"runs": runs, "more": more, "dtu": dtu}, indent=1))
     print("\n".join(lines))
 
 
