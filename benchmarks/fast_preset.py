@@ -236,6 +236,11 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
             **res}
 
 
+def _has_masks(r: dict) -> bool:
+    """Whether the run's scene folder has object masks (the layout of `svolsdf synth`)."""
+    return (Path(r["scene"]) / "mask").is_dir()
+
+
 def _ratio(d: dict, a: dict) -> float | None:
     return d["overall"] / a["overall"] if d.get("overall") and a.get("overall") else None
 
@@ -470,37 +475,45 @@ def main() -> None:
                          f"at equal wall time: {dm / cm:.2f} (target < 1)")
     if more:
         lines += ["", "## More synthetic scenes: (d) against (a)", "",
-                  "| scene | (d) wall (s) | (d) peak (GB) | (d) acc / comp / Chamfer | "
+                  "| scene | masks | (d) wall (s) | (d) peak (GB) | (d) acc / comp / Chamfer | "
                   "(a) acc / comp / Chamfer | ratio (d)/(a) | ratio, DTU rule | "
                   "(d') guided depth only: acc / comp / Chamfer | ratio (d')/(a) |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        ratios: dict[str, list] = {"overall": [], "overall_dtu_rule": []}
-        ratios_g: list = []
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        # (ratio, ratio by the DTU rule, ratio of (d')) per scene, grouped by whether the scene
+        # has object masks (fusion and the field's initial surface use them); the first table's
+        # scene counts too
+        groups: dict[bool, list] = {True: [], False: []}
+
+        def ratios_of(pd: dict, pa: dict, pg: dict) -> tuple:
+            return tuple(x[k] / pa[k] if x.get(k) and pa.get(k) else None
+                         for x, k in ((pd, "overall"), (pd, "overall_dtu_rule"),
+                                      (pg, "overall")))
+
+        d0 = next((r for n, r in runs.items() if n.startswith("(d)")), None)
+        a0 = next((r for n, r in runs.items() if n.startswith("(a)")), None)
+        if d0 and a0 and d0.get("points") and a0.get("points"):
+            groups[_has_masks(d0)].append(ratios_of(d0["points"], a0["points"],
+                                                    d0.get("guided_only", {})))
         for name, r in more.items():
             pd, pa = r["d"].get("points", {}), r["a"].get("points", {})
-            row = []
-            for key, rs in ratios.items():
-                x = pd[key] / pa[key] if pd.get(key) and pa.get(key) else None
-                row.append(_fmt(x))
-                if x is not None:
-                    rs.append(x)
             pg = r["d"].get("guided_only", {})
-            xg = pg["overall"] / pa["overall"] if pg.get("overall") and pa.get("overall") \
-                else None
-            if xg is not None:
-                ratios_g.append(xg)
-            lines.append(f"| {name} | {_fmt(r['d']['wall_s'], 0)} | {_fmt(r['d']['peak_gb'])} | "
-                         f"{_triple(pd)} | {_triple(pa)} | {' | '.join(row)} | "
-                         f"{_triple(pg) if pg else '-'} | {_fmt(xg)} |")
-        if ratios["overall"]:
-            lines.append("")
-            for key, rs in ratios.items():
-                lines.append(f"- mean ratio (d)/(a) over these scenes"
-                             f"{', DTU rule' if 'dtu' in key else ''}: "
-                             f"{sum(rs) / len(rs):.2f} (target <= 0.75)")
-            if ratios_g:
-                lines.append(f"- mean ratio (d')/(a), guided depth only: "
-                             f"{sum(ratios_g) / len(ratios_g):.2f}")
+            x = ratios_of(pd, pa, pg)
+            masks = _has_masks(r["d"])
+            groups[masks].append(x)
+            lines.append(f"| {name} | {'yes' if masks else 'no'} | {_fmt(r['d']['wall_s'], 0)} | "
+                         f"{_fmt(r['d']['peak_gb'])} | {_triple(pd)} | {_triple(pa)} | "
+                         f"{_fmt(x[0])} | {_fmt(x[1])} | {_triple(pg) if pg else '-'} | "
+                         f"{_fmt(x[2])} |")
+        lines.append("")
+        for masks, xs in groups.items():
+            if not xs:
+                continue
+            what = "with object masks" if masks else "without masks"
+            means = [[x[k] for x in xs if x[k] is not None] for k in range(3)]
+            means = [sum(m) / len(m) if m else None for m in means]
+            lines.append(f"- mean over the {len(xs)} synthetic scene(s) {what} (both tables): "
+                         f"ratio (d)/(a) {_fmt(means[0])}, DTU rule {_fmt(means[1])} (target "
+                         f"<= 0.75); (d')/(a) guided depth only {_fmt(means[2])}")
     c = runs.get("(c) S-VolSDF paper preset, equal time")
     if c is not None:
         lines += ["", "## (c) the paper preset at (d)'s wall time", "",

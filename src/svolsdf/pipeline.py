@@ -839,6 +839,8 @@ class Pipeline:
         fcfg = FusionConfig(dist_thresh=o.fusion_dist, rel_thresh=o.fusion_rel,
                             min_consistent=o.fusion_views, conf_thresh=o.fusion_conf,
                             use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
+        if self.cfg.train.mode == "svolsdf":  # OUT/depth is the field-guided depth
+            fcfg.primary_mask_dilation = o.fusion_guided_dilation
         sdir = self.out / "field" / "render_depth"
         if self.cfg.output.finer_stage_optimization:
             sdir = self.out / "field" / "stage2" / "render_depth"  # the refined surface

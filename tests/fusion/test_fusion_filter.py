@@ -217,6 +217,30 @@ def test_fusion_surface_counts_as_one_source():
                         surface_depths={v: s[:20] for v, s in surface.items()})
 
 
+def test_primary_mask_dilation_narrows_only_the_first_hypothesis():
+    """primary_mask_dilation: the references of ``depths`` are kept inside masks dilated by it,
+    those of ``alt_depths`` inside masks dilated by mask_dilation, each exactly the pixels of
+    its own dilated mask (every depth is exact, so the geometry keeps them all)."""
+    cams = three_cameras()
+    exact = {v: sphere_depth(c).float() for v, c in cams.items()}
+    masks = {v: torch.zeros(40, 48) for v in cams}
+    for m in masks.values():
+        m[18:22, 22:26] = 1  # a small square in the middle of the sphere in every view
+    both = {v: d.clone() for v, d in exact.items()}
+    cfg = FusionConfig(mask_dilation=6, primary_mask_dilation=1)
+    out = fuse_depth_maps(exact, cams, masks=masks, cfg=cfg, alt_depths=both)
+    for v in cams:
+        wide = dilate_mask(masks[v], 6) & (exact[v] > 0)
+        narrow = dilate_mask(masks[v], 1) & (exact[v] > 0)
+        assert out.stats[v]["points"] == int(narrow.sum())  # the first hypothesis: 1 px
+        assert out.stats[f"{v}:alt"]["points"] == int(wide.sum())  # the second: 6 px
+        assert int(narrow.sum()) < int(wide.sum())
+    # None (the default) dilates every reference alike, as released
+    same = fuse_depth_maps(exact, cams, masks=masks, cfg=FusionConfig(mask_dilation=6),
+                           alt_depths=both)
+    assert all(same.stats[v]["points"] == same.stats[f"{v}:alt"]["points"] for v in cams)
+
+
 def test_fusion_second_hypothesis_per_view():
     """alt_depths: each view's second depth map is a reference too, and a source view agrees
     when either of its maps does (counted once)."""

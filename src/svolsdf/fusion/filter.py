@@ -80,6 +80,13 @@ class FusionConfig:
     """Radius in pixels of the disk the masks are dilated with, at the mask's native resolution,
     before they are resized to the depth resolution (METHOD.md 6.3)."""
 
+    primary_mask_dilation: int | None = None
+    """Dilation radius for the references of ``depths`` (the first hypothesis) when it should
+    differ from ``mask_dilation``; None = ``mask_dilation`` for every reference. The pipeline
+    gives its field-guided depth a narrower rim than the unguided ``alt_depths``
+    (`OutputConfig.fusion_guided_dilation`): near the silhouette a guided depth inherits the
+    field's errors, which are one 3D surface and so pass the multi-view check."""
+
     surface_rel_thresh: float = 0.0
     """With ``surface_depths`` (the optimized surface's depth rendered in each reference view): a
     pixel whose depth lies within this relative difference of the surface's depth counts as one
@@ -521,7 +528,10 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         keep &= photo
     inside = torch.ones_like(geo)
     if masks is not None and cfg.use_masks:
-        dil = dilate_mask(masks[ref], cfg.mask_dilation)
+        radius = cfg.mask_dilation
+        if h == 0 and cfg.primary_mask_dilation is not None:
+            radius = cfg.primary_mask_dilation
+        dil = dilate_mask(masks[ref], radius)
         inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
         keep &= inside
     fused = (d_sum / (1 + count).double()).float()  # METHOD.md 6.3, "Fused depth"
