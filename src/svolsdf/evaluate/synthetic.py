@@ -21,7 +21,7 @@ import torch
 
 from svolsdf.errors import InputError
 
-__all__ = ["observed_gt_points", "synthetic_chamfer", "is_synthetic_scene"]
+__all__ = ["observed_gt_points", "synthetic_chamfer", "truncated_chamfer", "is_synthetic_scene"]
 
 
 def is_synthetic_scene(scene_dir: str | Path) -> bool:
@@ -116,7 +116,6 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
         dict: accuracy, completeness, overall, precision, recall, fscore, threshold, max_dist,
         gt_points (count).
     """
-    from svolsdf.evaluate.chamfer import greedy_radius_downsample, nn_distances
 
     if rule not in ("clip", "exclude"):
         raise ValueError(f"rule must be 'clip' or 'exclude', got {rule!r}")
@@ -144,21 +143,54 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
                     "precision": 0.0, "recall": 0.0, "fscore": 0.0, "threshold": threshold,
                     "max_dist": max_dist, "gt_points": int(len(gt)), "pred_points": 0}
         raise InputError("no reconstructed point lies near the ground-truth object")
-    rng = np.random.default_rng(0)
+    t = truncated_chamfer(pred, gt, max_dist, threshold)
+    sfx = "" if rule == "clip" else "_dtu_rule"
+    acc, comp = t["accuracy" + sfx], t["completeness" + sfx]
+    return {"accuracy": acc, "completeness": comp, "overall": (acc + comp) / 2,
+            "precision": t["precision"], "recall": t["recall"], "fscore": t["fscore"],
+            "threshold": threshold, "max_dist": max_dist, "gt_points": t["gt_points"],
+            "pred_points": t["pred_points"]}
+
+
+def truncated_chamfer(pred: np.ndarray, gt: np.ndarray, max_dist: float, threshold: float,
+                      gt_downsampled: bool = False, seed: int = 0) -> dict:
+    """The scoring core of `synthetic_chamfer`, by both rules at once (METHOD.md 8.1 / 8.2).
+
+    Both clouds are shuffled (``seed``; ``pred`` first) and greedily downsampled at
+    ``threshold / 5`` to even out densities, then: accuracy / completeness clipped at
+    ``max_dist`` (rule "clip") and as means over the distances below it (rule "exclude", keys
+    ``*_dtu_rule``; ``max_dist`` when none is), precision / recall / F-score at ``threshold``.
+
+    Args:
+        pred: (N, 3) float64 predicted points, N > 0 (already cropped to the scored region).
+        gt: (M, 3) float64 ground-truth points, M > 0.
+        max_dist: cut-off, world units.
+        threshold: F-score threshold, world units.
+        gt_downsampled: ``gt`` is already downsampled at ``threshold / 5`` (a caller scoring
+            many predictions against one reference does it once).
+        seed: shuffle seed.
+
+    Returns:
+        dict: accuracy, completeness, accuracy_dtu_rule, completeness_dtu_rule, precision,
+        recall, fscore, gt_points, pred_points (after downsampling).
+    """
+    from svolsdf.evaluate.chamfer import greedy_radius_downsample, nn_distances
+
+    rng = np.random.default_rng(seed)
     r = threshold / 5  # even out densities (METHOD.md 8.1's radius downsampling)
     pred = pred[rng.permutation(len(pred))]
     pred = pred[greedy_radius_downsample(pred, r)]
-    gt = gt[greedy_radius_downsample(gt[rng.permutation(len(gt))], r)]
-    # rule "clip" (a truncated Chamfer): outliers and holes count, but boundedly
+    if not gt_downsampled:
+        gt = gt[greedy_radius_downsample(gt[rng.permutation(len(gt))], r)]
     d_pg, d_gp = nn_distances(pred, gt), nn_distances(gt, pred)
     prec, rec = float((d_pg < threshold).mean()), float((d_gp < threshold).mean())
-    if rule == "clip":
-        acc = float(np.minimum(d_pg, max_dist).mean())
-        comp = float(np.minimum(d_gp, max_dist).mean())
-    else:  # METHOD.md 8.1: means over the distances below the cut-off (max_dist if none is)
-        acc = float(d_pg[d_pg < max_dist].mean()) if (d_pg < max_dist).any() else max_dist
-        comp = float(d_gp[d_gp < max_dist].mean()) if (d_gp < max_dist).any() else max_dist
-    f = 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0
-    return {"accuracy": acc, "completeness": comp, "overall": (acc + comp) / 2,
-            "precision": prec, "recall": rec, "fscore": f, "threshold": threshold,
-            "max_dist": max_dist, "gt_points": int(len(gt)), "pred_points": int(len(pred))}
+
+    def below(d: np.ndarray) -> float:  # METHOD.md 8.1 (max_dist if no distance is below)
+        return float(d[d < max_dist].mean()) if (d < max_dist).any() else max_dist
+
+    return {"accuracy": float(np.minimum(d_pg, max_dist).mean()),
+            "completeness": float(np.minimum(d_gp, max_dist).mean()),
+            "accuracy_dtu_rule": below(d_pg), "completeness_dtu_rule": below(d_gp),
+            "precision": prec, "recall": rec,
+            "fscore": 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0,
+            "gt_points": int(len(gt)), "pred_points": int(len(pred))}
