@@ -105,6 +105,8 @@ def fuse(scene_dir: Path, depths: dict, size: tuple[int, int], k: int, min_views
     )
     from svolsdf.scene.loaders import load_scene
 
+    # not `fuse_depth_maps`: it checks every reference against all other views (49 x 48
+    # checks); here each reference is checked against its k nearest only
     sc = load_scene(scene_dir, image_size=size)  # with images, for the masks
     ids = sc.view_ids
     centers = sc.cameras.centers.double().numpy()
