@@ -1,25 +1,30 @@
 """Geometry on a real DTU scan without its STL: score runs against a many-view pseudo ground truth.
 
-The shared DTU scan (../shared/data/dtu_scan65, IDR layout) has 49 views and object masks but no
-ground-truth geometry, so the fast preset's Chamfer target ((d) at most 0.75x the MVS backbone
-alone, issue 5) could only be checked on synthetic scenes. This script builds an independent
-reference from all the scan's views and scores three-view runs against it:
+The shared DTU scans (../shared/data/dtu_scan65 in the IDR layout, with object masks;
+../shared/data/dtu_raw, scan 9 in DTU's raw layout, without masks but with its real ObsMask) have
+49 views but no ground-truth geometry, so the fast preset's Chamfer target ((d) at most 0.75x the
+MVS backbone alone, issue 5) could only be checked on synthetic scenes. This script builds an
+independent reference from all the scan's views and scores three-view runs against it:
 
 1. Depth of every view with the DTU-trained PatchmatchNet (../shared/weights/patchmatchnet; a
    different MVS method from the plane-sweep backbone the runs use), each view with its
-   ``--sources`` nearest views (camera centres) as sources, at the working size.
-2. Fusion: a pixel is kept when at least ``--min-views`` of its ``--fuse-neighbours`` nearest
-   views agree (`svolsdf.fusion.filter.check_geometric_consistency`: 1 px, 1 %), inside the
-   view's object mask; its depth is the mean of the agreeing depths. Two references: "object"
-   (the masks as they are) and "object and rim" (dilated as the runs' fusion dilates them,
+   ``--sources`` best source views by the scene's pair score (`Scene.source_views`, MVSNet's view
+   selection, METHOD.md 1.4), at the working size.
+2. Fusion: a pixel is kept when at least ``--min-views`` of its ``--fuse-neighbours`` best-paired
+   views agree (`svolsdf.fusion.filter.check_geometric_consistency`: 1 px, 1 %); its depth is
+   the mean of the agreeing depths. With object masks, two references: "object" (inside the
+   masks as they are) and "object and rim" (the masks dilated as the runs' fusion dilates them,
    12 px at the working size, METHOD.md 6.3: what the runs may fill, the table around the
-   object included; DTU's own ground truth holds the scanned table too). Cached in OUT.
+   object included; DTU's own ground truth holds the scanned table too). Without masks (the raw
+   layout), one reference, "observed": the fused points inside DTU's observation mask
+   (ObsMask<scan>_10.mat, METHOD.md 8.1), and the runs' points are scored inside it too, as
+   DTU scores accuracy. Cached in OUT.
 3. The reference is the part of that cloud the run's input views see: points within 0.5 % of
    the nearest pseudo-GT depth at their pixel (a 3x3 minimum of the splatted depth) in at least
    one input view.
 4. Each run's points.ply (and mesh.ply, sampled) is scored as the synthetic benchmark scores
-   (`svolsdf.evaluate.synthetic.synthetic_chamfer`): both clouds evened out by greedy radius
-   downsampling at 0.1 % of the object reference's diagonal, distances clipped at 5 % of it
+   (`svolsdf.evaluate.synthetic.truncated_chamfer`): both clouds evened out by greedy radius
+   downsampling at 0.1 % of the first reference's diagonal, distances clipped at 5 % of it
    ("clipped"; holes cost the cut-off) or left out beyond it ("DTU rule", METHOD.md 8.1), and
    the F-score at 0.5 %.
 
@@ -34,7 +39,7 @@ against the same reference are the point. Depth maps are cached in OUT (a rerun 
 Usage:
     python benchmarks/dtu_pseudo_gt.py --runs "(a) MVS alone=RUN_A" "(d) fast=RUN_D"
         [--scene ../shared/data/dtu_scan65] [--out /tmp/dtu_pseudo_gt]
-        [--results benchmarks/results/dtu_pseudo_gt.md]
+        [--results benchmarks/results/dtu_pseudo_gt_dtu_scan<N>.md]
 """
 
 from __future__ import annotations
@@ -55,39 +60,32 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
-def _nearest(centers: np.ndarray, i: int, k: int) -> list[int]:
-    """Indices of the ``k`` camera centres nearest to centre ``i`` (itself excluded)."""
-    d = np.linalg.norm(centers - centers[i], axis=1)
-    d[i] = np.inf
-    return [int(j) for j in np.argsort(d)[:k]]
-
-
 def depth_maps(scene_dir: Path, out: Path, size: tuple[int, int], n_src: int) -> dict:
-    """Step 1: view id -> (H, W) PatchmatchNet z-depth (cached as OUT/depth/<id>.npy)."""
+    """Step 1: view id -> (H, W) PatchmatchNet z-depth, with the ``n_src`` best source views by
+    the scene's pair score (cached as OUT/depth_pairs<n_src>_<W>x<H>/<id>.npy)."""
     from svolsdf.mvs.backbone import get_backbone
     from svolsdf.mvs.cascade import run_cascade
     from svolsdf.mvs.run import mvs_depth_range
     from svolsdf.scene.loaders import load_scene
 
     probe = load_scene(scene_dir, load_images=False)
-    ids = probe.view_ids
-    centers = probe.cameras.centers.double().numpy()
-    (out / "depth").mkdir(parents=True, exist_ok=True)
+    ddir = out / f"depth_pairs{n_src}_{size[0]}x{size[1]}"
+    ddir.mkdir(parents=True, exist_ok=True)
     backbone = None
     res = {}
-    for i, ref in enumerate(ids):
-        f = out / "depth" / f"{ref}.npy"
+    for ref in probe.view_ids:
+        f = ddir / f"{ref}.npy"
         if not f.is_file():
             backbone = backbone or get_backbone("patchmatchnet")
             t0 = time.perf_counter()
-            views = [ref] + [ids[j] for j in _nearest(centers, i, n_src)]
+            views = [ref] + probe.source_views(ref)[:n_src]  # MVSNet's view selection
             sc = load_scene(scene_dir, views=views, image_size=size)
             sc = replace(sc, depth_range=mvs_depth_range(sc, None))
             torch.manual_seed(ref)  # PatchmatchNet's initial depth samples are random
             vol = run_cascade(backbone, sc, ref_ids=[ref])
             depth = vol[max(vol)][0].depth.float().numpy()
-            np.save(out / "depth" / f".{ref}.tmp.npy", depth)
-            os.replace(out / "depth" / f".{ref}.tmp.npy", f)  # a killed run keeps whole files
+            np.save(ddir / f".{ref}.tmp.npy", depth)
+            os.replace(ddir / f".{ref}.tmp.npy", f)  # a killed run keeps whole files
             print(f"view {ref} (sources {views[1:]}): {time.perf_counter() - t0:.1f} s",
                   flush=True)
         res[ref] = torch.from_numpy(np.load(f))
@@ -96,8 +94,9 @@ def depth_maps(scene_dir: Path, out: Path, size: tuple[int, int], n_src: int) ->
 
 def fuse(scene_dir: Path, depths: dict, size: tuple[int, int], k: int, min_views: int,
          dilation: int) -> np.ndarray:
-    """Step 2: (N, 3) world points of the pixels ``min_views`` of their ``k`` nearest views
-    confirm, inside the object masks dilated by ``dilation`` pixels (module docstring)."""
+    """Step 2: (N, 3) world points of the pixels ``min_views`` of their ``k`` best-paired views
+    confirm, inside the object masks dilated by ``dilation`` pixels when the scene has masks
+    (module docstring)."""
     from svolsdf.fusion.filter import (
         check_geometric_consistency,
         dilate_mask,
@@ -106,10 +105,9 @@ def fuse(scene_dir: Path, depths: dict, size: tuple[int, int], k: int, min_views
     from svolsdf.scene.loaders import load_scene
 
     # not `fuse_depth_maps`: it checks every reference against all other views (49 x 48
-    # checks); here each reference is checked against its k nearest only
-    sc = load_scene(scene_dir, image_size=size)  # with images, for the masks
+    # checks); here each reference is checked against its k best-paired views only
+    sc = load_scene(scene_dir, image_size=size, load_images=False)
     ids = sc.view_ids
-    centers = sc.cameras.centers.double().numpy()
     pts = []
     for i, ref in enumerate(ids):
         d_ref = depths[ref]
@@ -117,14 +115,15 @@ def fuse(scene_dir: Path, depths: dict, size: tuple[int, int], k: int, min_views
         cam = sc.cameras[[i]]
         count = torch.zeros(H, W, dtype=torch.int32)
         d_sum = d_ref.double().clone()
-        for j in _nearest(centers, i, k):
-            m, d_rep, _ = check_geometric_consistency(d_ref, cam, depths[ids[j]],
-                                                      sc.cameras[[j]])
+        for src in sc.source_views(ref)[:k]:
+            m, d_rep, _ = check_geometric_consistency(d_ref, cam, depths[src],
+                                                      sc.cameras[[ids.index(src)]])
             count += m.int()
             d_sum += torch.where(m, d_rep.double(), torch.zeros_like(d_sum))
         keep = (d_ref > 0) & (count >= min_views)
-        if sc.masks is not None:  # the region the runs' fusion may fill (METHOD.md 6.3)
-            keep &= mask_to_depth_resolution(dilate_mask(sc.masks[i, 0], dilation), H, W)
+        if sc.extras.get("mask_paths"):  # the region the runs' fusion may fill (METHOD.md 6.3)
+            mask = load_scene(scene_dir, views=[ref], image_size=size).masks[0, 0]  # one image
+            keep &= mask_to_depth_resolution(dilate_mask(mask, dilation), H, W)
         fused = d_sum / (1 + count).double()
         c64 = cam.resize(W, H).to(dtype=torch.float64)
         uv = c64.pixel_grid(dtype=torch.float64).reshape(1, -1, 2)
@@ -186,7 +185,8 @@ def main() -> None:
                     help="run folders (svolsdf reconstruct outputs) to score; ratios are to the "
                          "first")
     ap.add_argument("--out", type=Path, default=Path("/tmp/dtu_pseudo_gt"))
-    ap.add_argument("--results", type=Path, default=REPO / "benchmarks/results/dtu_pseudo_gt.md")
+    ap.add_argument("--results", type=Path, default=None,
+                    help="default benchmarks/results/dtu_pseudo_gt_dtu_scan<N>.md")
     ap.add_argument("--size", default="768x576")
     ap.add_argument("--sources", type=int, default=4)
     ap.add_argument("--fuse-neighbours", type=int, default=8)
@@ -195,11 +195,31 @@ def main() -> None:
                     help="pixels at the working size; 12 as the runs' fusion (METHOD.md 6.3)")
     args = ap.parse_args()
 
-    from svolsdf.evaluate.chamfer import greedy_radius_downsample, sample_mesh_surface
+    from svolsdf.evaluate.chamfer import (
+        greedy_radius_downsample,
+        load_obs_mask,
+        obs_mask_filter,
+        sample_mesh_surface,
+    )
     from svolsdf.io.ply import read_ply
+    from svolsdf.scene.loaders import load_scene
 
-    if not (args.scene / "cameras_sphere.npz").is_file():
-        sys.exit(f"{args.scene}: not a DTU scan in the IDR layout (no cameras_sphere.npz)")
+    try:
+        probe = load_scene(args.scene, load_images=False)
+    except Exception as e:  # noqa: BLE001 - the loader's message names the file
+        sys.exit(f"{args.scene}: {e}")
+    if not probe.extras.get("dtu"):
+        sys.exit(f"{args.scene}: not a DTU scan (IDR layout with cameras_sphere.npz, or DTU's "
+                 "raw Rectified/ + Calibration/ layout)")
+    has_masks = bool(probe.extras.get("mask_paths"))
+    obs = None
+    if not has_masks:  # the region to score is DTU's observation mask (METHOD.md 8.1)
+        if not probe.extras.get("obs_mask"):
+            sys.exit(f"{args.scene}: no object masks and no ObsMask/ObsMask<scan>_10.mat; "
+                     "without either the pseudo ground truth has no region to cover")
+        obs = load_obs_mask(probe.extras["obs_mask"])
+    scan_name = f"dtu_scan{probe.extras['scan']}" if "scan" in probe.extras else args.scene.name
+    results = args.results or REPO / f"benchmarks/results/dtu_pseudo_gt_{scan_name}.md"
     if not (SHARED / "weights/patchmatchnet").is_dir():
         sys.exit("../shared/weights/patchmatchnet is missing: the pseudo ground truth needs it")
     runs = {}
@@ -220,24 +240,30 @@ def main() -> None:
             sys.exit(f"{d}: input views {views} differ from the first run's {inputs}")
         inputs = views
     t0 = time.perf_counter()
+    # reference name -> (points fused, points kept); the first one sets the scale
+    dils = (0, args.mask_dilation) if has_masks else (0,)
+    names = ({0: "object", args.mask_dilation: f"object and rim ({args.mask_dilation} px)"}
+             if has_masks else {0: "observed (DTU ObsMask)"})
     refs = {}
-    for dil in (0, args.mask_dilation):
-        cache = args.out / (f"pseudo_gt_{args.size}_src{args.sources}_k{args.fuse_neighbours}_"
-                            f"min{args.min_views}_dil{dil}.npy")
+    for dil in dils:
+        cache = args.out / (f"pseudo_gt_{args.size}_pairs{args.sources}_k{args.fuse_neighbours}_"
+                            f"min{args.min_views}_dil{dil if has_masks else 'none'}.npy")
         if cache.is_file():
             pts = np.load(cache)
         else:
             pts = fuse(args.scene, depths, size, args.fuse_neighbours, args.min_views, dil)
             np.save(cache, pts)
-        refs[dil] = (len(pts), pts[seen_by(pts, args.scene, inputs, size)])
+        keep = seen_by(pts, args.scene, inputs, size)
+        if obs is not None:
+            keep &= obs_mask_filter(pts, obs)[1]
+        refs[names[dil]] = (len(pts), pts[keep])
     t_fuse = time.perf_counter() - t0
-    obj = refs[0][1]
+    obj = next(iter(refs.values()))[1]
     diag = float(np.linalg.norm(obj.max(0) - obj.min(0)))
     rng = np.random.default_rng(0)
-    for dil, (n, pts) in refs.items():
+    for key, (n, pts) in refs.items():
         pts = pts[rng.permutation(len(pts))]
-        refs[dil] = (n, pts[greedy_radius_downsample(pts, 0.001 * diag)])
-    names = {0: "object", args.mask_dilation: f"object and rim ({args.mask_dilation} px)"}
+        refs[key] = (n, pts[greedy_radius_downsample(pts, 0.001 * diag)])
     rows = {}
     for name, d in runs.items():
         pred = read_ply(d / "points.ply")["points"].astype(np.float64)
@@ -246,51 +272,57 @@ def main() -> None:
             m = read_ply(d / "mesh.ply")
             mesh = sample_mesh_surface(m["points"].astype(np.float64), m["faces"],
                                        density=0.001 * diag)
-        for dil, (_, gt) in refs.items():
-            rows[(name, dil)] = {"points": score(pred, gt, obj)}
+        if obs is not None:  # DTU's accuracy counts only predictions inside the ObsMask
+            pred = pred[obs_mask_filter(pred, obs)[1]]
+            mesh = None if mesh is None else mesh[obs_mask_filter(mesh, obs)[1]]
+        for key, (_, gt) in refs.items():
+            rows[(name, key)] = {"points": score(pred, gt, obj)}
             if mesh is not None:
-                rows[(name, dil)]["mesh"] = score(mesh, gt, obj)
-            print(name, names[dil], json.dumps(rows[(name, dil)]), flush=True)
+                rows[(name, key)]["mesh"] = score(mesh, gt, obj)
+            print(name, key, json.dumps(rows[(name, key)]), flush=True)
 
+    region = ("inside the object masks" if has_masks else
+              "inside DTU's observation mask (ObsMask, as DTU scores accuracy; the scan has no "
+              "object masks, so the reference holds the table and the runs are mask-free)")
     lines = ["# Real DTU geometry against a many-view pseudo ground truth", "",
              f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}; peak RSS "
              f"{peak_rss_gb():.2f} GB",
              f"- command: `python benchmarks/dtu_pseudo_gt.py {' '.join(sys.argv[1:])}`",
-             f"- scene: {args.scene.name}, {len(depths)} views at {args.size}; pseudo ground "
-             f"truth: PatchmatchNet (DTU-trained, ../shared/weights) with {args.sources} sources "
-             f"per view, fused where >= {args.min_views} of the {args.fuse_neighbours} nearest "
-             f"views agree; depth {t_depth:.0f} s, fusion {t_fuse:.0f} s (~0 when cached)",
-             *(f"  - reference \"{names[dil]}\": inside the object masks"
-               f"{f' dilated by {dil} px' if dil else ''}: {n:,} points, {len(gt):,} after "
-               f"keeping what input views {inputs} see and downsampling at 0.1 % of the object's "
-               f"diagonal" for dil, (n, gt) in refs.items()),
-             f"- scores as benchmarks/fast_preset.py, scaled by the object reference's diagonal "
+             f"- scene: {scan_name} (`{args.scene}`), {len(depths)} views at {args.size}; "
+             f"pseudo ground truth: PatchmatchNet (DTU-trained, ../shared/weights) with the "
+             f"{args.sources} best-paired source views per view, fused where >= "
+             f"{args.min_views} of the {args.fuse_neighbours} best-paired views agree, "
+             f"{region}; depth {t_depth:.0f} s, fusion {t_fuse:.0f} s (~0 when cached)",
+             *(f"  - reference \"{key}\": {n:,} points, {len(gt):,} after keeping what input "
+               f"views {inputs} see and downsampling at 0.1 % of the first reference's diagonal"
+               for key, (n, gt) in refs.items()),
+             f"- scores as benchmarks/fast_preset.py, scaled by the first reference's diagonal "
              f"({diag:.0f} mm): clipped at 5 % ({0.05 * diag:.1f} mm), \"DTU rule\" = distances "
              f"beyond it left out, F-score at 0.5 % ({0.005 * diag:.1f} mm); predictions scored "
-             "inside the object reference's box grown by the cut-off. The reference carries "
+             "inside the first reference's box grown by the cut-off. The reference carries "
              "PatchmatchNet's errors: compare runs, not absolute values.", "",
              "| run | reference | points acc | points comp | points Chamfer | Chamfer, DTU rule "
              "| F | ratio to the first run | ratio, DTU rule | mesh Chamfer | mesh, DTU rule |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
     first = next(iter(runs))
-    for dil in refs:
+    for key in refs:
         for name in runs:
-            p, m = rows[(name, dil)]["points"], rows[(name, dil)].get("mesh", {})
-            p0 = rows[(first, dil)]["points"]
-            lines.append(f"| {name} (`{runs[name]}`) | {names[dil]} | {f(p['accuracy'])} | "
+            p, m = rows[(name, key)]["points"], rows[(name, key)].get("mesh", {})
+            p0 = rows[(first, key)]["points"]
+            lines.append(f"| {name} (`{runs[name]}`) | {key} | {f(p['accuracy'])} | "
                          f"{f(p['completeness'])} | {f(p['overall'])} | "
                          f"{f(p['overall_dtu_rule'])} | {p['fscore']:.3f} | "
                          f"{p['overall'] / p0['overall']:.2f} | "
                          f"{p['overall_dtu_rule'] / p0['overall_dtu_rule']:.2f} | "
                          f"{f(m.get('overall'))} | {f(m.get('overall_dtu_rule'))} |")
     notes = ""
-    if args.results.is_file():  # hand-written notes (from the first "## Notes" on) are kept
-        old = args.results.read_text()
+    if results.is_file():  # hand-written notes (from the first "## Notes" on) are kept
+        old = results.read_text()
         i = old.find("\n## Notes")
         notes = old[i:] if i >= 0 else ""
-    args.results.parent.mkdir(parents=True, exist_ok=True)
-    args.results.write_text("\n".join(lines) + "\n" + notes)
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text("\n".join(lines) + "\n" + notes)
     print("\n".join(lines))
 
 

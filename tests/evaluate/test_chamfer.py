@@ -189,6 +189,20 @@ def test_greedy_downsampling_matches_sequential_loop(radius):
     np.testing.assert_array_equal(keep, slow_greedy(p, radius))
 
 
+@pytest.mark.parametrize("chunk", [1, 97, 600, 10_000])
+def test_greedy_downsampling_in_chunks_keeps_the_same_set(chunk):
+    """Visiting the cloud ``chunk`` points at a time (the memory bound for dense clouds) keeps
+    exactly the points one pass and the sequential loop keep."""
+    rng = np.random.default_rng(5)
+    p = rng.random((1500, 3))
+    p = np.concatenate([p, p[:80], p[:3] + 0.03])  # duplicates and near-duplicates
+    rng.shuffle(p)
+    keep = greedy_radius_downsample(p, 0.1, chunk=chunk)
+    np.testing.assert_array_equal(keep, slow_greedy(p, 0.1))
+    with pytest.raises(ValueError, match="chunk"):
+        greedy_radius_downsample(p, 0.1, chunk=0)
+
+
 def test_mesh_sampling_matches_per_triangle_grids():
     rng = np.random.default_rng(2)
     v = rng.uniform(0, 3, size=(30, 3))

@@ -147,7 +147,7 @@ def shuffle_rows(points: np.ndarray, seed: int | None) -> np.ndarray:
 
 
 def greedy_radius_downsample(points: np.ndarray, radius: float,
-                             tree: cKDTree | None = None) -> np.ndarray:
+                             tree: cKDTree | None = None, chunk: int = 2_000_000) -> np.ndarray:
     """Greedy radius downsampling in the given point order (METHOD.md 8.1, step 2).
 
     Visits the points in order; a point that is still kept removes every other point within
@@ -158,15 +158,43 @@ def greedy_radius_downsample(points: np.ndarray, radius: float,
     and "removed" once one earlier neighbour is kept. Each round decides at least the earliest
     undecided point; for randomly ordered points the number of rounds grows like log N.
 
+    Memory: the close pairs of a dense cloud are many (a 49-view fusion of ~10M points has
+    hundreds of millions at the protocol's radius). Clouds longer than ``chunk`` are therefore
+    visited ``chunk`` points at a time, in order: a point of a later chunk that lies within
+    ``radius`` of a point kept in an earlier chunk is removed (a KD-tree query), and the rest of
+    the chunk is decided among itself as above. A point's fate depends only on the earlier
+    points that are kept, so the kept set is the same as in one pass; for a shuffled cloud each
+    chunk holds (chunk / N)^2 of the pairs.
+
     Args:
         points: (N, 3) float points, already in visiting order (shuffle first for the protocol).
         radius: suppression radius (DTU: 0.2 mm).
-        tree: optional `cKDTree` already built on ``points``.
+        tree: optional `cKDTree` already built on ``points`` (then one pass, whatever N).
+        chunk: points per pass (> 0).
 
     Returns:
         (N,) bool mask of the kept points.
     """
     points = _check_points("points", points)
+    n = len(points)
+    if chunk <= 0:
+        raise ValueError(f"chunk must be > 0, got {chunk}")
+    if tree is not None or n <= chunk:
+        return _greedy_one_pass(points, radius, tree)
+    keep = np.zeros(n, dtype=bool)
+    for s in range(0, n, chunk):
+        part = points[s:s + chunk]
+        open_ = np.ones(len(part), dtype=bool)
+        if keep[:s].any():  # suppressed by a point kept in an earlier chunk
+            d = nn_distances(part, points[:s][keep[:s]], upper_bound=radius)
+            open_ = d > radius
+        idx = np.flatnonzero(open_)
+        keep[s + idx] = _greedy_one_pass(part[idx], radius, None)
+    return keep
+
+
+def _greedy_one_pass(points: np.ndarray, radius: float, tree: cKDTree | None) -> np.ndarray:
+    """`greedy_radius_downsample` over all close pairs of (N, 3) ``points`` at once."""
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=bool)
