@@ -66,6 +66,11 @@ class MVSConfig:
     (METHOD.md 2.5)."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (unbounded scenes; METHOD.md 2.5, 9.1)."""
+    max_sources: int = 4
+    """Source views per reference view in MVS, the best by the scene's pair score (METHOD.md 1.4:
+    the released code feeds at most 5 views, the reference and 4 sources); 0 = every other input
+    view. Three inputs use both others either way; with more inputs the cap keeps the MVS time
+    linear in the number of views (`svolsdf.mvs.backbone.select_sources`)."""
 
 
 @dataclass

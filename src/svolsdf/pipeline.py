@@ -354,9 +354,11 @@ class Pipeline:
         m = self.cfg.mvs
         nd = tuple(int(x) for x in m.ndepths)
         if m.backbone == "planesweep":
-            return {"num_depths": nd, "width": m.width, "inverse_depth": m.inverse_depth}
+            return {"num_depths": nd, "width": m.width, "inverse_depth": m.inverse_depth,
+                    "max_sources": m.max_sources}
         # casmvsnet and the depth + confidence adapters share these names
-        return {"ndepths": nd, "width_mode": m.width, "inverse_depth": m.inverse_depth}
+        return {"ndepths": nd, "width_mode": m.width, "inverse_depth": m.inverse_depth,
+                "max_sources": m.max_sources}
 
     def backbone(self):
         from svolsdf.mvs.backbone import get_backbone

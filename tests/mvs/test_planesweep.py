@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from tests.mvs.synth import make_cameras, make_scene, plane_scene, raycast
 
 from svolsdf.errors import InputError
-from svolsdf.mvs.backbone import get_backbone
+from svolsdf.mvs.backbone import get_backbone, select_sources
 from svolsdf.mvs.cascade import run_cascade
 from svolsdf.mvs.hypotheses import base_interval
 from svolsdf.mvs.planesweep import (
@@ -123,6 +123,32 @@ def test_guide_depth_centres_stage2():
     v = PlaneSweepBackbone().stage(2, scene, ref_ids=[1], guide_depth={1: guide})[0]
     assert v.view_id == 1 and v.depths.shape == (32, 12, 16)
     assert torch.allclose(v.depths.mean(0), torch.full((12, 16), 4.0), atol=1e-5)
+
+
+@pytest.mark.parametrize("max_sources, expected", [(2, 2), (0, 4), (9, 4)])
+def test_max_sources_caps_the_sources_in_pair_order(monkeypatch, max_sources, expected):
+    """METHOD.md 1.4: at most 4 sources, the best by pair score; <= 0 means every other view."""
+    eyes = [(0.0, 0.0, -4.0), (0.7, 0.1, -3.95), (-0.6, -0.3, -3.95), (0.3, 0.6, -3.9),
+            (-0.4, 0.5, -3.9)]
+    plane = ((0.0, 0.0, -1.0), -0.5)
+    scene, _ = make_scene(make_cameras(32, 24, eyes=eyes), planes=[plane], depth_range=RANGE)
+    bb = PlaneSweepBackbone(max_sources=max_sources)
+    seen = []
+    real = bb._cost_volume
+
+    def spy(k, r, src, *a, **kw):
+        seen.append((r, list(src)))
+        return real(k, r, src, *a, **kw)
+
+    monkeypatch.setattr(bb, "_cost_volume", spy)
+    bb.stage(1, scene, ref_ids=[0, 3])
+    for r, src in seen:
+        vid = scene.view_ids[r]
+        want = [scene.index(v) for v in scene.source_views(vid)][:expected]
+        assert src == want
+    assert [r for r, _ in seen] == [0, 3]
+    assert select_sources(scene, 0, 2) == scene.source_views(0)[:2]
+    assert select_sources(scene, 0, 0) == scene.source_views(0)
 
 
 def test_bad_input():

@@ -36,9 +36,11 @@ from torch import Tensor
 
 from svolsdf.errors import InputError
 from svolsdf.mvs.backbone import (
+    MAX_SOURCES,
     MVSBackbone,
     check_depth_ranges,
     register_backbone,
+    select_sources,
     stage_cameras,
     upsample_depth,
     volume_from_prob,
@@ -132,6 +134,9 @@ class AdapterConfig:
     """Finer-stage search width, "paper" or "released" (`svolsdf.mvs.hypotheses`)."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (METHOD.md 2.5)."""
+    max_sources: int = MAX_SOURCES
+    """Source views per reference, the best by pair score (`select_sources`, METHOD.md 1.4: at
+    most 4, as released); <= 0: every other loaded view."""
     b_min: float = 0.5
     """Laplacian scale at confidence 1, in hypothesis intervals."""
     b_max: float = 4.0
@@ -185,7 +190,8 @@ class DepthConfidenceAdapter(MVSBackbone):
             self._pred, self._pred_key = {"images": scene.images}, key  # keep id() alive
         if vid not in self._pred:
             i = scene.index(vid)
-            order = [i] + [scene.index(v) for v in scene.source_views(vid)]
+            order = [i] + [scene.index(v) for v in
+                           select_sources(scene, vid, self.config.max_sources)]
             images = scene.images[order].to(self.config.device, torch.float32)
             cams = scene.cameras[order]
             W, H = self.config.net_size or (scene.width, scene.height)

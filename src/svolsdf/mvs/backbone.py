@@ -35,6 +35,8 @@ from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Scene
 
 __all__ = [
+    "MAX_SOURCES",
+    "select_sources",
     "MVSBackbone",
     "get_backbone",
     "backbone_signature",
@@ -278,6 +280,22 @@ def volume_from_prob(
         stage=int(stage),
         inverse_depth=inverse_depth,
     )
+
+
+#: Source views per reference (METHOD.md 1.4: the released code feeds at most 5 views).
+MAX_SOURCES = 4
+
+
+def select_sources(scene: Scene, ref_id: int, max_sources: int = MAX_SOURCES) -> list[int]:
+    """Source view ids of reference ``ref_id`` among the loaded views: `Scene.source_views`
+    order (pair score first, METHOD.md 1.4), at most ``max_sources`` of them (<= 0: all).
+
+    The released code builds each reference's MVS input from at most 5 views (the reference and
+    4 sources), so with 3 input views every other view is a source, as here; with more inputs the
+    cap keeps the cost volume's work linear in the number of views instead of quadratic.
+    """
+    src = scene.source_views(ref_id)
+    return src if max_sources <= 0 else src[:max_sources]
 
 
 def check_depth_ranges(scene: Scene, ref_ids: list[int] | None = None) -> None:

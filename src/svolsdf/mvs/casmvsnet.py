@@ -37,9 +37,11 @@ from torch import Tensor
 
 from svolsdf.errors import InputError
 from svolsdf.mvs.backbone import (
+    MAX_SOURCES,
     MVSBackbone,
     check_depth_ranges,
     register_backbone,
+    select_sources,
     upsample_depth,
     volume_from_prob,
 )
@@ -514,6 +516,9 @@ class CasMVSNetConfig:
     stage-3 volume is then at twice the working size."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (METHOD.md 2.5, 9.1)."""
+    max_sources: int = MAX_SOURCES
+    """Source views per reference, the best by pair score (`select_sources`, METHOD.md 1.4: at
+    most 4, as released); <= 0: every other loaded view."""
     align_corners_quirk: bool = True
     """Reproduce CasMVSNet's warping normalization (METHOD.md 2.3), which the checkpoint expects."""
     chunk_mb: float | None = 512.0
@@ -621,7 +626,8 @@ class CasMVSNetBackbone(MVSBackbone):
                                            align_corners=False)[0, 0]
                 r = interval_ratio(k, self.config.width_mode)
                 depths = guided_hypotheses(centre, D, r * base_interval(near, far))
-            order = [i] + [scene.index(v) for v in scene.source_views(vid)]
+            order = [i] + [scene.index(v) for v in
+                           select_sources(scene, vid, self.config.max_sources)]
             prob = self.model.depth_stage(
                 k, feats[k - 1][order], projs[order], depths, self.config.chunk_mb,
                 self.config.align_corners_quirk,

@@ -39,9 +39,11 @@ from torch import Tensor
 
 from svolsdf.errors import InputError
 from svolsdf.mvs.backbone import (
+    MAX_SOURCES,
     MVSBackbone,
     check_depth_ranges,
     register_backbone,
+    select_sources,
     stage_size,
     upsample_depth,
     volume_from_prob,
@@ -76,6 +78,9 @@ class PlaneSweepConfig:
     see `svolsdf.mvs.hypotheses`."""
     inverse_depth: bool = False
     """Space stage-1 planes uniformly in inverse depth (unbounded scenes)."""
+    max_sources: int = MAX_SOURCES
+    """Source views per reference, the best by pair score (`select_sources`, METHOD.md 1.4: at
+    most 4, as released); <= 0: every other loaded view."""
     window: tuple[int, int, int] = (5, 5, 5)
     """ZNCC window side (odd, pixels at the stage's resolution) per stage."""
     gradient_weight: float = 0.5
@@ -419,7 +424,7 @@ class PlaneSweepBackbone(MVSBackbone):
                                           num_depths=self.cfg.num_depths[k - 1],
                                           width_mode=self.cfg.width)
                 depths = depths.clamp_min(self.cfg.min_depth_ratio * near)
-            src = [scene.index(s) for s in scene.source_views(vid)]
+            src = [scene.index(s) for s in select_sources(scene, vid, self.cfg.max_sources)]
             cost = self._cost_volume(k, r, src, chans, gray, cams, depths)
             T = self.cfg.temperature
             if T is None:
