@@ -236,9 +236,13 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
             **res}
 
 
-def _has_masks(r: dict) -> bool:
-    """Whether the run's scene folder has object masks (the layout of `svolsdf synth`)."""
-    return (Path(r["scene"]) / "mask").is_dir()
+def _has_masks(scene: Path) -> bool:
+    """Whether the scene folder has object masks, as `load_scene` finds them (False when the
+    folder is gone, e.g. rescoring saved results)."""
+    from svolsdf.scene.loaders import load_scene
+
+    return Path(scene).is_dir() and bool(
+        load_scene(scene, load_images=False).extras.get("mask_paths"))
 
 
 def _ratio(d: dict, a: dict) -> float | None:
@@ -287,10 +291,8 @@ def _dtu_scan(sc: Path, root: Path, n_test: int, gt: Path | None) -> dict:
         ev[folder] = {k: m[k]["mean"] for k in ("psnr", "ssim", "lpips")}
     res["images"] = ev
     res["test_views"] = test
-    from svolsdf.scene.loaders import load_scene
-
     # evaluate scores inside the object masks when the scene has them (the paper's DTU protocol)
-    res["masked"] = bool(load_scene(sc, load_images=False).extras.get("mask_paths"))
+    res["masked"] = _has_masks(sc)
     from PIL import Image
 
     with Image.open(out / "renders" / f"{test[0]}.png") as im:  # the working size
@@ -498,13 +500,13 @@ def main() -> None:
         d0 = next((r for n, r in runs.items() if n.startswith("(d)")), None)
         a0 = next((r for n, r in runs.items() if n.startswith("(a)")), None)
         if d0 and a0 and d0.get("points") and a0.get("points"):
-            groups[_has_masks(d0)].append(ratios_of(d0["points"], a0["points"],
+            groups[_has_masks(Path(d0["scene"]))].append(ratios_of(d0["points"], a0["points"],
                                                     d0.get("guided_only", {})))
         for name, r in more.items():
             pd, pa = r["d"].get("points", {}), r["a"].get("points", {})
             pg = r["d"].get("guided_only", {})
             x = ratios_of(pd, pa, pg)
-            masks = _has_masks(r["d"])
+            masks = _has_masks(Path(r["d"]["scene"]))
             groups[masks].append(x)
             lines.append(f"| {name} | {'yes' if masks else 'no'} | {_fmt(r['d']['wall_s'], 0)} | "
                          f"{_fmt(r['d']['peak_gb'])} | {_triple(pd)} | {_triple(pa)} | "

@@ -353,12 +353,11 @@ class Pipeline:
     def _backbone_kwargs(self) -> dict:
         m = self.cfg.mvs
         nd = tuple(int(x) for x in m.ndepths)
+        common = {"inverse_depth": m.inverse_depth, "max_sources": m.max_sources}
         if m.backbone == "planesweep":
-            return {"num_depths": nd, "width": m.width, "inverse_depth": m.inverse_depth,
-                    "max_sources": m.max_sources}
+            return {"num_depths": nd, "width": m.width, **common}
         # casmvsnet and the depth + confidence adapters share these names
-        return {"ndepths": nd, "width_mode": m.width, "inverse_depth": m.inverse_depth,
-                "max_sources": m.max_sources}
+        return {"ndepths": nd, "width_mode": m.width, **common}
 
     def backbone(self):
         from svolsdf.mvs.backbone import get_backbone

@@ -405,9 +405,10 @@ def _read_ply_points(path: Path) -> np.ndarray:
 # --------------------------------------------------------------------------- DTU protocol
 
 
-def _mean_below(d: np.ndarray, max_dist: float) -> float:
+def _mean_below(d: np.ndarray, max_dist: float, default: float = float("nan")) -> float:
+    """Mean of the (N,) distances below ``max_dist`` (METHOD.md 8.1); ``default`` if none is."""
     d = d[d < max_dist]
-    return float(d.mean()) if len(d) else float("nan")
+    return float(d.mean()) if len(d) else default
 
 
 def obs_mask_filter(points: np.ndarray, obs: ObsMask, patch: float = 60.0

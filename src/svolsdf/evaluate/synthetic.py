@@ -116,7 +116,6 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
         dict: accuracy, completeness, overall, precision, recall, fscore, threshold, max_dist,
         gt_points (count).
     """
-
     if rule not in ("clip", "exclude"):
         raise ValueError(f"rule must be 'clip' or 'exclude', got {rule!r}")
     if on_empty not in ("raise", "clip"):
@@ -174,7 +173,7 @@ def truncated_chamfer(pred: np.ndarray, gt: np.ndarray, max_dist: float, thresho
         dict: accuracy, completeness, accuracy_dtu_rule, completeness_dtu_rule, precision,
         recall, fscore, gt_points, pred_points (after downsampling).
     """
-    from svolsdf.evaluate.chamfer import greedy_radius_downsample, nn_distances
+    from svolsdf.evaluate.chamfer import _mean_below, greedy_radius_downsample, nn_distances
 
     rng = np.random.default_rng(seed)
     r = threshold / 5  # even out densities (METHOD.md 8.1's radius downsampling)
@@ -185,12 +184,10 @@ def truncated_chamfer(pred: np.ndarray, gt: np.ndarray, max_dist: float, thresho
     d_pg, d_gp = nn_distances(pred, gt), nn_distances(gt, pred)
     prec, rec = float((d_pg < threshold).mean()), float((d_gp < threshold).mean())
 
-    def below(d: np.ndarray) -> float:  # METHOD.md 8.1 (max_dist if no distance is below)
-        return float(d[d < max_dist].mean()) if (d < max_dist).any() else max_dist
-
     return {"accuracy": float(np.minimum(d_pg, max_dist).mean()),
             "completeness": float(np.minimum(d_gp, max_dist).mean()),
-            "accuracy_dtu_rule": below(d_pg), "completeness_dtu_rule": below(d_gp),
+            "accuracy_dtu_rule": _mean_below(d_pg, max_dist, default=max_dist),
+            "completeness_dtu_rule": _mean_below(d_gp, max_dist, default=max_dist),
             "precision": prec, "recall": rec,
             "fscore": 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0,
             "gt_points": int(len(gt)), "pred_points": int(len(pred))}
