@@ -325,3 +325,21 @@ def test_set_threads(monkeypatch):
         assert set_threads(0) == 1  # left to OMP_NUM_THREADS
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_finished_field_loads_without_its_stage1_volumes(tiny_run, tmp_path):
+    """The grid field's box comes from stage-1 MVS; with OUT/mvs deleted (it is the bulk of a
+    run folder) the stored field still loads as it was trained, and renders."""
+    import shutil
+
+    from svolsdf.render.novel import open_run
+
+    out, _, p = tiny_run
+    copy = tmp_path / "nomvs"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("mvs"))
+    assert not (copy / "mvs").exists()
+    p2 = open_run(copy)
+    m1, m2 = p.model(), p2.model()
+    assert torch.equal(m1.bounds.cpu(), m2.bounds.cpu())
+    x = (torch.rand(500, 3) * 2 - 1) * 0.8
+    assert torch.allclose(m1.sdf(x.to(p.device)).cpu(), m2.sdf(x.to(p2.device)).cpu())

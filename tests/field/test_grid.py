@@ -244,3 +244,29 @@ def test_fits_analytic_torus():
     assert err0 > 0.1
     assert err < min(0.03, 0.2 * err0), f"mean |sdf - torus| = {err:.4f} (start {err0:.4f})"
     assert surf < 0.03, f"mean |sdf| on the torus = {surf:.4f}"
+
+
+def test_loading_a_checkpoint_takes_its_box_and_grid_shapes():
+    """A field built for another box (e.g. the stage-1 volumes were deleted) still loads a
+    checkpoint, and then evaluates exactly as the saved field."""
+    torch.manual_seed(0)
+    saved = GridSDFField(torch.tensor([[-0.4, -0.3, -0.2], [0.5, 0.3, 0.4]]),
+                         GridFieldConfig(resolution=17))
+    saved.upsample(33)
+    with torch.no_grad():
+        saved.sdf_grid.add_(0.01 * torch.randn_like(saved.sdf_grid))
+    state = saved.state_dict()
+    other = GridSDFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), GridFieldConfig(resolution=17))
+    assert other.grid_shape != saved.grid_shape
+    other.load_state_dict(state)
+    assert other.grid_shape == saved.grid_shape and other.resolution == saved.resolution
+    assert torch.equal(other.bounds, saved.bounds)
+    x = torch.rand(200, 3) * 1.4 - 0.7
+    assert torch.allclose(other.sdf(x), saved.sdf(x))
+    s1, g1, f1 = saved.sdf_and_grad(x, create_graph=False)
+    s2, g2, f2 = other.sdf_and_grad(x, create_graph=False)
+    assert torch.allclose(g1, g2) and torch.allclose(f1, f2)
+    # a missing key is still an error
+    del state["sdf_grid"]
+    with pytest.raises(RuntimeError, match="sdf_grid"):
+        other.load_state_dict(state)

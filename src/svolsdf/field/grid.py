@@ -247,6 +247,30 @@ class GridSDFField(SurfaceModel):
             fs = self._feature_shape(s)
             self.feature_grids[i] = nn.Parameter(resample_grid(self.feature_grids[i].data, fs))
 
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys,
+                              unexpected_keys, error_msgs) -> None:
+        """A checkpoint is self-describing: take its box and grid shapes before copying.
+
+        The box comes from stage-1 MVS and a random subset of its points (``field_bounds`` in
+        the pipeline), so a field rebuilt later (another process, the stage-1 volumes deleted,
+        another seed) may have a slightly different box; the stored one is the truth.
+        """
+        b = state_dict.get(prefix + "bounds")
+        g = state_dict.get(prefix + "sdf_grid")
+        if b is not None and g is not None and b.shape == (2, 3) and g.ndim == 4:
+            with torch.no_grad():
+                self.bounds = b.detach().to(self.bounds.device, self.bounds.dtype).clone()
+                self.resolution = int(max(g.shape[1:]))
+                if tuple(g.shape) != tuple(self.sdf_grid.shape):
+                    self.sdf_grid = nn.Parameter(self.sdf_grid.new_zeros(g.shape))
+                for i in range(len(self.feature_grids)):
+                    f = state_dict.get(f"{prefix}feature_grids.{i}")
+                    if f is not None and tuple(f.shape) != tuple(self.feature_grids[i].shape):
+                        self.feature_grids[i] = nn.Parameter(
+                            self.feature_grids[i].new_zeros(f.shape))
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys,
+                                      unexpected_keys, error_msgs)
+
     def param_groups(self, lr_grid: float, lr_mlp: float) -> list[dict]:
         """Optimizer parameter groups: the grids at ``lr_grid``; the MLPs and beta at ``lr_mlp``.
 

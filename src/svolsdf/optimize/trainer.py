@@ -348,7 +348,10 @@ class Trainer:
         if res is not None and hasattr(self.model, "upsample") and res > self.model.resolution:
             self.model.upsample(res)
             self._build_optimizer()
+        before = [id(q) for q in self.model.parameters()]
         self.model.load_state_dict(state["model_state_dict"])
+        if [id(q) for q in self.model.parameters()] != before:
+            self._build_optimizer()  # the grid field took the checkpoint's grid shapes
         try:
             self.optimizer.load_state_dict(state["optimizer"])
         except ValueError:  # parameter groups changed (grid grown): fresh moments
