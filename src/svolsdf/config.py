@@ -109,6 +109,12 @@ class TrainConfig:
     """Optimization steps (fast preset: 500 from the MVS-initialised grid)."""
     rays: int = 512
     """Rays per step, from one random input view (METHOD.md 4.6)."""
+    object_ray_fraction: float = 0.0
+    """Share of each step's rays drawn inside the view's object mask (dilated by
+    ``object_ray_dilation`` px); the rest are uniform over the image, as released (0 = all
+    uniform). Scenes without masks ignore it."""
+    object_ray_dilation: int = 12
+    """Dilation in pixels (working size) of the masks for ``object_ray_fraction``."""
     lr: float = 5e-4
     """Adam learning rate for networks (constant, METHOD.md 4.6)."""
     lr_grid: float = 1e-2

@@ -532,7 +532,15 @@ class Pipeline:
         mvs_depth = None
         if self.cfg.train.ablation in ("mse", "no-prob-volume"):
             mvs_depth = self._filtered_stage1_depth() / scene.normalization.scale
-        return TrainData(scene.images, scene.cameras_unit, self.unit_near_far(), mvs_depth)
+        focus = None
+        if self.cfg.train.object_ray_fraction > 0 and scene.masks is not None \
+                and self.cfg.output.use_masks:
+            from svolsdf.fusion.filter import dilate_mask
+
+            r = self.cfg.train.object_ray_dilation
+            focus = torch.stack([dilate_mask(m[0], r) for m in scene.masks])
+        return TrainData(scene.images, scene.cameras_unit, self.unit_near_far(), mvs_depth,
+                         focus)
 
     def _filtered_stage1_depth(self) -> torch.Tensor:
         """(V, H, W) stage-1 MVS depth (world), geometrically filtered, 0 where rejected, at the

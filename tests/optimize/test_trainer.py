@@ -87,3 +87,33 @@ def test_beta_anneal(start):
         assert float(t.model.beta) == pytest.approx(expect, rel=1e-3)
     else:
         assert float(t.model.beta) != b0  # learned
+
+
+def test_object_ray_fraction_draws_that_share_inside_the_focus():
+    """object_ray_fraction f: f of each step's rays come from the view's focus pixels (the
+    dilated masks), the rest stay uniform over the image; 0 keeps the released uniform draw."""
+    data = _data()
+    V, _, H, W = data.images.shape
+    focus = torch.zeros(V, H, W, dtype=torch.bool)
+    focus[:, 5:9, 10:14] = True  # 16 of 432 pixels
+    focus[2] = False
+    focus[2, 0, 0] = True  # a one-pixel focus
+    data.focus = focus
+    model = GridSDFField(torch.tensor([[-0.8] * 3, [0.8] * 3]), GridFieldConfig(resolution=12))
+    cfg = TrainConfig(mode="volsdf", steps=6, rays=64, object_ray_fraction=0.75)
+    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+    tr = Trainer(model, data, cfg, sampler=sampler)
+    seen = set()
+    for _ in range(30):
+        rays, pix, t = tr.sample_rays(64)
+        inside = focus[int(t)].reshape(-1)[pix]
+        assert len(pix) == 64 and int(inside.sum()) >= 48  # 48 drawn inside, some uniform ones too
+        assert pix.min() >= 0 and pix.max() < H * W
+        seen.add(int(t))
+        # the rays go through the drawn pixels
+        uv = torch.stack([pix % W, pix // W], -1).float()
+        assert torch.allclose(rays.dirs, tr.make_rays(t, uv).dirs)
+    assert seen == {0, 1, 2}
+    uniform = Trainer(model, data, TrainConfig(mode="volsdf", steps=6, rays=64), sampler=sampler)
+    rays, pix, t = uniform.sample_rays(64)
+    assert len(torch.unique(pix)) == 64 and uniform.focus_index is None

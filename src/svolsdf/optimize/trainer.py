@@ -45,12 +45,15 @@ class TrainData:
             padded), or None for the whole bounding sphere.
         mvs_depth: (V, H, W) filtered MVS z-depth in unit-frame units (0 = none), used by the
             "mse" and "no-prob-volume" ablations.
+        focus: (V, H, W) bool pixels where ``TrainConfig.object_ray_fraction`` of the rays are
+            drawn (the dilated object masks), or None.
     """
 
     images: Tensor
     cameras: Cameras
     near_far: Tensor | None = None
     mvs_depth: Tensor | None = None
+    focus: Tensor | None = None
 
 
 class Trainer:
@@ -86,6 +89,23 @@ class Trainer:
         self.mvs_depth = None if data.mvs_depth is None else data.mvs_depth.to(self.device)
         V, _, H, W = self.images.shape
         self.V, self.H, self.W = V, H, W
+        # pixel indices (into H*W) of each view's focus region, padded: (V, max count), (V,)
+        self.focus_index = self.focus_count = None
+        if data.focus is not None and cfg.object_ray_fraction > 0:
+            if tuple(data.focus.shape) != (V, H, W):
+                raise ValueError(f"TrainData.focus is {tuple(data.focus.shape)}, expected "
+                                 f"{(V, H, W)}")
+            flat = data.focus.reshape(V, -1).bool()
+            count = flat.sum(1)
+            if bool((count > 0).all()):
+                idx = torch.zeros(V, int(count.max()), dtype=torch.long)
+                for v in range(V):
+                    idx[v, :count[v]] = flat[v].nonzero()[:, 0]
+                self.focus_index = idx.to(self.device)
+                self.focus_count = count.to(self.device)
+            else:
+                log.warning("object_ray_fraction: view(s) %s have an empty object mask; every "
+                            "ray is drawn uniformly", (count == 0).nonzero()[:, 0].tolist())
         self.smoothed = None
         if cfg.mode == "svolsdf" and cfg.sparse_weight > 0 and cfg.anneal_rgb > 0:
             # METHOD.md 4.4: heavily smoothed targets for the first anneal_rgb steps
@@ -138,7 +158,15 @@ class Trainer:
             tensor, not 0-dim: indexing with a 0-dim tensor reads it on the host).
         """
         t = torch.randint(self.V, (1,), generator=self.generator, device=self.device)
-        pix = torch.randperm(self.H * self.W, generator=self.generator, device=self.device)[:n]
+        n_focus = 0
+        if self.focus_index is not None:
+            n_focus = min(n, int(round(self.cfg.object_ray_fraction * n)))
+        pix = torch.randperm(self.H * self.W, generator=self.generator,
+                             device=self.device)[:n - n_focus]
+        if n_focus:  # uniform inside the view's dilated object mask (with replacement)
+            r = torch.rand(n_focus, generator=self.generator, device=self.device)
+            k = (r * self.focus_count[t]).long().clamp_max(self.focus_count[t] - 1)
+            pix = torch.cat([self.focus_index[t, k], pix])
         uv = torch.stack([pix % self.W, pix // self.W], dim=-1).float()
         rays = self.make_rays(t, uv)
         return rays, pix, t
