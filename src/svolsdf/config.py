@@ -112,7 +112,9 @@ class TrainConfig:
     object_ray_fraction: float = 0.0
     """Share of each step's rays drawn inside the view's object mask (dilated by
     ``object_ray_dilation`` px); the rest are uniform over the image, as released (0 = all
-    uniform). Scenes without masks ignore it."""
+    uniform). Scenes without masks ignore it. Measured on five scenes at 0.5: no gain beyond
+    the training-seed noise (benchmarks/results/fast_preset.md, session 11), so no preset
+    sets it."""
     object_ray_dilation: int = 12
     """Dilation in pixels (working size) of the masks for ``object_ray_fraction``."""
     lr: float = 5e-4
