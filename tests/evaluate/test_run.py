@@ -118,3 +118,37 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "run folder does not exist" in capsys.readouterr().err
     with pytest.raises(InputError, match="ObsMask9_10.mat"):
         evaluate_run(EvaluateConfig(out=tmp_path, dtu_gt=tmp_path, scan=9, report=False))
+
+
+def test_a_synthetic_scene_scores_itself(tmp_path):
+    """Without --gt-points / --dtu-gt, a run on a `svolsdf synth` scene is scored against the
+    ground truth its input views (OUT/views.json) observe, as the benchmarks do."""
+    from svolsdf.evaluate.synthetic import observed_gt_points, synthetic_chamfer
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    scene = tmp_path / "syn"
+    make_synthetic_scene(scene, SynthConfig(views=4, width=64, height=48, seed=2,
+                                            object="sphere", supersample=1, gt_points=5000))
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.yaml").write_text(f"scene:\n  path: {scene}\n")
+    (out / "views.json").write_text(json.dumps({"inputs": [0, 2, 3], "test": [1]}))
+    gt = observed_gt_points(scene, [0, 2, 3])
+    diag = float(np.linalg.norm(gt.max(0) - gt.min(0)))
+    pred = gt[::2] + [0.0, 0.0, 0.002 * diag]  # half the observed surface, shifted
+    write_points_ply(out / "points.ply", pred)
+    m = evaluate_run(EvaluateConfig(out=out, report=False))
+    want = synthetic_chamfer(pred, scene, [0, 2, 3])
+    assert m["chamfer"]["protocol"] == "synthetic" and m["chamfer"]["source"] == "points.ply"
+    for k in ("accuracy", "completeness", "overall"):
+        assert m["chamfer"][k] == pytest.approx(want[k], rel=1e-5)  # PLY stores float32
+    assert m["chamfer"]["accuracy"] == pytest.approx(0.002 * diag, rel=0.05)
+    assert m["chamfer"]["overall_dtu_rule"] == pytest.approx(
+        synthetic_chamfer(pred, scene, [0, 2, 3], rule="exclude")["overall"], rel=1e-5)
+    assert m["fscore"] == pytest.approx(want["fscore"], abs=1e-3)
+    assert m["settings"]["synthetic"]["input_views"] == [0, 2, 3]
+    assert m["chamfer_mesh"]["overall"] is None  # no mesh.ply
+    # an explicit --gt-points still wins
+    np.save(tmp_path / "gt.npy", gt)
+    m2 = evaluate_run(EvaluateConfig(out=out, gt_points=tmp_path / "gt.npy", report=False))
+    assert m2["chamfer"]["protocol"] == "generic"

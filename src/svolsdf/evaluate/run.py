@@ -20,11 +20,13 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
 
 and OUT/report.html (`svolsdf.evaluate.report`).
 
-Geometry: with ``dtu_gt`` the DTU protocol (METHOD.md 8.1), otherwise the generic two-way Chamfer
-against ``gt_points``. The F-score threshold defaults to 1% of the ground truth's bounding-box
-diagonal (DTU: of the STL points above the plane), a scale-free choice; pass ``threshold`` for a
-fixed one. In DTU mode precision / recall use the protocol's point sets (observed prediction
-points; STL points above the plane) with all distances counted.
+Geometry: with ``dtu_gt`` the DTU protocol (METHOD.md 8.1), with ``gt_points`` the generic two-way
+Chamfer, and otherwise, for a scene written by ``svolsdf synth``, its own ground truth
+(`svolsdf.evaluate.synthetic.synthetic_chamfer`, the benchmarks' protocol: F-score at 0.5 % and
+distances clipped at 5 % of its diagonal). Otherwise the F-score threshold defaults to 1% of the
+ground truth's bounding-box diagonal (DTU: of the STL points above the plane), a scale-free
+choice; pass ``threshold`` for a fixed one. In DTU mode precision / recall use the protocol's
+point sets (observed prediction points; STL points above the plane) with all distances counted.
 
 Images (METHOD.md 8.3): ground truth is the scene's image at the render's size (bicubic), masks
 resized and thresholded at 0.5; PSNR over masked pixels, SSIM and LPIPS (VGG by default) on images
@@ -47,6 +49,7 @@ from svolsdf.errors import InputError
 from svolsdf.evaluate import chamfer as ch
 from svolsdf.evaluate.images import masked_psnr, ssim
 from svolsdf.evaluate.report import ViewImages, write_report
+from svolsdf.evaluate.synthetic import is_synthetic_scene
 
 __all__ = ["EvaluateConfig", "evaluate_run", "load_gt_points"]
 
@@ -164,7 +167,8 @@ def _chamfer_block(res: dict | None, protocol: str | None, source: str | None) -
 
 
 def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict,
-              notes: list[str]) -> None:
+              notes: list[str], scene_path: Path | None = None,
+              input_views: list[int] | None = None) -> None:
     if cfg.dtu_gt is not None:
         if scan is None:
             raise InputError("--dtu-gt needs --scan N (the scene does not name its DTU scan)")
@@ -199,9 +203,46 @@ def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict
             surf = ch.sample_mesh_surface(mesh[0], mesh[1], density=_diag(gt) / 1000)
             r = ch.chamfer_fscore(surf, gt, thr, max_dist=cfg.max_dist)
             metrics["chamfer_mesh"] = _chamfer_block(r, "generic-mesh", "mesh.ply")
+    elif scene_path is not None and input_views and is_synthetic_scene(scene_path):
+        _synthetic_geometry(cfg, scene_path, input_views, points, mesh, metrics, notes)
     else:
         notes.append("No ground-truth geometry given (--gt-points or --dtu-gt): Chamfer and "
                      "F-score are null.")
+
+
+def _synthetic_geometry(cfg: EvaluateConfig, scene_path: Path, views: list[int], points, mesh,
+                        metrics: dict, notes: list[str]) -> None:
+    """A `svolsdf synth` scene scores itself: `synthetic_chamfer` against the ground truth the
+    input views observe, distances clipped at 5 % of its diagonal (``max_dist``), F-score at
+    0.5 % (``threshold``); ``overall_dtu_rule`` leaves distances beyond the cut-off out of the
+    means (METHOD.md 8.1). The mesh is scored by its vertices, as benchmarks/fast_preset.py."""
+    from svolsdf.evaluate.synthetic import synthetic_chamfer
+
+    def score(pts: np.ndarray, source: str) -> tuple[dict, dict]:
+        kw = {"max_dist": cfg.max_dist, "threshold": cfg.threshold, "on_empty": "clip"}
+        r = synthetic_chamfer(pts, scene_path, views, **kw)
+        block = _chamfer_block(r, "synthetic", source)
+        block["overall_dtu_rule"] = _finite_or_none(
+            synthetic_chamfer(pts, scene_path, views, rule="exclude", **kw)["overall"])
+        if r["pred_points"] == 0:
+            notes.append(f"{source}: no point lies near the ground-truth object; every distance "
+                         f"is clipped at {r['max_dist']:.4g}.")
+        return r, block
+
+    r = None
+    if points is not None:
+        r, metrics["chamfer"] = score(points[0], "points.ply")
+        _put_fscore(metrics, r, r["threshold"])
+    if mesh is not None:
+        rm, metrics["chamfer_mesh"] = score(mesh[0], "mesh.ply")
+        r = r or rm
+    if r is not None:
+        metrics["settings"]["synthetic"] = {
+            "scene": str(scene_path), "input_views": list(views), "max_dist": r["max_dist"],
+            "gt_points_observed": int(r["gt_points"])}
+        notes.append(f"Geometry against the synthetic scene's ground truth seen by input views "
+                     f"{list(views)}: distances clipped at {r['max_dist']:.4g} (5 % of its "
+                     f"diagonal); 'overall_dtu_rule' leaves them out instead.")
 
 
 def _put_fscore(metrics: dict, r: dict, thr: float) -> None:
@@ -292,6 +333,12 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     scene_path, input_views = _scene_info(run_cfg)
     if cfg.scene is not None:
         scene_path = Path(cfg.scene)
+    vj = out / "views.json"  # the input views the run used (config.yaml may leave them default)
+    if input_views is None and vj.is_file():
+        try:
+            input_views = [int(v) for v in json.loads(vj.read_text()).get("inputs", [])] or None
+        except (ValueError, TypeError, AttributeError) as e:
+            raise InputError(f"{vj}: not the views.json of a run ({e})") from None
     notes: list[str] = []
     metrics: dict = {
         "chamfer": _chamfer_block(None, None, None),
@@ -319,7 +366,7 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
         m = re.search(r"scan(\d+)", str(scene_path))
         scan = int(m.group(1)) if m else None
     t_geo = time.perf_counter()
-    _geometry(cfg, scan, points, mesh, metrics, notes)
+    _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views)
     log.info("geometry metrics in %.1fs", time.perf_counter() - t_geo)
 
     tj = out / "timing.json"
