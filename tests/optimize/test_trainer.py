@@ -117,3 +117,26 @@ def test_object_ray_fraction_draws_that_share_inside_the_focus():
     uniform = Trainer(model, data, TrainConfig(mode="volsdf", steps=6, rays=64), sampler=sampler)
     rays, pix, t = uniform.sample_rays(64)
     assert len(torch.unique(pix)) == 64 and uniform.focus_index is None
+
+
+def test_resume_into_a_field_built_for_another_box_trains_the_loaded_grids(tmp_path):
+    """Resuming into a grid field whose box differs from the checkpoint's: the field takes the
+    stored grids, and the optimizer is rebuilt on them (not left on the replaced tensors)."""
+    a = _trainer(tmp_path / "a")
+    a.fit(progress=False)
+    torch.manual_seed(1)
+    model = GridSDFField(torch.tensor([[-1.1, -0.5, -0.8], [1.0, 0.5, 0.8]]),
+                         GridFieldConfig(resolution=12))
+    cfg = TrainConfig(mode="volsdf", steps=8, rays=32, checkpoint_every=3)
+    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+    b = Trainer(model, _data(), cfg, sampler=sampler, out_dir=tmp_path / "a")
+    assert model.grid_shape != a.model.grid_shape
+    stored = torch.load(b.checkpoint_path(), weights_only=False)
+    assert b.load_checkpoint() and b.step == stored["iter_step"] < 8
+    assert model.grid_shape == a.model.grid_shape
+    torch.testing.assert_close(model.sdf_grid, stored["model_state_dict"]["sdf_grid"])
+    in_opt = {id(p) for g in b.optimizer.param_groups for p in g["params"]}
+    assert {id(p) for p in model.parameters()} == in_opt
+    before = model.sdf_grid.detach().clone()
+    b.fit(progress=False)
+    assert b.step == 8 and not torch.equal(before, model.sdf_grid.detach())
