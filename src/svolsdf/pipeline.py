@@ -600,9 +600,7 @@ class Pipeline:
 
     def _load_model(self, model, path: Path) -> None:
         state = torch.load(path, map_location="cpu", weights_only=False)
-        res = state.get("grid_resolution")
-        if res is not None and hasattr(model, "upsample") and res > model.resolution:
-            model.upsample(res)
+        # a grid field takes the stored box and grid shapes (GridSDFField._load_from_state_dict)
         model.load_state_dict(state["model_state_dict"])
 
     def model(self):

@@ -263,16 +263,6 @@ def _stage_seconds(run_dir: Path) -> float | None:
     return sum(secs) if secs else None
 
 
-def _test_views(run_dir: Path) -> list[int]:
-    p = run_dir / "views.json"
-    if not p.is_file():
-        return []
-    try:
-        return [int(v) for v in json.loads(p.read_text()).get("test") or []]
-    except (ValueError, TypeError, AttributeError):
-        raise InputError(f"{p}: expected a JSON object with a list 'test'") from None
-
-
 def _ground_truth(cfg: BenchmarkConfig, scene: Path) -> dict:
     """EvaluateConfig geometry options for one scene."""
     if cfg.dtu_gt is not None:
@@ -352,7 +342,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> list[dict]:
             without a scan number; raised before any run starts.
     """
     from svolsdf import pipeline as pipeline_module
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run, run_views
 
     cfg.scenes = [Path(s) for s in cfg.scenes]
     cfg.out = Path(cfg.out)
@@ -377,7 +367,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> list[dict]:
                                          progress=False).run()
                 elapsed = time.perf_counter() - t0
                 metrics = evaluate_run(EvaluateConfig(
-                    out=run_dir, scene=scene, views=_test_views(run_dir),
+                    out=run_dir, scene=scene, views=run_views(run_dir, "test"),
                     lpips_net=cfg.lpips_net, lpips_weights=cfg.lpips_weights,
                     report=cfg.report, extra={"benchmark": {"scene": label, "mode": mode}},
                     **gt))

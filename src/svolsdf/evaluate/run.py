@@ -138,6 +138,17 @@ def _scene_info(cfg: dict) -> tuple[Path | None, list[int] | None]:
     return (Path(path) if path else None), ([int(v) for v in views] if views else None)
 
 
+def run_views(out: Path, key: str) -> list[int]:
+    """The view ids under ``key`` ("inputs" or "test") of OUT/views.json; [] without the file."""
+    p = Path(out) / "views.json"
+    if not p.is_file():
+        return []
+    try:
+        return [int(v) for v in json.loads(p.read_text()).get(key) or []]
+    except (ValueError, TypeError, AttributeError):
+        raise InputError(f"{p}: expected a JSON object with a list {key!r}") from None
+
+
 def _render_files(folder: Path, views: list[int] | None) -> dict[int, Path]:
     if not folder.is_dir():
         return {}
@@ -219,11 +230,10 @@ def _synthetic_geometry(cfg: EvaluateConfig, scene_path: Path, views: list[int],
     from svolsdf.evaluate.synthetic import synthetic_chamfer
 
     def score(pts: np.ndarray, source: str) -> tuple[dict, dict]:
-        kw = {"max_dist": cfg.max_dist, "threshold": cfg.threshold, "on_empty": "clip"}
-        r = synthetic_chamfer(pts, scene_path, views, **kw)
+        r = synthetic_chamfer(pts, scene_path, views, max_dist=cfg.max_dist,
+                              threshold=cfg.threshold, on_empty="clip")
         block = _chamfer_block(r, "synthetic", source)
-        block["overall_dtu_rule"] = _finite_or_none(
-            synthetic_chamfer(pts, scene_path, views, rule="exclude", **kw)["overall"])
+        block["overall_dtu_rule"] = _finite_or_none(r["overall_dtu_rule"])
         if r["pred_points"] == 0:
             notes.append(f"{source}: no point lies near the ground-truth object; every distance "
                          f"is clipped at {r['max_dist']:.4g}.")
@@ -333,12 +343,8 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     scene_path, input_views = _scene_info(run_cfg)
     if cfg.scene is not None:
         scene_path = Path(cfg.scene)
-    vj = out / "views.json"  # the input views the run used (config.yaml may leave them default)
-    if input_views is None and vj.is_file():
-        try:
-            input_views = [int(v) for v in json.loads(vj.read_text()).get("inputs", [])] or None
-        except (ValueError, TypeError, AttributeError) as e:
-            raise InputError(f"{vj}: not the views.json of a run ({e})") from None
+    if input_views is None:  # the inputs the run used (config.yaml may leave them default)
+        input_views = run_views(out, "inputs") or None
     notes: list[str] = []
     metrics: dict = {
         "chamfer": _chamfer_block(None, None, None),

@@ -113,8 +113,9 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
             gets a number in a comparison table).
 
     Returns:
-        dict: accuracy, completeness, overall, precision, recall, fscore, threshold, max_dist,
-        gt_points (count).
+        dict: accuracy, completeness, overall (by ``rule``), overall_dtu_rule (always the
+        "exclude" rule's overall, from the same pass), precision, recall, fscore, threshold,
+        max_dist, gt_points (count).
     """
     if rule not in ("clip", "exclude"):
         raise ValueError(f"rule must be 'clip' or 'exclude', got {rule!r}")
@@ -139,13 +140,15 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
     if len(pred) == 0:
         if on_empty == "clip":
             return {"accuracy": max_dist, "completeness": max_dist, "overall": max_dist,
-                    "precision": 0.0, "recall": 0.0, "fscore": 0.0, "threshold": threshold,
-                    "max_dist": max_dist, "gt_points": int(len(gt)), "pred_points": 0}
+                    "overall_dtu_rule": max_dist, "precision": 0.0, "recall": 0.0,
+                    "fscore": 0.0, "threshold": threshold, "max_dist": max_dist,
+                    "gt_points": int(len(gt)), "pred_points": 0}
         raise InputError("no reconstructed point lies near the ground-truth object")
     t = truncated_chamfer(pred, gt, max_dist, threshold)
     sfx = "" if rule == "clip" else "_dtu_rule"
     acc, comp = t["accuracy" + sfx], t["completeness" + sfx]
     return {"accuracy": acc, "completeness": comp, "overall": (acc + comp) / 2,
+            "overall_dtu_rule": (t["accuracy_dtu_rule"] + t["completeness_dtu_rule"]) / 2,
             "precision": t["precision"], "recall": t["recall"], "fscore": t["fscore"],
             "threshold": threshold, "max_dist": max_dist, "gt_points": t["gt_points"],
             "pred_points": t["pred_points"]}

@@ -372,14 +372,11 @@ class Trainer:
         if not path.is_file():
             return False
         state = torch.load(path, map_location=self.device, weights_only=False)
-        res = state.get("grid_resolution")
-        if res is not None and hasattr(self.model, "upsample") and res > self.model.resolution:
-            self.model.upsample(res)
-            self._build_optimizer()
         before = [id(q) for q in self.model.parameters()]
         self.model.load_state_dict(state["model_state_dict"])
         if [id(q) for q in self.model.parameters()] != before:
-            self._build_optimizer()  # the grid field took the checkpoint's grid shapes
+            # the grid field took the checkpoint's (grown, or other-box) grid shapes
+            self._build_optimizer()
         try:
             self.optimizer.load_state_dict(state["optimizer"])
         except ValueError:  # parameter groups changed (grid grown): fresh moments
