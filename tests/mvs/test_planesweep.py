@@ -180,6 +180,20 @@ def test_zncc_known_values():
     assert (flat - 1).abs().max() < 1e-3
 
 
+@pytest.mark.parametrize("shape", [(1, 2, 15, 17), (2, 3, 4, 9), (1, 1, 1, 6)])
+@pytest.mark.parametrize("radius", [1, 2, 5])
+def test_box_filter_is_the_window_mean_shrinking_at_the_borders(shape, radius):
+    x = torch.rand(*shape, generator=torch.Generator().manual_seed(0))
+    k = 2 * radius + 1
+    ref = F.avg_pool2d(x, (1, k), stride=1, padding=(0, radius), count_include_pad=False)
+    ref = F.avg_pool2d(ref, (k, 1), stride=1, padding=(radius, 0), count_include_pad=False)
+    assert torch.allclose(box_filter(x, radius), ref, atol=1e-6)
+    H, W = shape[-2:]  # one corner by hand: the window holds rows/cols 0..radius only
+    corner = x[..., :min(radius + 1, H), :min(radius + 1, W)].mean(dim=(-2, -1))
+    assert torch.allclose(box_filter(x, radius)[..., 0, 0], corner, atol=1e-6)
+    assert box_filter(x, 0) is x
+
+
 def test_box_and_guided_filter():
     x = torch.rand(1, 2, 15, 17)
     b = box_filter(x, 2)
@@ -254,6 +268,18 @@ def test_sgm_matches_per_pixel_recursion(directions):
     assert torch.allclose(out, ref, atol=1e-5)
     with pytest.raises(ValueError, match="directions"):
         sgm_aggregate(c, g, 0.05, 0.5, 0.1, 6)
+    with pytest.raises(ValueError, match="penalties"):
+        sgm_aggregate(c, g, -0.05, 0.5, 0.1, directions)
+
+
+@pytest.mark.parametrize("shape", [(3, 1, 5), (4, 9, 2), (2, 3, 3)])
+def test_sgm_matches_per_pixel_recursion_on_thin_volumes(shape):
+    # one-row / one-column / square slices: every diagonal predecessor falls off the edge
+    torch.manual_seed(1)
+    c, g = torch.rand(*shape), torch.rand(*shape[1:])
+    dirs = [(0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (1, -1), (-1, 1)]
+    ref = sum(_sgm_reference(c, g, 0.1, 0.7, 0.2, dy, dx) for dy, dx in dirs) / len(dirs)
+    assert torch.allclose(sgm_aggregate(c, g, 0.1, 0.7, 0.2, 8), ref, atol=1e-5)
 
 
 def test_calibrated_temperature():

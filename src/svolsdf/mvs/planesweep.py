@@ -131,8 +131,29 @@ class PlaneSweepConfig:
 
 
 # --------------------------------------------------------------------------- filters
+def _window_sum(x: Tensor, radius: int, dim: int) -> Tensor:
+    """Sum of ``x`` over [i - radius, i + radius] along ``dim``, entries outside left out."""
+    out = x.clone()
+    n = x.shape[dim]
+    for s in range(1, min(radius, n - 1) + 1):
+        out.narrow(dim, s, n - s).add_(x.narrow(dim, 0, n - s))
+        out.narrow(dim, 0, n - s).add_(x.narrow(dim, s, n - s))
+    return out
+
+
+def _window_count(n: int, radius: int, dtype, device) -> Tensor:
+    """(n,) number of entries of [i - radius, i + radius] inside [0, n)."""
+    i = torch.arange(n, dtype=dtype, device=device)
+    return (i + radius).clamp(max=n - 1) - (i - radius).clamp(min=0) + 1
+
+
 def box_filter(x: Tensor, radius: int) -> Tensor:
     """Mean over a (2r+1)^2 window, shrinking at the borders (separable).
+
+    Written as shifted adds rather than ``F.avg_pool2d(..., count_include_pad=False)`` (the
+    same result to float rounding): on the CPU the pooling kernel was 4-8x slower at the
+    plane sweep's sizes and a third of the MVS time (benchmarks/results/mvs_speed.md).
+    kornia's box blur pads the border instead of shrinking the window.
 
     Args:
         x: (N, C, H, W).
@@ -143,9 +164,10 @@ def box_filter(x: Tensor, radius: int) -> Tensor:
     """
     if radius <= 0:
         return x
-    k = 2 * radius + 1
-    x = F.avg_pool2d(x, (1, k), stride=1, padding=(0, radius), count_include_pad=False)
-    return F.avg_pool2d(x, (k, 1), stride=1, padding=(radius, 0), count_include_pad=False)
+    H, W = x.shape[-2:]
+    count = (_window_count(H, radius, x.dtype, x.device)[:, None]
+             * _window_count(W, radius, x.dtype, x.device)[None, :])
+    return _window_sum(_window_sum(x, radius, -1), radius, -2).div_(count)
 
 
 def guided_filter(guide: Tensor, p: Tensor, radius: int, eps: float,
@@ -228,49 +250,59 @@ def sgm_aggregate(cost: Tensor, guide: Tensor, p1: float, p2: float, sigma: floa
     """
     if directions not in (4, 8):
         raise ValueError(f"directions must be 4 or 8, got {directions}")
-    total = torch.zeros_like(cost)
-    # (iteration dim of cost, column shift of the predecessor): (2, 0) walks along W,
-    # (1, 0) along H, (1, +-1) along the diagonals
-    paths = [(2, 0), (1, 0)] + ([(1, 1), (1, -1)] if directions == 8 else [])
-    for dim, shift in paths:
-        c = cost.movedim(dim, 0)  # (n, D, m)
-        g = guide.movedim(dim - 1, 0)  # (n, m)
-        for reverse in (False, True):
-            total += _sgm_pass(c, g, p1, p2, sigma, reverse, -shift if reverse else shift) \
-                .movedim(0, dim)
-    return total / len(paths) / 2
+    if p1 < 0 or p2 < 0:
+        raise ValueError(f"SGM penalties must be >= 0, got p1 = {p1}, p2 = {p2}")
+    # Each pass walks slices c[i] (D, m) and takes its predecessors from slice i - 1, column
+    # x - shift. A reverse pass is a forward pass over the flipped slices with the opposite
+    # shift, so all passes over the same slices run as one batch: W steps for the horizontal
+    # pair, H steps for the vertical pair and the 4 diagonal passes.
+    # (shift, reverse) per pass; the diagonals (1, +-1) are the shifts +-1
+    rows = [(0, False), (0, True)] + (
+        [(1, False), (1, True), (-1, False), (-1, True)] if directions == 8 else [])
+    total = _sgm_passes(cost.movedim(2, 0), guide.movedim(1, 0), p1, p2, sigma,
+                        [(0, False), (0, True)]).movedim(0, 2)
+    total += _sgm_passes(cost.movedim(1, 0), guide, p1, p2, sigma, rows).movedim(0, 1)
+    return total / (len(rows) + 2)
 
 
-def _sgm_pass(c: Tensor, g: Tensor, p1: float, p2: float, sigma: float, reverse: bool,
-              shift: int) -> Tensor:
-    """One SGM scanline pass over slices c[i] (D, m); the predecessor of column x in slice i is
-    column x - shift of slice i -+ 1 (columns without one start afresh). Returns (n, D, m)."""
-    n, _, m = c.shape
-    out = torch.empty_like(c)
-    if shift == 0:
-        tgt, src = slice(0, m), slice(0, m)
-    elif shift > 0:
-        tgt, src = slice(1, m), slice(0, m - 1)
-    else:
-        tgt, src = slice(0, m - 1), slice(1, m)
-    order = range(n - 1, -1, -1) if reverse else range(n)
-    prev = None
-    for i in order:
-        if prev is None:
-            cur = c[i].clone()
-        else:
-            j = i + 1 if reverse else i - 1
-            P = prev[:, src]
-            mval = P.min(dim=0, keepdim=True).values
-            pen2 = p1 + (p2 - p1) * torch.exp(-(g[i, tgt] - g[j, src]).abs() / sigma)
-            best = torch.minimum(P, mval + pen2[None])
-            best[1:] = torch.minimum(best[1:], P[:-1] + p1)
-            best[:-1] = torch.minimum(best[:-1], P[1:] + p1)
-            cur = c[i].clone()  # columns without a predecessor keep C
-            cur[:, tgt] += best - mval
-        out[i] = cur
-        prev = cur
-    return out
+def _sgm_passes(c: Tensor, g: Tensor, p1: float, p2: float, sigma: float,
+                passes: list[tuple[int, bool]]) -> Tensor:
+    """SGM scanline passes over slices c[i] (D, m), batched; returns their sum (n, D, m).
+
+    A forward pass with shift s takes the predecessor of column x in slice i from column x - s
+    of slice i - 1 (columns without one keep C); a reverse pass walks from the last slice, with
+    the predecessor at column x + s of slice i + 1. Hirschmüller's recursion, see
+    `sgm_aggregate`."""
+    n, D, m = c.shape
+    B = len(passes)
+    # a reverse pass = a forward pass over flipped slices with the opposite shift
+    C = torch.stack([c.flip(0) if rev else c for _, rev in passes])  # (B, n, D, m)
+    G = torch.stack([g.flip(0) if rev else g for _, rev in passes])  # (B, n, m)
+    shifts = torch.tensor([-s if rev else s for s, rev in passes], device=c.device)
+    # column of each predecessor in a buffer padded by one column per side; a padded
+    # predecessor is constant over D, so the penalty term vanishes there (C is kept)
+    cols = torch.arange(m, device=c.device)[None] - shifts[:, None] + 1  # (B, m)
+    idx = cols[:, None, :].expand(B, D, m)
+    Gp = F.pad(G, (1, 1), mode="replicate")
+    g_prev = torch.gather(Gp[:, :-1], 2, cols[:, None, :].expand(B, n - 1, m))  # (B, n-1, m)
+    pen2 = p1 + (p2 - p1) * torch.exp(-(G[:, 1:] - g_prev).abs() / sigma)  # (B, n-1, m)
+    out = torch.empty_like(C)
+    buf = c.new_zeros(B, D, m + 2)
+    out[:, 0] = C[:, 0]
+    buf[:, :, 1:-1] = C[:, 0]
+    for i in range(1, n):
+        P = torch.gather(buf, 2, idx)  # (B, D, m) predecessors
+        mval = P.min(dim=1, keepdim=True).values
+        best = torch.minimum(P, mval + pen2[:, i - 1, None])
+        best[:, 1:] = torch.minimum(best[:, 1:], P[:, :-1] + p1)
+        best[:, :-1] = torch.minimum(best[:, :-1], P[:, 1:] + p1)
+        cur = C[:, i] + best - mval
+        out[:, i] = cur
+        buf[:, :, 1:-1] = cur
+    total = torch.zeros_like(c)
+    for b, (_, rev) in enumerate(passes):
+        total += out[b].flip(0) if rev else out[b]
+    return total
 
 
 def aggregate_sources(costs: Tensor, valid: Tensor, keep_fraction: float,

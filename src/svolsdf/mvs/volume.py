@@ -72,23 +72,32 @@ class ProbabilityVolume:
         )
 
     def save(self, path) -> None:
-        """Write a compressed .npz (prob as float16) atomically."""
+        """Write a compressed .npz (prob as float16) atomically.
+
+        Deflate level 1 instead of `numpy.savez_compressed`'s 6: half the time for files
+        within 1-4 % of the size (three views' stages 1-3 at 768x576: ~4.4 s less per run).
+        `numpy.load` reads it as any .npz.
+        """
         import os
+        import zipfile
 
         import numpy as np
 
+        arrays = {
+            "depths": self.depths.float().cpu().numpy(),
+            "prob": self.prob.to(torch.float16).cpu().numpy(),
+            "depth": self.depth.float().cpu().numpy(),
+            "confidence": self.confidence.float().cpu().numpy(),
+            "K": self.cameras.K[0].double().cpu().numpy(),
+            "w2c": self.cameras.w2c[0].double().cpu().numpy(),
+            "size": np.array([self.cameras.width, self.cameras.height]),
+            "meta": np.array([self.view_id, self.stage, int(self.inverse_depth)]),
+        }
         tmp = f"{path}.tmp.npz"
-        np.savez_compressed(
-            tmp,
-            depths=self.depths.float().cpu().numpy(),
-            prob=self.prob.to(torch.float16).cpu().numpy(),
-            depth=self.depth.float().cpu().numpy(),
-            confidence=self.confidence.float().cpu().numpy(),
-            K=self.cameras.K[0].double().cpu().numpy(),
-            w2c=self.cameras.w2c[0].double().cpu().numpy(),
-            size=np.array([self.cameras.width, self.cameras.height]),
-            meta=np.array([self.view_id, self.stage, int(self.inverse_depth)]),
-        )
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+            for name, arr in arrays.items():
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, arr, allow_pickle=False)
         os.replace(tmp, path)
 
     @classmethod
