@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from svolsdf.field.density import laplace_density
 from svolsdf.field.grid import GridFieldConfig, GridSDFField, beta_schedule
@@ -12,6 +13,7 @@ from svolsdf.field.grid_ops import (
     resample_grid,
     total_variation_loss,
     trilinear_reference,
+    trilinear_sample,
     trilinear_with_grad,
 )
 
@@ -47,6 +49,34 @@ def test_trilinear_matches_grid_sample_reference_values_grads_and_double_backwar
     (a,) = torch.autograd.grad((g.norm(dim=-1) - 1).square().sum() + v.sum(), grid)
     (b,) = torch.autograd.grad((gr.norm(dim=-1) - 1).square().sum() + vr.sum(), grid)
     torch.testing.assert_close(a, b)
+
+
+def test_trilinear_sample_is_grid_sample_with_the_same_grid_gradient():
+    grid = torch.randn(3, 5, 6, 7, dtype=torch.float64, requires_grad=True)
+    size = torch.tensor([7.0, 6.0, 5.0], dtype=torch.float64)
+    u = torch.rand(80, 3, dtype=torch.float64) * (size - 1)
+    u[:4] = torch.tensor([[0.0, 0.0, 0.0], [6.0, 5.0, 4.0], [6.0, 0.0, 2.5], [3.5, 5.0, 0.0]],
+                         dtype=torch.float64)  # corners and faces of the box
+    w = torch.randn(80, 3, dtype=torch.float64)
+    g = (u / (size - 1) * 2 - 1).view(1, -1, 1, 1, 3)
+    ref = F.grid_sample(grid[None], g, mode="bilinear", align_corners=True).view(3, -1).T
+    v = trilinear_sample(grid, u)
+    torch.testing.assert_close(v, ref)
+    (a,) = torch.autograd.grad((v * w).sum(), grid)
+    (b,) = torch.autograd.grad((ref * w).sum(), grid)
+    torch.testing.assert_close(a, b)
+    # outside the grid the index is clamped: grid_sample's "border" padding
+    far = (torch.rand(60, 3, dtype=torch.float64) * 3 - 1) * (size - 1)
+    gb = (far / (size - 1) * 2 - 1).view(1, -1, 1, 1, 3)
+    border = F.grid_sample(grid[None], gb, mode="bilinear", padding_mode="border",
+                           align_corners=True).view(3, -1).T
+    torch.testing.assert_close(trilinear_sample(grid, far), border)
+    # ... and in a grid with one layer of zeros around it, grid_sample's "zeros" padding at any
+    # distance (what MVSPrior's volume lookup relies on)
+    padded = F.pad(grid.detach(), (1, 1, 1, 1, 1, 1))
+    zeros = F.grid_sample(grid.detach()[None], gb, mode="bilinear", padding_mode="zeros",
+                          align_corners=True).view(3, -1).T
+    torch.testing.assert_close(trilinear_sample(padded, far + 1.0), zeros)
 
 
 def test_trilinear_at_nodes_returns_node_values():

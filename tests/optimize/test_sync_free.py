@@ -55,7 +55,9 @@ def _trainer(kind: str, background: bool = False):
         model.background = NeRFPlusPlusBackground(BackgroundConfig(
             n_samples=4, multires=2, n_layers=2, d_hidden=8, skip_in=(), feature_dim=4,
             multires_view=1, colour_hidden=4))
-    return Trainer(model, data, cfg, prior=prior, sampler=sampler)
+    t = Trainer(model, data, cfg, prior=prior, sampler=sampler)
+    t.host_branch = False  # the NaN-safe update as on a GPU (on the CPU it reads a flag)
+    return t
 
 
 @pytest.mark.parametrize("background", [False, True])

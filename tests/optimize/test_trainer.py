@@ -57,8 +57,10 @@ def test_resume_matches_uninterrupted_run(tmp_path):
     assert (tmp_path / "a" / "losses.csv").read_text().startswith("step")
 
 
-def test_non_finite_step_changes_nothing():
+@pytest.mark.parametrize("host_branch", [True, False])
+def test_non_finite_step_changes_nothing(host_branch):
     t = _trainer()
+    t.host_branch = host_branch  # False: the device-side path a GPU run takes
     before = [p.detach().clone() for p in t.model.parameters()]
     real = t.losses
 
@@ -75,6 +77,27 @@ def test_non_finite_step_changes_nothing():
     t.train_step()
     after = list(t.model.parameters())
     assert any(not torch.equal(p, q.detach()) for p, q in zip(before, after, strict=True))
+
+
+@pytest.mark.parametrize("host_branch", [True, False])
+@pytest.mark.parametrize("clip", [0.0, 1e-3, 1e3])
+def test_safe_clip_is_clip_grad_norm_on_finite_gradients(host_branch, clip):
+    t = _trainer(grad_clip=clip)
+    t.host_branch = host_branch
+    t.losses()["total"].backward()
+    params = [p for p in t.model.parameters() if p.grad is not None]
+    expected = [p.grad.clone() for p in params]
+    if clip > 0:
+        total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g)
+                                                      for g in expected]))
+        expected = [g * min(1.0, clip / (float(total) + 1e-6)) for g in expected]
+    t._safe_clip(params)
+    for p, g in zip(params, expected, strict=True):
+        torch.testing.assert_close(p.grad, g)
+    if clip == 1e-3:  # the clip binds
+        total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(p.grad)
+                                                      for p in params]))
+        assert abs(float(total) - clip) < 1e-6
 
 
 @pytest.mark.parametrize("start", [0.0, 0.05])

@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from svolsdf.field.base import SurfaceModel
@@ -39,6 +38,7 @@ from svolsdf.field.grid_ops import (
     laplacian_loss,
     resample_grid,
     total_variation_loss,
+    trilinear_sample,
     trilinear_with_grad,
 )
 
@@ -315,12 +315,13 @@ class GridSDFField(SurfaceModel):
     def _features(self, p: Tensor) -> Tensor:
         """p: (N, 3) box points -> (N, feature_dim) multi-level trilinear features."""
         lo, hi = self.bounds
-        g = ((p - lo) / (hi - lo) * 2 - 1).view(1, -1, 1, 1, 3)
-        feats = [
-            F.grid_sample(fg[None], g, mode="bilinear", align_corners=True).view(fg.shape[0], -1)
-            for fg in self.feature_grids
-        ]
-        return torch.cat(feats, dim=0).T
+        t = (p - lo) / (hi - lo)  # (N, 3) in [0, 1] over the box
+        feats = []
+        for fg in self.feature_grids:
+            Z, Y, X = fg.shape[1:]
+            feats.append(trilinear_sample(fg, t * device_vector([X - 1, Y - 1, Z - 1],
+                                                                t.device, t.dtype)))
+        return torch.cat(feats, dim=1)
 
     def _grid_sdf(self, x: Tensor, with_grad: bool) -> tuple[Tensor, Tensor | None, Tensor]:
         """Box-extended grid SDF: f(p) + |x - p|; returns sdf (N,), grad (N, 3) or None, p."""

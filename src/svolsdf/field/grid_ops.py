@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
+    "trilinear_sample",
     "trilinear_with_grad",
     "trilinear_reference",
     "resample_grid",
@@ -69,19 +70,11 @@ def trilinear_with_grad(
     and once with respect to `u` through the fractional offsets.
     """
     _check_grid_points(grid, u)
-    C, Z, Y, X = grid.shape
+    C = grid.shape[0]
     n = u.shape[0]
-    size = device_vector([X, Y, Z], u.device, u.dtype)
-    u = torch.minimum(torch.clamp(u, min=0.0), size - 1)
-    i0 = torch.minimum(u.detach().floor(), size - 2)
-    f = u - i0  # (N, 3) in [0, 1]
-    i0 = i0.long()
-    base = (i0[:, 2] * Y + i0[:, 1]) * X + i0[:, 0]  # (N,)
-    offs = device_vector(
-        [0, 1, X, X + 1, X * Y, X * Y + 1, X * Y + X, X * Y + X + 1], u.device, torch.long
-    )
-    idx = (base[:, None] + offs).reshape(-1)  # (N*8,) corner order: z, y, x (x fastest)
-    c = grid.reshape(C, -1).index_select(1, idx).reshape(C, n, 2, 2, 2).permute(1, 0, 2, 3, 4)
+    idx, f = _corners(u, tuple(grid.shape[1:]))  # corner order: z, y, x (x fastest)
+    c = grid.reshape(C, -1).index_select(1, idx.reshape(-1)).reshape(C, n, 2, 2, 2)
+    c = c.permute(1, 0, 2, 3, 4)
     fx = f[:, 0].view(n, 1, 1, 1)
     fy = f[:, 1].view(n, 1, 1)
     fz = f[:, 2].view(n, 1)
@@ -99,6 +92,51 @@ def trilinear_with_grad(
     gy = dy[..., 0] + fz * (dy[..., 1] - dy[..., 0])
     gz = cxy[..., 1] - cxy[..., 0]
     return value, torch.stack([gx, gy, gz], dim=-1)
+
+
+def _corners(u: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+    """Corner indices and fractional offsets of points in a (Z, Y, X) grid.
+
+    u: (N, 3) index coordinates (x, y, z), clamped to the grid -> idx (N, 8) long flat indices
+    in corner order z, y, x (x fastest), f (N, 3) offsets in [0, 1] inside the cell.
+    """
+    Z, Y, X = shape
+    size = device_vector([X, Y, Z], u.device, u.dtype)
+    u = torch.minimum(torch.clamp(u, min=0.0), size - 1)
+    i0 = torch.minimum(u.detach().floor(), size - 2)
+    f = u - i0
+    i0 = i0.long()
+    base = (i0[:, 2] * Y + i0[:, 1]) * X + i0[:, 0]  # (N,)
+    offs = device_vector(
+        [0, 1, X, X + 1, X * Y, X * Y + 1, X * Y + X, X * Y + X + 1], u.device, torch.long
+    )
+    return base[:, None] + offs, f
+
+
+def trilinear_sample(grid: Tensor, u: Tensor) -> Tensor:
+    """Trilinear interpolation of a dense grid, as one weighted sum of the 8 gathered corners.
+
+    Args:
+        grid: (C, Z, Y, X) float node values.
+        u: (N, 3) float continuous index coordinates (x, y, z), clamped to the grid.
+
+    Returns:
+        (N, C) values, equal to ``grid_sample(mode="bilinear", align_corners=True)``.
+
+    Why not ``grid_sample``: on the CPU its 3-D kernels split the work over the batch only, so
+    one grid runs on one thread, and its backward is the slowest op of a training step. The
+    gather and its backward (an index-add of N x 8 x C values) run multi-threaded, and the
+    weights make the backward one product instead of the seven lerps' chain
+    (benchmarks/results/field_speed.md).
+    """
+    _check_grid_points(grid, u)
+    C = grid.shape[0]
+    idx, f = _corners(u, tuple(grid.shape[1:]))
+    one = torch.ones_like(f)
+    wx, wy, wz = (torch.stack([one[:, k] - f[:, k], f[:, k]], dim=-1) for k in range(3))
+    w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(1, -1, 8)
+    c = grid.reshape(C, -1).index_select(1, idx.reshape(-1)).view(C, -1, 8)
+    return (c * w).sum(-1).T
 
 
 def trilinear_reference(grid: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:

@@ -124,6 +124,8 @@ class Trainer:
 
         clamp_arg = "clamp" in inspect.signature(self.model.sdf_and_grad).parameters
         self._noclamp = {"clamp": False} if clamp_arg else {}
+        # the NaN-safe update branches on the host where that costs nothing (`_safe_clip`)
+        self.host_branch = torch.device(self.device).type == "cpu"
 
     # ------------------------------------------------------------------ setup
     def _build_optimizer(self) -> None:
@@ -138,8 +140,13 @@ class Trainer:
                 groups.append({"params": [sdf], "lr": lr, "name": "sdf"})
         else:
             groups = [{"params": list(self.model.parameters()), "lr": self.cfg.lr}]
-        # METHOD.md 4.6: Adam, default betas, constant learning rate
-        self.optimizer = torch.optim.Adam(groups)
+        # METHOD.md 4.6: Adam, default betas, constant learning rate. The fused kernel does the
+        # same update in one pass per tensor: on the fast preset's dense grids (~15 M
+        # parameters) it measured ~6x faster than the per-tensor loop on the CPU
+        # (benchmarks/results/field_speed.md).
+        fused = all(p.device.type in ("cpu", "cuda") and p.dtype.is_floating_point
+                    for g in groups for p in g["params"])
+        self.optimizer = torch.optim.Adam(groups, fused=fused or None)
 
     def _maybe_grow_grid(self) -> None:
         for at_step, res in self.grid_schedule:
@@ -289,16 +296,36 @@ class Trainer:
         if not params:
             self.step += 1
             return {k: v.detach() for k, v in terms.items()}
-        # NaN-safe update (METHOD.md 9.2.8): zero every gradient if any is non-finite, without
-        # a host sync (the flag stays on the device).
-        finite = torch.stack([torch.isfinite(p.grad).all() for p in params]).all()
-        for p in params:
-            p.grad.nan_to_num_(0.0, 0.0, 0.0).mul_(finite)
-        if self.cfg.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+        self._safe_clip(params)
         self.optimizer.step()
         self.step += 1
         return {k: v.detach() for k, v in terms.items()}
+
+    def _safe_clip(self, params: list[Tensor]) -> None:
+        """NaN-safe update (METHOD.md 4.6 / 9.2.8): zero every gradient if any is non-finite,
+        else clip their global norm to ``grad_clip`` (if > 0).
+
+        The global norm is non-finite exactly when some gradient is, so one pass over the
+        gradients decides both. With ``host_branch`` (the default on the CPU, where reading a
+        value is free) the decision is a Python branch; otherwise the flag stays on the device
+        and multiplies the gradients (no device-host sync per step).
+        """
+        grads = [p.grad for p in params]
+        total = torch.nn.utils.get_total_norm(grads)
+        clip = self.cfg.grad_clip
+        if self.host_branch:
+            if not bool(torch.isfinite(total)):
+                for g in grads:
+                    g.zero_()
+            elif clip > 0:
+                torch.nn.utils.clip_grads_with_norm_(params, clip, total)
+            return
+        finite = torch.isfinite(total)
+        for g in grads:
+            g.nan_to_num_(0.0, 0.0, 0.0).mul_(finite)
+        if clip > 0:  # zeroed gradients have norm 0 (the clip factor is then 1)
+            torch.nn.utils.clip_grads_with_norm_(
+                params, clip, torch.where(finite, total, torch.zeros_like(total)))
 
     # ------------------------------------------------------------------ loop
     def fit(self, steps: int | None = None, progress: bool = True, log_every: int = 10,

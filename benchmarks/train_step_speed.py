@@ -1,0 +1,177 @@
+"""Training-step speed of the fast preset: the current code against its previous versions.
+
+One fast-preset field step (`Trainer.train_step`: rays, MVS-guided sampler, prior lookups,
+rendering, losses, backward, NaN-safe clipping, Adam) on a finished run's stage-1 volumes, with
+the field at its full grid resolution. Variants, each with its own trainer, timed round-robin in
+blocks of steps (the machine is shared; ratios in one run are what counts):
+
+- "current": the code as it is;
+- "previous": the four parts below as they were before session 13;
+- "previous X": only part X as it was.
+
+Parts: "features" (the colour feature grids read with ``F.grid_sample`` instead of
+`trilinear_sample`), "prior" (the stage-1 volumes read with ``F.grid_sample``), "clip" (the
+per-tensor finite check, ``nan_to_num_`` and ``clip_grad_norm_``), "adam" (``torch.optim.Adam``
+with the per-tensor loop instead of the fused kernel).
+
+Run (from the repo root), on a finished `svolsdf reconstruct` folder of the fast preset:
+
+    python benchmarks/train_step_speed.py --run OUT [--out benchmarks/results/train_step_speed.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import platform
+import statistics
+import sys
+import time
+import types
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import cpu_name
+
+from svolsdf.config import load_config
+from svolsdf.field.init import init_grid_from_mvs
+from svolsdf.optimize.trainer import Trainer
+from svolsdf.pipeline import Pipeline
+from svolsdf.prior.consistency import _MIN_Z, _Z_LIMIT, MVSPrior, _depth_coord, _project
+
+REPO = Path(__file__).resolve().parents[1]
+PARTS = ("features", "prior", "clip", "adam")
+
+
+# ---------------------------------------------------------------------- previous versions
+def features_grid_sample(self, p: torch.Tensor) -> torch.Tensor:
+    """The previous `GridSDFField._features`: p (N, 3) -> (N, F) with ``F.grid_sample``."""
+    lo, hi = self.bounds
+    g = ((p - lo) / (hi - lo) * 2 - 1).view(1, -1, 1, 1, 3)
+    feats = [F.grid_sample(fg[None], g, mode="bilinear", align_corners=True).view(fg.shape[0], -1)
+             for fg in self.feature_grids]
+    return torch.cat(feats, dim=0).T
+
+
+def view_lookup_grid_sample(self, i: int, pts: torch.Tensor):
+    """The previous `MVSPrior.view_lookup`: the volume read with ``F.grid_sample``."""
+    view = self.views[i]
+    uh, vh, z, valid = _project(view, pts)
+    uh = torch.where(valid, uh, torch.full_like(uh, -99.0))
+    vh = torch.where(valid, vh, torch.full_like(vh, -99.0))
+    grid2 = torch.stack([uh, vh], dim=-1)[None, None]
+    nf = torch.stack([view.near, view.far])[None]
+    nf_s = F.grid_sample(nf, grid2, mode="bilinear", padding_mode="zeros",
+                         align_corners=True)[0, :, 0]
+    near, far = nf_s[0], nf_s[1]
+    zh = _depth_coord(view, z, near, far)
+    valid = valid & (near >= _MIN_Z) & (far >= _MIN_Z) & (zh.abs() <= _Z_LIMIT)
+    zh = torch.where(valid, zh, torch.full_like(zh, -99.0))
+    grid3 = torch.stack([uh, vh, zh], dim=-1)[None, None, None]
+    cost = F.grid_sample(view.prob[None, None], grid3, mode="bilinear", padding_mode="zeros",
+                         align_corners=True)[0, 0, 0, 0]
+    return torch.where(valid, cost, torch.zeros_like(cost)), valid
+
+
+def safe_clip_previous(self, params: list[torch.Tensor]) -> None:
+    """The previous NaN-safe update: a finite check per tensor, then clip_grad_norm_."""
+    finite = torch.stack([torch.isfinite(p.grad).all() for p in params]).all()
+    for p in params:
+        p.grad.nan_to_num_(0.0, 0.0, 0.0).mul_(finite)
+    if self.cfg.grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+
+
+# ---------------------------------------------------------------------- set-up
+def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
+    """A fast-preset trainer on ``run``'s stage-1 volumes, past its grid growth, with the
+    ``previous`` parts swapped in."""
+    cfg = load_config(run / "config.yaml")
+    cfg.train.steps = warm_steps  # the grid reaches its full resolution at half the steps
+    p = Pipeline(cfg, run, progress=False)
+    scene = p.load()
+    p.keys = p._keys()
+    p._volumes1 = p.stage_mvs1()
+    torch.manual_seed(0)
+    model = p.build_model()
+    prior = MVSPrior(p._volumes1, scene.normalization, device=p.device)
+    init_grid_from_mvs(model, p.regressed_volumes1(), scene.normalization,
+                       scene.masks if cfg.output.use_masks else None,
+                       unverified_weight=cfg.field.init_unverified_weight)
+    if "features" in previous:
+        model._features = types.MethodType(features_grid_sample, model)
+    if "prior" in previous:
+        prior.view_lookup = types.MethodType(view_lookup_grid_sample, prior)
+    t = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=p.make_sampler(prior),
+                out_dir=None, device=p.device, grid_schedule=p._grid_schedule())
+    if "clip" in previous:
+        t._safe_clip = types.MethodType(safe_clip_previous, t)
+    t.fit(progress=False)  # warm-up: grid growth done, optimizer state built
+    if "adam" in previous:
+        state = t.optimizer.state_dict()
+        groups = [{"params": g["params"], "lr": g["lr"]} for g in t.optimizer.param_groups]
+        t.optimizer = torch.optim.Adam(groups, foreach=False)
+        t.optimizer.load_state_dict(state)
+    return t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--run", type=Path, required=True,
+                    help="a finished fast-preset `svolsdf reconstruct` folder")
+    ap.add_argument("--warm", type=int, default=24, help="warm-up steps per trainer")
+    ap.add_argument("--block", type=int, default=10, help="steps per timed block")
+    ap.add_argument("--repeats", type=int, default=5, help="timed blocks per variant")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/train_step_speed.md")
+    args = ap.parse_args()
+    if not (args.run / "config.yaml").is_file():
+        sys.exit(f"train_step_speed: {args.run} has no config.yaml (not a run folder)")
+    logging.disable(logging.INFO)
+    variants = {"current": set(), "previous": set(PARTS)}
+    variants.update({f"previous {k}": {k} for k in PARTS})
+    trainers = {k: make_trainer(args.run, v, args.warm) for k, v in variants.items()}
+    times = {k: [] for k in trainers}
+    cpu = {k: [] for k in trainers}
+    for _ in range(args.repeats):
+        for k, t in trainers.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            for _ in range(args.block):
+                t.train_step()
+            times[k].append((time.perf_counter() - t0) / args.block)
+            cpu[k].append((time.process_time() - c0) / args.block)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    medc = {k: statistics.median(v) for k, v in cpu.items()}
+    m = trainers["current"].model
+    n_par = sum(p.numel() for p in m.parameters()) / 1e6
+    lines = [
+        "# Training-step speed of the fast preset (current vs previous code)",
+        "",
+        f"- command: `python benchmarks/train_step_speed.py --run {args.run} --warm {args.warm} "
+        f"--block {args.block} --repeats {args.repeats}`",
+        f"- machine: {os.cpu_count()} logical cores, {cpu_name()}; torch "
+        f"{torch.__version__}, {torch.get_num_threads()} threads; Python "
+        f"{platform.python_version()}; shared machine (other jobs may run)",
+        f"- field: grid {getattr(m, 'grid_shape', '?')} SDF nodes, {n_par:.1f} M parameters; "
+        f"{trainers['current'].cfg.rays} rays per step; {len(trainers['current'].prior)} "
+        f"stage-1 volumes",
+        f"- each variant: its own trainer, {args.warm} warm-up steps (past the grid growth), then "
+        f"{args.repeats} blocks of {args.block} steps, round-robin; median per step",
+        "",
+        "| variant | wall ms / step | CPU ms / step | wall, current = 1 |",
+        "|---|---|---|---|",
+    ]
+    for k in trainers:
+        lines.append(f"| {k} | {med[k] * 1000:.0f} | {medc[k] * 1000:.0f} | "
+                     f"{med[k] / med['current']:.2f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+
+
+if __name__ == "__main__":
+    main()
