@@ -10,7 +10,9 @@ Design (measured by ``benchmarks/field_speed.py``; ``benchmarks/results/field_sp
   create_graph and ~13x faster than central finite differences at half a cell, and it is exact.
 - Appearance comes from a multi-level dense feature grid (levels at fixed fractions of the SDF
   resolution) feeding a small MLP with the view-direction encoding and the normal, like IDR's
-  rendering network (METHOD.md 5.3) but 2x64 wide.
+  rendering network (METHOD.md 5.3) but 2x64 wide. The levels are read by `trilinear_sample`
+  (a corner gather; ~2x faster than the single-threaded ``grid_sample`` 3-D CPU kernel with its
+  backward, benchmarks/results/train_step_speed.md).
 - Optionally (``sdf_residual``) the same features feed a second small MLP whose output is added to
   the grid SDF; its x-gradient then goes through autograd (slower, see the benchmark).
 - Outside the box the SDF continues as f(p) + |x - p| with p the closest box point, so rays

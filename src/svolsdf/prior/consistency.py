@@ -12,7 +12,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from svolsdf.field.grid_ops import trilinear_sample
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Normalization
@@ -35,9 +34,7 @@ class PriorView:
     """One view's volume in the unit frame, ready for lookup.
 
     Attributes:
-        prob: (D, H, W) probabilities (a view into ``prob_padded``).
-        prob_padded: (D + 2, H + 2, W + 2) the same with a border of zeros: a clamped trilinear
-            lookup in it equals ``grid_sample``'s zero padding in ``prob`` at any distance.
+        prob: (D, H, W) probabilities.
         near: (H, W) first hypothesis depth, unit frame (depths[0] / scale).
         far: (H, W) last hypothesis depth, unit frame.
         K: (3, 3) intrinsics used to project (the volume's own, or the quirk image's).
@@ -47,7 +44,6 @@ class PriorView:
     """
 
     prob: Tensor
-    prob_padded: Tensor
     near: Tensor
     far: Tensor
     K: Tensor
@@ -68,10 +64,8 @@ def _unit_view(vol: ProbabilityVolume, norm: Normalization, align_quirk: bool,
         size = (Wi, Hi)
     else:
         size = (W, H)
-    padded = F.pad(vol.prob.float()[None], (1, 1, 1, 1, 1, 1))[0]
     return PriorView(
-        prob=padded[1:-1, 1:-1, 1:-1],
-        prob_padded=padded,
+        prob=vol.prob.float(),
         near=(vol.depths[0] / norm.scale).float(),
         far=(vol.depths[-1] / norm.scale).float(),
         K=cams.K[0].float(),
@@ -159,13 +153,10 @@ class MVSPrior:
         near, far = nf_s[0], nf_s[1]
         zh = _depth_coord(view, z, near, far)
         valid = valid & (near >= _MIN_Z) & (far >= _MIN_Z) & (zh.abs() <= _Z_LIMIT)
-        # trilinear, align_corners=True, zero padding: index coordinates in the zero-bordered
-        # volume (+1), clamped there (trilinear_sample); invalid points read 0 below anyway.
-        # grid_sample's 3-D CPU kernel runs on one thread for one volume; the gather does not.
-        D, H, W = view.prob.shape
-        grid3 = torch.stack([(uh + 1.0) * (0.5 * (W - 1)), (vh + 1.0) * (0.5 * (H - 1)),
-                             (zh + 1.0) * (0.5 * (D - 1))], dim=-1) + 1.0  # (N, 3) x, y, d
-        cost = trilinear_sample(view.prob_padded[None], grid3)[:, 0]
+        zh = torch.where(valid, zh, torch.full_like(zh, -99.0))
+        grid3 = torch.stack([uh, vh, zh], dim=-1)[None, None, None]  # (1, 1, 1, N, 3)
+        cost = F.grid_sample(view.prob[None, None], grid3, mode="bilinear",
+                             padding_mode="zeros", align_corners=True)[0, 0, 0, 0]
         return torch.where(valid, cost, torch.zeros_like(cost)), valid
 
     @torch.no_grad()
