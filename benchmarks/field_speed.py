@@ -95,7 +95,7 @@ def _fwd_bwd(field: SurfaceModel, b) -> Callable[[], None]:
 
 
 def _adam(field: SurfaceModel) -> Callable[[], None]:
-    opt = torch.optim.Adam(field.parameters(), lr=1e-3)
+    opt = torch.optim.Adam(field.parameters(), lr=1e-3, foreach=False)
     for p in field.parameters():
         p.grad = torch.zeros_like(p)
 
