@@ -123,8 +123,9 @@ def trilinear_sample(grid: Tensor, u: Tensor) -> Tensor:
     Returns:
         (N, C) values, equal to ``grid_sample(mode="bilinear", align_corners=True)``.
 
-    Why not ``grid_sample``: on the CPU its 3-D kernels split the work over the batch only, so
-    one grid runs on one thread, and its backward is the slowest op of a training step. The
+    Why not ``grid_sample``: on the CPU its 3-D kernels split the work over the batch only
+    (``at::parallel_for(0, N, ...)`` in ATen's GridSampler.cpp), so one grid runs on one thread,
+    and its backward was the slowest op of a training step. The
     gather and its backward (an index-add of N x 8 x C values) run multi-threaded, and the
     weights make the backward one product instead of the seven lerps' chain
     (benchmarks/results/field_speed.md).
