@@ -6,15 +6,15 @@ the field at its full grid resolution. Variants, each with its own trainer, time
 blocks of steps (the machine is shared; ratios in one run are what counts):
 
 - "current": the code as it is;
-- "previous": the three parts below as they were before session 13;
+- "previous": the four parts below as they were before session 13;
 - "previous X": only part X as it was.
 
 Parts: "features" (the colour feature grids read with ``F.grid_sample`` instead of
-`trilinear_sample`), "clip" (the per-tensor finite check, ``nan_to_num_`` and
-``clip_grad_norm_``), "adam" (``torch.optim.Adam`` with the per-tensor loop instead of the fused
-kernel). The same gather for the stage-1 probability volumes (one channel) was slower than
-``grid_sample`` (40 against 30 ms for the three volumes at a step's 41k samples), so the prior
-lookup keeps ``grid_sample``.
+`trilinear_sample`), "prior" (each stage-1 volume read by one ``F.grid_sample`` batch entry,
+i.e. one thread, instead of one entry per thread), "clip" (the per-tensor finite check,
+``nan_to_num_`` and ``clip_grad_norm_``), "adam" (``torch.optim.Adam`` with the per-tensor loop
+instead of the fused kernel). A corner gather for the one-channel volumes was also tried and was
+slower than ``grid_sample`` (40 against 30 ms for the three volumes at a step's 41k samples).
 
 Run (from the repo root), on a finished `svolsdf reconstruct` folder of the fast preset:
 
@@ -43,10 +43,10 @@ from svolsdf.config import load_config
 from svolsdf.field.init import init_grid_from_mvs
 from svolsdf.optimize.trainer import Trainer
 from svolsdf.pipeline import Pipeline
-from svolsdf.prior.consistency import MVSPrior
+from svolsdf.prior.consistency import _MIN_Z, _Z_LIMIT, MVSPrior, _depth_coord, _project
 
 REPO = Path(__file__).resolve().parents[1]
-PARTS = ("features", "clip", "adam")
+PARTS = ("features", "prior", "clip", "adam")
 
 
 # ---------------------------------------------------------------------- previous versions
@@ -57,6 +57,26 @@ def features_grid_sample(self, p: torch.Tensor) -> torch.Tensor:
     feats = [F.grid_sample(fg[None], g, mode="bilinear", align_corners=True).view(fg.shape[0], -1)
              for fg in self.feature_grids]
     return torch.cat(feats, dim=0).T
+
+
+def view_lookup_one_batch(self, i: int, pts: torch.Tensor):
+    """The previous `MVSPrior.view_lookup`: one ``grid_sample`` batch entry (one thread)."""
+    view = self.views[i]
+    uh, vh, z, valid = _project(view, pts)
+    uh = torch.where(valid, uh, torch.full_like(uh, -99.0))
+    vh = torch.where(valid, vh, torch.full_like(vh, -99.0))
+    grid2 = torch.stack([uh, vh], dim=-1)[None, None]
+    nf = torch.stack([view.near, view.far])[None]
+    nf_s = F.grid_sample(nf, grid2, mode="bilinear", padding_mode="zeros",
+                         align_corners=True)[0, :, 0]
+    near, far = nf_s[0], nf_s[1]
+    zh = _depth_coord(view, z, near, far)
+    valid = valid & (near >= _MIN_Z) & (far >= _MIN_Z) & (zh.abs() <= _Z_LIMIT)
+    zh = torch.where(valid, zh, torch.full_like(zh, -99.0))
+    grid3 = torch.stack([uh, vh, zh], dim=-1)[None, None, None]
+    cost = F.grid_sample(view.prob[None, None], grid3, mode="bilinear", padding_mode="zeros",
+                         align_corners=True)[0, 0, 0, 0]
+    return torch.where(valid, cost, torch.zeros_like(cost)), valid
 
 
 def safe_clip_previous(self, params: list[torch.Tensor]) -> None:
@@ -86,6 +106,8 @@ def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
                        unverified_weight=cfg.field.init_unverified_weight)
     if "features" in previous:
         model._features = types.MethodType(features_grid_sample, model)
+    if "prior" in previous:
+        prior.view_lookup = types.MethodType(view_lookup_one_batch, prior)
     t = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=p.make_sampler(prior),
                 out_dir=None, device=p.device, grid_schedule=p._grid_schedule())
     if "clip" in previous:
@@ -151,8 +173,13 @@ def main() -> None:
                      f"{med[k] / med['current']:.2f} |")
     text = "\n".join(lines) + "\n"
     print(text)
+    notes = ""
+    if args.out.is_file():  # hand-written notes (from the first "## Notes" on) are kept
+        old = args.out.read_text()
+        i = old.find("\n## Notes")
+        notes = old[i:] if i >= 0 else ""
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
+    args.out.write_text(text + notes)
 
 
 if __name__ == "__main__":

@@ -75,6 +75,26 @@ def test_lookup_matches_reference(inverse, quirk):
     assert not a[0].requires_grad
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_lookup_is_the_same_split_over_any_number_of_threads(threads):
+    """The volume lookup splits the points into one batch entry per thread (odd counts padded)."""
+    prior = MVSPrior(_volumes(), Normalization(CENTER, SCALE))
+    pts = _points(R=7, S=5)
+    ref_view = torch.tensor([0, 1, 2, 1, 0, 2, 2])
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        a = prior.lookup(pts, ref_view)
+        empty = prior.view_lookup(0, torch.zeros(0, 3))
+    finally:
+        torch.set_num_threads(before)
+    b = lookup_reference(prior, pts, ref_view)
+    assert a[2].equal(b[2]) and (a[0] > 0).any()
+    torch.testing.assert_close(a[0], b[0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(a[1], b[1], atol=1e-5, rtol=0)
+    assert empty[0].shape == (0,) and empty[1].shape == (0,)
+
+
 def test_lookup_known_value_at_pixel_centre_and_quirk_drift():
     """A point on pixel (u, v)'s ray at hypothesis k's depth reads prob[k, v, u] exactly."""
     vols = _volumes(False)

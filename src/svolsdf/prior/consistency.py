@@ -154,9 +154,19 @@ class MVSPrior:
         zh = _depth_coord(view, z, near, far)
         valid = valid & (near >= _MIN_Z) & (far >= _MIN_Z) & (zh.abs() <= _Z_LIMIT)
         zh = torch.where(valid, zh, torch.full_like(zh, -99.0))
-        grid3 = torch.stack([uh, vh, zh], dim=-1)[None, None, None]  # (1, 1, 1, N, 3)
-        cost = F.grid_sample(view.prob[None, None], grid3, mode="bilinear",
-                             padding_mode="zeros", align_corners=True)[0, 0, 0, 0]
+        g = torch.stack([uh, vh, zh], dim=-1)  # (N, 3)
+        # grid_sample's 3-D CPU kernel parallelises over the batch only (ATen GridSampler.cpp),
+        # so the points are split into one batch entry per thread over the same (expanded, not
+        # copied) volume: identical values, 1.5x faster on two cores (train_step_speed.md)
+        parts = max(1, torch.get_num_threads()) if g.device.type == "cpu" else 1
+        n = g.shape[0]
+        m = -(-n // parts)
+        if m * parts != n:
+            g = torch.cat([g, g.new_full((m * parts - n, 3), -99.0)])
+        D, H, W = view.prob.shape
+        cost = F.grid_sample(view.prob[None, None].expand(parts, 1, D, H, W),
+                             g.view(parts, 1, 1, m, 3), mode="bilinear", padding_mode="zeros",
+                             align_corners=True).reshape(-1)[:n]
         return torch.where(valid, cost, torch.zeros_like(cost)), valid
 
     @torch.no_grad()
