@@ -141,9 +141,9 @@ class Trainer:
         else:
             groups = [{"params": list(self.model.parameters()), "lr": self.cfg.lr}]
         # METHOD.md 4.6: Adam, default betas, constant learning rate. The fused kernel does the
-        # same update in one pass per tensor: on the fast preset's dense grids (~15 M
-        # parameters) it measured ~6x faster than the per-tensor loop on the CPU
-        # (benchmarks/results/field_speed.md).
+        # same update in one pass per tensor: on the fast preset's dense grids (~11 M
+        # parameters) it measured ~6x faster than the per-tensor loop on the CPU, 1.36x on a
+        # whole step (benchmarks/results/train_step_speed.md).
         fused = all(p.device.type in ("cpu", "cuda") and p.dtype.is_floating_point
                     for g in groups for p in g["params"])
         self.optimizer = torch.optim.Adam(groups, fused=fused or None)
@@ -305,8 +305,9 @@ class Trainer:
         """NaN-safe update (METHOD.md 4.6 / 9.2.8): zero every gradient if any is non-finite,
         else clip their global norm to ``grad_clip`` (if > 0).
 
-        The global norm is non-finite exactly when some gradient is, so one pass over the
-        gradients decides both. With ``host_branch`` (the default on the CPU, where reading a
+        The global norm is non-finite exactly when some gradient is (or when finite gradients
+        are so large that their norm overflows, which is treated the same), so one pass over
+        the gradients decides both. With ``host_branch`` (the default on the CPU, where reading a
         value is free) the decision is a Python branch; otherwise the flag stays on the device
         and multiplies the gradients (no device-host sync per step).
         """
