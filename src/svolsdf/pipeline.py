@@ -610,9 +610,12 @@ class Pipeline:
 
     # ------------------------------------------------------------------ rendering
     @torch.no_grad()
-    def render_views(self, cameras_unit, near_far=None, chunk: int = 2048, keys=("depth",
+    def render_views(self, cameras_unit, near_far=None, chunk: int = 4096, keys=("depth",
                      "opacity", "rgb", "normals")) -> dict[str, torch.Tensor]:
         """Render every camera of ``cameras_unit`` with the field (eval-mode sampler).
+
+        ``chunk`` rays at a time: 4096 rendered the fast field ~10 % faster than 2048 or 8192
+        on two cores (benchmarks/results/train_step_speed.md, session-13 notes).
 
         Returns:
             dict of (V, H, W, ...) tensors: depth (unit-frame z-depth), opacity, rgb, normals.
