@@ -125,16 +125,14 @@ def trilinear_sample(grid: Tensor, u: Tensor) -> Tensor:
 
     Why not ``grid_sample``: on the CPU its 3-D kernels split the work over the batch only
     (``at::parallel_for(0, N, ...)`` in ATen's GridSampler.cpp), so one grid runs on one thread,
-    and its backward was the slowest op of a training step. The
-    gather and its backward (an index-add of N x 8 x C values) run multi-threaded, and the
-    weights make the backward one product instead of the seven lerps' chain
-    (benchmarks/results/field_speed.md).
+    and its backward was the slowest op of a training step. The gather and its backward (an
+    index-add of N x 8 x C values) run multi-threaded, and the weights make the backward one
+    product instead of the seven lerps' chain (benchmarks/results/train_step_speed.md).
     """
     _check_grid_points(grid, u)
     C = grid.shape[0]
     idx, f = _corners(u, tuple(grid.shape[1:]))
-    one = torch.ones_like(f)
-    wx, wy, wz = (torch.stack([one[:, k] - f[:, k], f[:, k]], dim=-1) for k in range(3))
+    wx, wy, wz = (torch.stack([1.0 - f[:, k], f[:, k]], dim=-1) for k in range(3))  # (N, 2)
     w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(1, -1, 8)
     c = grid.reshape(C, -1).index_select(1, idx.reshape(-1)).view(C, -1, 8)
     return (c * w).sum(-1).T
