@@ -343,3 +343,43 @@ def test_a_finished_field_loads_without_its_stage1_volumes(tiny_run, tmp_path):
     assert torch.equal(m1.bounds.cpu(), m2.bounds.cpu())
     x = (torch.rand(500, 3) * 2 - 1) * 0.8
     assert torch.allclose(m1.sdf(x.to(p.device)).cpu(), m2.sdf(x.to(p2.device)).cpu())
+
+
+def test_guide_is_rendered_only_near_the_masks(tiny_run):
+    """`output.guide_mask_dilation`: `render_views` with ``pixels`` renders exactly those pixels
+    (equal to the full render there, 0 elsewhere), and the guide's pixels are the dilated masks
+    (None: every pixel; a view with an empty mask is rendered whole)."""
+    from dataclasses import replace
+
+    from svolsdf.fusion.filter import dilate_mask
+
+    out, _, p = tiny_run
+    scene = p.load()
+    assert p._guide_pixels() is None or p.cfg.output.guide_mask_dilation is not None
+    cfg = p.cfg
+    try:
+        p.cfg = replace(cfg, output=replace(cfg.output, guide_mask_dilation=3))
+        pix = p._guide_pixels()
+        m = scene.masks[:, 0] > 0.5
+        assert pix.shape == m.shape and pix.dtype == torch.bool
+        for i in range(len(m)):
+            assert torch.equal(pix[i], dilate_mask(m[i], 3))
+        assert pix.any((1, 2)).all() and (~pix).any()
+        nf = p.unit_near_far().to(p.device)
+        full = p.render_views(scene.cameras_unit, nf)
+        part = p.render_views(scene.cameras_unit, nf, pixels=pix)
+        for k in ("depth", "opacity", "rgb", "normals"):
+            sel = pix if full[k].ndim == 3 else pix[..., None].expand_as(full[k])
+            torch.testing.assert_close(part[k][sel], full[k][sel], rtol=1e-5, atol=1e-5)
+            assert (part[k][~sel] == 0).all()
+        masks = scene.masks
+        scene.masks = masks.clone()
+        scene.masks[0] = 0
+        try:
+            assert p._guide_pixels()[0].all()
+        finally:
+            scene.masks = masks
+        p.cfg = replace(cfg, output=replace(cfg.output, guide_mask_dilation=None))
+        assert p._guide_pixels() is None
+    finally:
+        p.cfg = cfg

@@ -105,8 +105,11 @@ class TrainConfig:
     """svolsdf (MVS prior + losses) | volsdf (the same model without the prior) | mvs-only."""
     ablation: str | None = None
     """None | soft-consistency-only | mse | no-prob-volume | ce (paper ablations)."""
-    steps: int = 500
-    """Optimization steps (fast preset: 500 from the MVS-initialised grid)."""
+    steps: int = 1000
+    """Optimization steps (fast preset: 1000 from the MVS-initialised grid; 500 until session
+    14, when the faster step made 1000 affordable: points Chamfer lower on five synthetic
+    scenes, ratio to the MVS backbone alone -0.012 to -0.025, benchmarks/results/
+    fast_preset.md, session-14 notes)."""
     rays: int = 512
     """Rays per step, from one random input view (METHOD.md 4.6)."""
     object_ray_fraction: float = 0.0
@@ -213,6 +216,11 @@ class OutputConfig:
     OUT/unguided/{depth,confidence}/<view>.npy."""
     use_masks: bool = True
     """Apply (dilated) object masks when the scene has them (METHOD.md 6.3)."""
+    guide_mask_dilation: int | None = None
+    """Render the guide depth (METHOD.md 6.1) only inside the object masks dilated by this many
+    pixels; the other pixels count as rendered with no surface (weight 0, so
+    ``low_weight_rule`` applies). None = every pixel (released). Scenes without masks render
+    every pixel."""
     low_weight_rule: str = "max"
     """Rendered-depth pixels with weight < 0.2: max (the map's maximum depth, released) |
     mvs (keep the stage-1 MVS depth)."""
@@ -282,6 +290,11 @@ def _fast() -> Config:
     # and the mesh keeps the surface the input views see: with the line above, the unseen
     # interior holds cavities (mesh Chamfer 3.8 -> 2.6 / 3.3 -> 2.1 / 3.8 -> 2.0 / 4.2 -> 2.9)
     c.output.mesh_cull_unseen = True
+    # the guide depth is rendered only within 32 px of the object masks (fusion keeps the
+    # guided depth within 4 px and the unguided set within 12): the guide stage 4.35x faster
+    # on the seed-0 scene (benchmarks/results/guide_speed.md), points Chamfer unchanged within
+    # noise on five synthetic scenes (fast_preset.md, session-14 notes)
+    c.output.guide_mask_dilation = 32
     return c
 
 

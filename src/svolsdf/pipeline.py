@@ -228,7 +228,9 @@ class Pipeline:
         # every key chains from this one: a new release recomputes rather than mixing versions
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
-        k_guide = _hash(k_field, c["output"]["low_weight_rule"])
+        k_guide = _hash(k_field, c["output"]["low_weight_rule"],
+                        *([c["output"]["guide_mask_dilation"]]
+                          if c["output"].get("guide_mask_dilation") is not None else []))
         k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"])
         k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
         k_fusion = _hash(k_mvs23, {k: v for k, v in c["output"].items() if k.startswith("fusion")
@@ -611,11 +613,16 @@ class Pipeline:
     # ------------------------------------------------------------------ rendering
     @torch.no_grad()
     def render_views(self, cameras_unit, near_far=None, chunk: int = 4096, keys=("depth",
-                     "opacity", "rgb", "normals")) -> dict[str, torch.Tensor]:
+                     "opacity", "rgb", "normals"),
+                     pixels: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Render every camera of ``cameras_unit`` with the field (eval-mode sampler).
 
         ``chunk`` rays at a time: 4096 rendered the fast field ~10 % faster than 2048 or 8192
         on two cores (benchmarks/results/train_step_speed.md, session-13 notes).
+
+        Args:
+            pixels: optional (V, H, W) bool; only these pixels are rendered, the others get 0
+                in every map (depth, opacity, colour and normal).
 
         Returns:
             dict of (V, H, W, ...) tensors: depth (unit-frame z-depth), opacity, rgb, normals.
@@ -638,6 +645,10 @@ class Pipeline:
                 far = rays.far if background is not None else torch.minimum(
                     rays.far, near_far[t, 1] / rays.cos)
                 rays.far = torch.maximum(far, rays.near + 1e-3)
+            sel = None
+            if pixels is not None:
+                sel = pixels[t].reshape(-1).nonzero()[:, 0].to(self.device)
+                rays = rays[sel]
             parts = {k: [] for k in keys}
             for i in range(0, len(rays), chunk):
                 rb = rays[i:i + chunk]
@@ -648,6 +659,10 @@ class Pipeline:
                     parts[k].append(getattr(o, k).detach().cpu())
             for k in keys:
                 v = torch.cat(parts[k])
+                if sel is not None:
+                    full = v.new_zeros((H * W, *v.shape[1:]))
+                    full[sel.cpu()] = v
+                    v = full
                 res[k].append(v.reshape(H, W, *v.shape[1:]))
         return {k: torch.stack(v) for k, v in res.items()}
 
@@ -676,7 +691,9 @@ class Pipeline:
         for pixels of accumulated weight < 0.2."""
         scene = self.load()
         s = scene.normalization.scale
-        r = self.render_views(scene.cameras_unit, self.unit_near_far().to(self.device))
+        pixels = self._guide_pixels()
+        r = self.render_views(scene.cameras_unit, self.unit_near_far().to(self.device),
+                              pixels=pixels)
         guide = {}
         for i, v in enumerate(self.views):
             d = r["depth"][i] * s
@@ -692,6 +709,20 @@ class Pipeline:
             if previews:
                 self._render_previews(v, r, i)
         return guide
+
+    def _guide_pixels(self) -> torch.Tensor | None:
+        """(V, H, W) bool: the pixels whose guide depth is rendered, the object masks dilated by
+        ``output.guide_mask_dilation`` px (None: every pixel, as released; also without masks)."""
+        r = self.cfg.output.guide_mask_dilation
+        scene = self.load()
+        if r is None or scene.masks is None or not self.cfg.output.use_masks:
+            return None
+        from svolsdf.fusion.filter import dilate_mask
+
+        m = scene.masks[:, 0] > 0.5
+        # a view whose mask is empty is rendered whole (its guide then follows the rule alone)
+        return torch.stack([dilate_mask(m[i], int(r)) if bool(m[i].any())
+                            else torch.ones_like(m[i]) for i in range(len(m))])
 
     def _finer_stage_cascade(self, guide: dict[int, torch.Tensor]) -> dict:
         """The paper's optional optimization at the finer stages (METHOD.md 9.2.13; the released
