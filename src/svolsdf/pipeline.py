@@ -719,7 +719,10 @@ class Pipeline:
             return None
         from svolsdf.fusion.filter import dilate_mask
 
-        m = scene.masks[:, 0] > 0.5
+        m = scene.masks[:, 0].float()
+        if tuple(m.shape[-2:]) != (scene.height, scene.width):  # the rendered size
+            m = F.interpolate(m[:, None], size=(scene.height, scene.width), mode="nearest")[:, 0]
+        m = m > 0.5
         # a view whose mask is empty is rendered whole (its guide then follows the rule alone)
         return torch.stack([dilate_mask(m[i], int(r)) if bool(m[i].any())
                             else torch.ones_like(m[i]) for i in range(len(m))])
