@@ -107,9 +107,9 @@ class TrainConfig:
     """None | soft-consistency-only | mse | no-prob-volume | ce (paper ablations)."""
     steps: int = 1000
     """Optimization steps (fast preset: 1000 from the MVS-initialised grid; 500 until session
-    14, when the faster step made 1000 affordable: points Chamfer lower on five synthetic
-    scenes, ratio to the MVS backbone alone -0.012 to -0.025, benchmarks/results/
-    fast_preset.md, session-14 notes)."""
+    14, when the faster step made 1000 affordable. Paired runs: points Chamfer lower by
+    0.01-0.09 mm on five of six synthetic scenes, 0.02 mm higher on one; ~2 min more on two
+    cores (benchmarks/results/fast_preset.md, session-14 notes)."""
     rays: int = 512
     """Rays per step, from one random input view (METHOD.md 4.6)."""
     object_ray_fraction: float = 0.0
