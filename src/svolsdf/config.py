@@ -127,8 +127,8 @@ class TrainConfig:
     lr_sdf: float = 3e-4
     """grid field: learning rate of the SDF grid when it starts from the MVS surface (per node:
     keep it well below a cell size, or Adam's normalized steps roughen the surface). 3e-4 lets
-    the surface move ~0.15 unit-frame units per 500 steps (tuned at 500); 1e-4 held it within a few mm of the
-    MVS initialisation (benchmarks/results/fast_preset.md, notes)."""
+    the surface move ~0.15 unit-frame units per 500 steps (tuned at 500 steps); 1e-4 held it
+    within a few mm of the MVS initialisation (benchmarks/results/fast_preset.md, notes)."""
     lr_sdf_sphere: float = 1e-3
     """grid field: learning rate of the SDF grid when it starts from a sphere (volsdf mode,
     field.init = sphere): the surface has to travel, not just be refined."""
