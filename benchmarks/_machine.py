@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import platform
+from pathlib import Path
 
-__all__ = ["cpu_name", "peak_rss_gb"]
+__all__ = ["cpu_name", "peak_rss_gb", "write_results"]
 
 
 def cpu_name() -> str:
@@ -24,3 +25,15 @@ def peak_rss_gb() -> float:
     from svolsdf.pipeline import peak_rss_gb as _peak
 
     return _peak()
+
+
+def write_results(path: Path, text: str) -> None:
+    """Write a results file: the generated ``text``, then the hand-written notes the file already
+    has (everything from its first "## Notes" heading on), which a rerun keeps."""
+    notes = ""
+    if path.is_file():
+        old = path.read_text()
+        i = old.find("\n## Notes")
+        notes = old[i:] if i >= 0 else ""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text + notes)

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _machine import cpu_name, peak_rss_gb
+from _machine import cpu_name, peak_rss_gb, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -316,13 +316,7 @@ def main() -> None:
                          f"{p['overall'] / p0['overall']:.2f} | "
                          f"{p['overall_dtu_rule'] / p0['overall_dtu_rule']:.2f} | "
                          f"{f(m.get('overall'))} | {f(m.get('overall_dtu_rule'))} |")
-    notes = ""
-    if results.is_file():  # hand-written notes (from the first "## Notes" on) are kept
-        old = results.read_text()
-        i = old.find("\n## Notes")
-        notes = old[i:] if i >= 0 else ""
-    results.parent.mkdir(parents=True, exist_ok=True)
-    results.write_text("\n".join(lines) + "\n" + notes)
+    write_results(results, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

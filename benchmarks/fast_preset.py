@@ -51,7 +51,7 @@ import time
 from pathlib import Path
 
 # benchmarks/_machine.py (the script's folder is on sys.path)
-from _machine import cpu_name, peak_rss_gb
+from _machine import cpu_name, peak_rss_gb, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -561,12 +561,7 @@ def main() -> None:
                   "`python benchmarks/novel_views_dtu.py` (benchmarks/results/novel_views_dtu.md);"
                   " `--dtu` here runs a shorter version."]
     args.results.parent.mkdir(parents=True, exist_ok=True)
-    notes = ""
-    if args.results.is_file():  # hand-written notes (from the first "## Notes" on) are kept
-        old = args.results.read_text()
-        i = old.find("\n## Notes")
-        notes = old[i:] if i >= 0 else ""
-    args.results.write_text("\n".join(lines) + "\n" + notes)
+    write_results(args.results, "\n".join(lines) + "\n")
     (args.results.with_suffix(".json")).write_text(
         json.dumps({"runs": runs, "more": more, "dtu": dtu}, indent=1))
     print("\n".join(lines))

@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_name
+from _machine import cpu_name, write_results
 
 from svolsdf.render.novel import open_run
 
@@ -91,14 +91,7 @@ def main() -> None:
         *rows,
         "",
     ])
-    notes = ""
-    if args.out.is_file():
-        old = args.out.read_text()
-        i = old.find("\n## Notes")
-        if i >= 0:
-            notes = old[i:]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + notes)
+    write_results(args.out, text)
     print(text)
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from _machine import cpu_name
+from _machine import cpu_name, write_results
 
 from svolsdf.mvs.planesweep import box_filter, sgm_aggregate
 
@@ -168,13 +168,7 @@ def main() -> None:
                   f"- `svolsdf reconstruct {args.scene} --mode mvs-only`: {wall:.0f} s wall "
                   f"(process start included); stages (s): {st}"]
         print(lines[-1], flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    notes = ""
-    if args.out.is_file():  # keep hand-written notes below the generated part
-        old = args.out.read_text()
-        if "\n## Notes" in old:
-            notes = old[old.index("\n## Notes"):]
-    args.out.write_text("\n".join(lines) + "\n" + notes)
+    write_results(args.out, "\n".join(lines) + "\n")
     print(f"wrote {args.out}")
 
 

@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_name
+from _machine import cpu_name, write_results
 
 from svolsdf.config import load_config
 from svolsdf.field.init import init_grid_from_mvs
@@ -173,13 +173,7 @@ def main() -> None:
                      f"{med[k] / med['current']:.2f} |")
     text = "\n".join(lines) + "\n"
     print(text)
-    notes = ""
-    if args.out.is_file():  # hand-written notes (from the first "## Notes" on) are kept
-        old = args.out.read_text()
-        i = old.find("\n## Notes")
-        notes = old[i:] if i >= 0 else ""
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + notes)
+    write_results(args.out, text)
 
 
 if __name__ == "__main__":

@@ -228,9 +228,11 @@ class Pipeline:
         # every key chains from this one: a new release recomputes rather than mixing versions
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
-        k_guide = _hash(k_field, c["output"]["low_weight_rule"],
-                        *([c["output"]["guide_mask_dilation"]]
-                          if c["output"].get("guide_mask_dilation") is not None else []))
+        # guide_mask_dilation enters only when set, so runs that render every pixel keep the
+        # keys they had before the option existed (their stages are reused)
+        gmd = c["output"]["guide_mask_dilation"]
+        k_guide = _hash(k_field, c["output"]["low_weight_rule"], *([gmd] if gmd is not None
+                                                                       else []))
         k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"])
         k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
         k_fusion = _hash(k_mvs23, {k: v for k, v in c["output"].items() if k.startswith("fusion")
@@ -645,10 +647,10 @@ class Pipeline:
                 far = rays.far if background is not None else torch.minimum(
                     rays.far, near_far[t, 1] / rays.cos)
                 rays.far = torch.maximum(far, rays.near + 1e-3)
-            sel = None
+            sel = None  # (R,) indices of the rendered pixels, on the CPU
             if pixels is not None:
-                sel = pixels[t].reshape(-1).nonzero()[:, 0].to(self.device)
-                rays = rays[sel]
+                sel = pixels[t].reshape(-1).nonzero()[:, 0].cpu()
+                rays = rays[sel.to(self.device)]
             parts = {k: [] for k in keys}
             for i in range(0, len(rays), chunk):
                 rb = rays[i:i + chunk]
@@ -661,7 +663,7 @@ class Pipeline:
                 v = torch.cat(parts[k])
                 if sel is not None:
                     full = v.new_zeros((H * W, *v.shape[1:]))
-                    full[sel.cpu()] = v
+                    full[sel] = v
                     v = full
                 res[k].append(v.reshape(H, W, *v.shape[1:]))
         return {k: torch.stack(v) for k, v in res.items()}
@@ -719,10 +721,7 @@ class Pipeline:
             return None
         from svolsdf.fusion.filter import dilate_mask
 
-        m = scene.masks[:, 0].float()
-        if tuple(m.shape[-2:]) != (scene.height, scene.width):  # the rendered size
-            m = F.interpolate(m[:, None], size=(scene.height, scene.width), mode="nearest")[:, 0]
-        m = m > 0.5
+        m = scene.masks[:, 0] > 0.5  # (V, H, W) at the working size, as the cameras
         # a view whose mask is empty is rendered whole (its guide then follows the rule alone)
         return torch.stack([dilate_mask(m[i], int(r)) if bool(m[i].any())
                             else torch.ones_like(m[i]) for i in range(len(m))])
