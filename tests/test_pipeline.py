@@ -180,6 +180,31 @@ def test_backbone_defaults_and_weights_enter_the_stage_keys(tiny_run, monkeypatc
         backbone_signature("planesweep", no_such_field=1)
 
 
+def test_guide_network_enters_only_the_guided_stages_key(tiny_run, tmp_path):
+    """mvs.guide_network changes only the guided stages 2-3 (and what follows them), and only
+    for a backbone that can start from a depth; the plane sweep's keys ignore it."""
+    from dataclasses import replace
+
+    _, _, p = tiny_run
+    base = p.cfg  # the fixture is shared: put its config back
+    before = p._keys()
+    try:
+        p.cfg = replace(base, mvs=replace(base.mvs, guide_network=False))
+        assert p._keys() == before  # the plane sweep cannot start from a depth
+        w = tmp_path / "w.pt"
+        w.write_bytes(b"1")
+        pm = {}
+        for g in (True, False):
+            p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet",
+                                              weights=str(w), guide_network=g))
+            assert p._backbone_kwargs()["guide_init"] is g
+            pm[g] = p._keys()
+    finally:
+        p.cfg = base
+    changed = {k for k in pm[True] if pm[True][k] != pm[False][k]}
+    assert changed == {"mvs23", "fusion"}, changed
+
+
 def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
     cfg = _tiny_cfg(tiny_scene)
     cfg.scene.views = [0, 1, 99]

@@ -71,6 +71,11 @@ class MVSConfig:
     the released code feeds at most 5 views, the reference and 4 sources); 0 = every other input
     view. Three inputs use both others either way; with more inputs the cap keeps the MVS time
     linear in the number of views (`svolsdf.mvs.backbone.select_sources`)."""
+    guide_network: bool = True
+    """Backbones that can start from a depth map (patchmatchnet): rerun the network from the
+    field's guide depth at the guided stage 2, so that the surface guides the network itself, as
+    it replaces CasMVSNet's stage-1 depth (`svolsdf.mvs.adapters`). false: the network runs once
+    per view and the guide only centres the hypotheses. Other backbones ignore it."""
 
 
 @dataclass

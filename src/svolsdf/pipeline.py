@@ -223,8 +223,13 @@ class Pipeline:
         c = asdict(self.cfg)
         # the backbone's full config (defaults included) and weights file: a changed default
         # or a replaced checkpoint must not reuse cached volumes
-        c["mvs"] = {**c["mvs"], "signature": backbone_signature(
-            self.cfg.mvs.backbone, weights=self.cfg.mvs.weights, **self._backbone_kwargs())}
+        sig = backbone_signature(self.cfg.mvs.backbone, weights=self.cfg.mvs.weights,
+                                 **self._backbone_kwargs())
+        # mvs.guide_network (the adapters' guide_init) changes only the guided stages 2-3: it
+        # enters their key alone, and only for the backbones that take it
+        guide_init = sig["config"].pop("guide_init", None)
+        c["mvs"] = {**{k: v for k, v in c["mvs"].items() if k != "guide_network"},
+                    "signature": sig}
         # every key chains from this one: a new release recomputes rather than mixing versions
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
@@ -233,7 +238,8 @@ class Pipeline:
         gmd = c["output"]["guide_mask_dilation"]
         k_guide = _hash(k_field, c["output"]["low_weight_rule"], *([gmd] if gmd is not None
                                                                        else []))
-        k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"])
+        k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
+                        *([guide_init] if guide_init is not None else []))
         k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
         k_fusion = _hash(k_mvs23, {k: v for k, v in c["output"].items() if k.startswith("fusion")
                                    or k == "use_masks"},
@@ -361,7 +367,15 @@ class Pipeline:
         if m.backbone == "planesweep":
             return {"num_depths": nd, "width": m.width, **common}
         # casmvsnet and the depth + confidence adapters share these names
-        return {"ndepths": nd, "width_mode": m.width, **common}
+        kw = {"ndepths": nd, "width_mode": m.width, **common}
+        from dataclasses import fields
+
+        from svolsdf.mvs.backbone import backbone_config_class
+
+        cls = backbone_config_class(m.backbone)
+        if cls is not None and "guide_init" in {f.name for f in fields(cls)}:
+            kw["guide_init"] = m.guide_network
+        return kw
 
     def backbone(self):
         from svolsdf.mvs.backbone import get_backbone

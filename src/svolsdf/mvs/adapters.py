@@ -20,10 +20,20 @@ every backbone's.
 The network runs once per reference view (at the scene's working size, or ``net_size``); each stage
 only rebuilds the distribution on its own hypotheses, centred on the guide depth or the previous
 stage's depth at stages 2-3 like the cascade.
+
+A network that can start from a depth map (``can_start_from_depth``: PatchmatchNet) is also run a
+second time when stage 2 gets a guide depth (the optimized surface's rendered depth, METHOD.md
+6.1), starting from that guide instead of its own initialisation (``AdapterConfig.guide_init``).
+That is this family's form of S-VolSDF's guidance: the surface replaces the network's coarse
+estimate, as it replaces CasMVSNet's stage-1 depth. Stages 2 and 3 of that cascade then centre
+their Laplacian on the guided prediction. Without it, a guide only moves the hypotheses, and the
+distribution still sits on the network's unguided depth (its mass on the end bins where the two
+disagree).
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import warnings
 from abc import abstractmethod
@@ -145,6 +155,12 @@ class AdapterConfig:
     """(W, H) at which the network runs; None: the scene's working size."""
     device: str = "cpu"
     """Torch device of the network."""
+    guide_init: bool = True
+    """A network that can start from a depth map (PatchmatchNet) reruns from the guide depth
+    when stage 2 gets one, and stages 2-3 follow that prediction (module docstring). False: the
+    network runs once per view, unguided, and the guide only centres the hypotheses. Seed-0
+    synthetic scene, PatchmatchNet, the (d) fusion recipe: points Chamfer 2.37 mm (network
+    alone) -> 1.57 mm guided (benchmarks/results/fast_preset.md, session-15 notes)."""
 
 
 class DepthConfidenceAdapter(MVSBackbone):
@@ -155,6 +171,8 @@ class DepthConfidenceAdapter(MVSBackbone):
     """
 
     config_class = AdapterConfig
+    can_start_from_depth: bool = False
+    """True when :meth:`predict` uses ``init_depth`` (see `AdapterConfig.guide_init`)."""
 
     def __init__(self, config: AdapterConfig | None = None, **cfg):
         self.config = config or AdapterConfig(**cfg)
@@ -166,29 +184,46 @@ class DepthConfidenceAdapter(MVSBackbone):
             )
         self._pred: dict = {}
         self._pred_key = None
+        # view id -> (the last volume made for it, the depth and confidence its Laplacian sits
+        # on): a stage whose ``prev`` is that volume keeps following the same prediction
+        self._made: dict[int, tuple[ProbabilityVolume, Tensor, Tensor]] = {}
 
     @abstractmethod
-    def predict(self, images: Tensor, cameras: Cameras, depth_range: tuple[float, float]
-                ) -> tuple[Tensor, Tensor]:
+    def predict(self, images: Tensor, cameras: Cameras, depth_range: tuple[float, float],
+                init_depth: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Depth and confidence of the first view.
 
         Args:
             images: (V, 3, H, W) in [0, 1], the reference first, then its sources.
             cameras: V cameras at (W, H), world units.
             depth_range: the reference's (near, far) z-depth.
+            init_depth: optional (H, W) world z-depth to start from instead of the network's
+                own initialisation; only passed when ``can_start_from_depth``.
 
         Returns:
             depth (H, W) world z-depth and confidence (H, W) in [0, 1].
         """
 
-    def prediction(self, scene: Scene, vid: int) -> tuple[Tensor, Tensor]:
-        """Cached :meth:`predict` of view ``vid`` at the working size: depth, confidence (H, W)."""
+    def prediction(self, scene: Scene, vid: int, guide: Tensor | None = None
+                   ) -> tuple[Tensor, Tensor]:
+        """Cached :meth:`predict` of view ``vid`` at the working size: depth, confidence (H, W).
+
+        Args:
+            guide: optional (H', W') world z-depth the network starts from (resized to the
+                size the network runs at); only used when ``can_start_from_depth`` and
+                ``config.guide_init``, else the unguided prediction is returned.
+        """
         key = (id(scene.images), tuple(scene.view_ids))
         if self._pred_key != key or scene.images is None:
             if scene.images is None:
                 raise InputError(f"{scene.path}: the scene was loaded without images")
             self._pred, self._pred_key = {"images": scene.images}, key  # keep id() alive
-        if vid not in self._pred:
+        use_guide = guide is not None and self.can_start_from_depth and self.config.guide_init
+        cache = vid
+        if use_guide:
+            guide = torch.as_tensor(guide, dtype=torch.float32).cpu()
+            cache = (vid, hashlib.blake2b(guide.numpy().tobytes(), digest_size=16).hexdigest())
+        if cache not in self._pred:
             i = scene.index(vid)
             order = [i] + [scene.index(v) for v in
                            select_sources(scene, vid, self.config.max_sources)]
@@ -200,12 +235,16 @@ class DepthConfidenceAdapter(MVSBackbone):
                                        antialias=H < scene.height).clamp_(0, 1)
                 cams = cams.resize(W, H)
             near, far = (float(x) for x in scene.depth_range[i])
+            init = None
+            if use_guide:
+                init = F.interpolate(guide[None, None], size=(H, W), mode="nearest")[0, 0]
+                init = init.to(self.config.device)
             depth, conf = self.predict(images, cams.to(self.config.device, torch.float32),
-                                       (near, far))
+                                       (near, far), **({"init_depth": init} if use_guide else {}))
             depth = upsample_depth(depth.float().cpu(), scene.width, scene.height)
             conf = upsample_depth(conf.float().cpu(), scene.width, scene.height)
-            self._pred[vid] = (depth, conf)
-        return self._pred[vid]
+            self._pred[cache] = (depth, conf)
+        return self._pred[cache]
 
     @torch.no_grad()
     def stage(
@@ -220,7 +259,10 @@ class DepthConfidenceAdapter(MVSBackbone):
 
         Hypotheses: stage 1 planes over the depth range; stages 2-3 centred on
         ``guide_depth[view]`` or ``prev[view].depth`` (METHOD.md 2.5). Probabilities:
-        :func:`laplacian_prob` with scale from the confidence (module docstring).
+        :func:`laplacian_prob` with scale from the confidence (module docstring), on the
+        network's prediction: the guided one (`AdapterConfig.guide_init`) when this stage has a
+        guide, or when ``prev[view]`` is a volume this adapter made from the guided one; else
+        the unguided one.
         """
         if k not in (1, 2, 3):
             raise ValueError(f"stage must be 1, 2 or 3, got {k}")
@@ -233,7 +275,13 @@ class DepthConfidenceAdapter(MVSBackbone):
         for vid in ref_ids:
             i = scene.index(vid)
             near, far = (float(x) for x in scene.depth_range[i])
-            depth, conf = self.prediction(scene, vid)
+            made = self._made.get(vid)
+            if k > 1 and guide_depth is not None and vid in guide_depth:
+                depth, conf = self.prediction(scene, vid, guide=guide_depth[vid])
+            elif k > 1 and prev is not None and made is not None and prev.get(vid) is made[0]:
+                depth, conf = made[1], made[2]
+            else:
+                depth, conf = self.prediction(scene, vid)
             mu = _resize(depth, Wk, Hk)
             c = _resize(conf, Wk, Hk)
             if k == 1:
@@ -255,6 +303,7 @@ class DepthConfidenceAdapter(MVSBackbone):
             prob = laplacian_prob(depths, mu, b)
             out.append(volume_from_prob(prob, depths, cams[i], vid, k,
                                         self.config.inverse_depth and k == 1))
+            self._made[vid] = (out[-1], depth, conf)
         return out
 
 
@@ -286,7 +335,15 @@ class PatchmatchNetBackbone(DepthConfidenceAdapter):
     extrinsics (1, V, 4, 4) world-to-camera, depth_min (1,), depth_max (1,))`` returns the depth
     (1, 1, H, W), the photometric confidence (1, H, W) and per-stage depths. It resizes inputs to
     multiples of 8 itself; we do that beforehand with our camera convention.
+
+    With ``init_depth`` the same submodules run in the same order as that forward, except that
+    the coarsest PatchMatch stage (1/8 resolution) gets the depth to start from, so its first
+    iteration samples around it (``patchmatch_num_sample`` inverse-depth offsets) instead of
+    uniformly over [depth_min, depth_max] (:meth:`_forward_from`). The module's forward has no
+    argument for it; nothing is re-implemented but the loop over its stages.
     """
+
+    can_start_from_depth = True
 
     def __init__(self, module, config: AdapterConfig | None = None, **cfg):
         super().__init__(config, **cfg)
@@ -312,8 +369,8 @@ class PatchmatchNetBackbone(DepthConfidenceAdapter):
         return cls(module, config)
 
     @torch.no_grad()
-    def predict(self, images: Tensor, cameras: Cameras, depth_range: tuple[float, float]
-                ) -> tuple[Tensor, Tensor]:
+    def predict(self, images: Tensor, cameras: Cameras, depth_range: tuple[float, float],
+                init_depth: Tensor | None = None) -> tuple[Tensor, Tensor]:
         V, _, H, W = images.shape
         W8, H8 = max(8, round(W / 8) * 8), max(8, round(H / 8) * 8)
         if (W8, H8) != (W, H):
@@ -324,14 +381,61 @@ class PatchmatchNetBackbone(DepthConfidenceAdapter):
         K = cameras.K.float().clone()[None]  # the module scales its intrinsics in place
         E = cameras.w2c.float()[None]
         near, far = depth_range
+        d_min = torch.tensor([near], dtype=torch.float32, device=dev)
+        d_max = torch.tensor([far], dtype=torch.float32, device=dev)
+        imgs = [images[v: v + 1] for v in range(V)]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # torch.meshgrid indexing notice
-            depth, conf, _ = self.module(
-                [images[v: v + 1] for v in range(V)], K, E,
-                torch.tensor([near], dtype=torch.float32, device=dev),
-                torch.tensor([far], dtype=torch.float32, device=dev),
-            )
+            if init_depth is None:
+                depth, conf, _ = self.module(imgs, K, E, d_min, d_max)
+            else:
+                init = F.interpolate(init_depth.float()[None, None], size=(H8 // 8, W8 // 8),
+                                     mode="nearest").clamp(near, far)
+                depth, conf = self._forward_from(imgs, K, E, d_min, d_max, init)
         depth, conf = depth[0, 0], conf[0]
         if (W8, H8) != (W, H):
             depth, conf = upsample_depth(depth, W, H), upsample_depth(conf, W, H)
         return depth, conf
+
+    def _forward_from(self, images: list[Tensor], K: Tensor, E: Tensor, d_min: Tensor,
+                      d_max: Tensor, init: Tensor) -> tuple[Tensor, Tensor]:
+        """The module's forward (eval mode), its coarsest PatchMatch stage started at ``init``.
+
+        Args:
+            images: V tensors (1, 3, H, W), H and W multiples of 8, the reference first.
+            K: (1, V, 3, 3) intrinsics at (W, H); E: (1, V, 4, 4) world-to-camera.
+            d_min, d_max: (1,) the reference's depth range.
+            init: (1, 1, H/8, W/8) z-depth within the range, or an empty tensor: the
+                forward's own random initialisation (the same result as the forward for the
+                same random state).
+
+        Returns:
+            depth (1, 1, H, W) and photometric confidence (1, H, W), as the forward's.
+        """
+        m = self.module
+        feats = [m.feature(img) for img in images]  # each {stage: (1, C, H_s, W_s)}
+        depth, view_weights, score = init, torch.empty(0), torch.empty(0)
+        scale = 0.125
+        for stage in (3, 2, 1):  # 1/8, 1/4, 1/2 resolution
+            K_s = K.clone()
+            K_s[:, :, :2] *= scale
+            proj = E.clone()
+            proj[:, :, :3, :4] = K_s @ E[:, :, :3, :4]
+            projs = proj.unbind(1)
+            scale *= 2
+            depths, score, view_weights = getattr(m, f"patchmatch_{stage}")(
+                feats[0][stage], [f[stage] for f in feats[1:]], projs[0], list(projs[1:]),
+                d_min, d_max, depth, view_weights)
+            depth = depths[-1].detach()
+            if stage > 1:
+                depth = F.interpolate(depth, scale_factor=2.0, mode="nearest")
+                view_weights = F.interpolate(view_weights, scale_factor=2.0, mode="nearest")
+        depth = m.upsample_net(images[0], depth, d_min, d_max)
+        # photometric confidence as the forward computes it: the last stage's score summed over
+        # the 4 samples around its regressed sample index
+        n = score.shape[1]
+        s4 = F.avg_pool3d(F.pad(score[:, None], (0, 0, 0, 0, 1, 2)), (4, 1, 1), stride=1)[:, 0] * 4
+        idx = (score * torch.arange(n, dtype=score.dtype, device=score.device).view(1, -1, 1, 1)
+               ).sum(1, keepdim=True).long().clamp(0, n - 1)
+        conf = F.interpolate(torch.gather(s4, 1, idx), size=depth.shape[-2:], mode="nearest")
+        return depth, conf[:, 0]

@@ -40,6 +40,7 @@ __all__ = [
     "MVSBackbone",
     "get_backbone",
     "backbone_signature",
+    "backbone_config_class",
     "register_backbone",
     "available_backbones",
     "stage_size",
@@ -160,6 +161,11 @@ def _backbone_class(name: str) -> type[MVSBackbone]:
         module, attr = _BUILTIN[name].split(":")
         cls = getattr(importlib.import_module(module), attr)
     return cls
+
+
+def backbone_config_class(name: str) -> type | None:
+    """The config dataclass of the backbone called ``name`` (None if it has none)."""
+    return _backbone_class(name).config_class
 
 
 def backbone_signature(name: str, weights=None, **cfg) -> dict:
