@@ -155,6 +155,9 @@ class AdapterConfig:
     """(W, H) at which the network runs; None: the scene's working size."""
     device: str = "cpu"
     """Torch device of the network."""
+    seed: int = 0
+    """A network that draws random initial samples (PatchmatchNet) draws them for view ``v``
+    under the seed ``seed + v``, with the global random state left as it was: runs repeat."""
     guide_init: bool = True
     """A network that can start from a depth map (PatchmatchNet) reruns from the guide depth
     when stage 2 gets one, and stages 2-3 follow that prediction (module docstring). False: the
@@ -239,8 +242,12 @@ class DepthConfidenceAdapter(MVSBackbone):
             if use_guide:
                 init = F.interpolate(guide[None, None], size=(H, W), mode="nearest")[0, 0]
                 init = init.to(self.config.device)
-            depth, conf = self.predict(images, cams.to(self.config.device, torch.float32),
-                                       (near, far), **({"init_depth": init} if use_guide else {}))
+            dev = torch.device(self.config.device)
+            with torch.random.fork_rng(devices=[dev] if dev.type == "cuda" else []):
+                torch.manual_seed(self.config.seed + int(vid))
+                depth, conf = self.predict(images, cams.to(self.config.device, torch.float32),
+                                           (near, far),
+                                           **({"init_depth": init} if use_guide else {}))
             depth = upsample_depth(depth.float().cpu(), scene.width, scene.height)
             conf = upsample_depth(conf.float().cpu(), scene.width, scene.height)
             self._pred[cache] = (depth, conf)
