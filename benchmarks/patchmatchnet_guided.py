@@ -142,7 +142,7 @@ def main() -> None:
         dtu_text += [f"- {k}: stages (s) {_timing(v)}" for k, v in runs.items()] + [""]
 
     cmd = "python benchmarks/patchmatchnet_guided.py " + " ".join(
-        [f"--seeds {' '.join(map(str, args.seeds))}"]
+        ([f"--seeds {' '.join(map(str, args.seeds))}"] if args.seeds else ["--seeds"])
         + ([f"--scenes {' '.join(map(str, args.scenes))}"] if args.scenes else [])
         + (["--dtu"] if args.dtu else []) + [f"--out {args.out}"])
     text = "\n".join([
