@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import platform
+from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["cpu_name", "peak_rss_gb", "write_results"]
+__all__ = ["copy_run", "cpu_name", "peak_rss_gb", "write_results"]
 
 
 def cpu_name() -> str:
@@ -37,3 +38,20 @@ def write_results(path: Path, text: str) -> None:
         notes = old[i:] if i >= 0 else ""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text + notes)
+
+
+def copy_run(src: Path, dst: Path, edit: Callable) -> Path:
+    """A fresh copy of the run folder ``src`` at ``dst`` whose config.yaml ``edit(cfg)`` changes
+    in place; `svolsdf reconstruct --config dst/config.yaml -o dst` then reruns only the stages
+    whose keys the change touches. Returns ``dst``."""
+    import shutil
+
+    from svolsdf.config import load_config, save_config
+
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst)
+    cfg = load_config(dst / "config.yaml")
+    edit(cfg)
+    save_config(cfg, dst / "config.yaml")
+    return dst

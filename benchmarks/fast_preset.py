@@ -51,7 +51,7 @@ import time
 from pathlib import Path
 
 # benchmarks/_machine.py (the script's folder is on sys.path)
-from _machine import cpu_name, peak_rss_gb, write_results
+from _machine import copy_run, cpu_name, peak_rss_gb, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -111,17 +111,8 @@ def _score(scene: Path, out: Path) -> dict:
 def _guided_only(scene: Path, d_out: Path) -> dict:
     """(d)'s points without the unguided set (`output.fusion_unguided` off): the guided stages
     2-3 alone, as the paper fuses. A copy of (d)'s folder in which only fusion reruns."""
-    import shutil
-
-    from svolsdf.config import load_config, save_config
-
-    g = d_out.parent / (d_out.name + "_guided_only")
-    if g.exists():
-        shutil.rmtree(g)
-    shutil.copytree(d_out, g)
-    cfg = load_config(g / "config.yaml")
-    cfg.output.fusion_unguided = False
-    save_config(cfg, g / "config.yaml")
+    g = copy_run(d_out, d_out.parent / (d_out.name + "_guided_only"),
+                 lambda cfg: setattr(cfg.output, "fusion_unguided", False))
     _reconstruct(scene, g, "--config", str(g / "config.yaml"))
     views = json.loads((g / "views.json").read_text())["inputs"]
     timing = json.loads((g / "timing.json").read_text())

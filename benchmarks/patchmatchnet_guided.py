@@ -32,13 +32,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 # benchmarks/_machine.py (the script's folder is on sys.path)
-from _machine import cpu_name, write_results
+from _machine import copy_run, cpu_name, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -53,20 +52,13 @@ def _run(*args: str) -> None:
 
 def _three_runs(scene: Path, out: Path, weights: Path, *extra: str) -> dict[str, Path]:
     """(a), (d) and (d0) folders of ``scene`` under ``out`` (made or reused)."""
-    from svolsdf.config import load_config, save_config
-
     common = ("--backbone", "patchmatchnet", "--weights", str(weights), "--no-progress", *extra)
     a, d, d0 = out.with_name(out.name + "_a"), out.with_name(out.name + "_d"), \
         out.with_name(out.name + "_d0")
     _run("reconstruct", str(scene), "-o", str(a), "--mode", "mvs-only", *common)
     _run("reconstruct", str(scene), "-o", str(d), *common)
     if not (d0 / "points.ply").is_file():
-        if d0.exists():
-            shutil.rmtree(d0)
-        shutil.copytree(d, d0)
-        cfg = load_config(d0 / "config.yaml")
-        cfg.mvs.guide_network = False
-        save_config(cfg, d0 / "config.yaml")
+        copy_run(d, d0, lambda cfg: setattr(cfg.mvs, "guide_network", False))
     _run("reconstruct", "--config", str(d0 / "config.yaml"), "-o", str(d0), "--no-progress")
     return {"(a) network alone": a, "(d) network started from the guide": d,
             "(d0) network unguided, guide centres the hypotheses": d0}
@@ -144,7 +136,7 @@ def main() -> None:
     cmd = "python benchmarks/patchmatchnet_guided.py " + " ".join(
         ([f"--seeds {' '.join(map(str, args.seeds))}"] if args.seeds else ["--seeds"])
         + ([f"--scenes {' '.join(map(str, args.scenes))}"] if args.scenes else [])
-        + (["--dtu"] if args.dtu else []) + [f"--out {args.out}"])
+        + ([f"--dtu --pgt {args.pgt}"] if args.dtu else []) + [f"--out {args.out}"])
     text = "\n".join([
         "# PatchmatchNet in S-VolSDF: started from the guide depth, or not",
         "",

@@ -170,17 +170,21 @@ def test_patchmatchnet_bad_weights(tmp_path):
         get_backbone("patchmatchnet", weights=junk)
 
 
-def test_patchmatchnet_runs_on_a_tiny_scene():
+@pytest.fixture
+def pm_weights():
+    """The shared PatchmatchNet weights (skips without them), torch on one thread meanwhile."""
     weights = shared_path("weights", "patchmatchnet", "patchmatchnet_dtu_module.pt")
     n = torch.get_num_threads()
     torch.set_num_threads(1)
-    try:
-        bb = get_backbone("patchmatchnet", weights=weights)
-        assert isinstance(bb, PatchmatchNetBackbone)
-        scene, gt = plane_scene(64, 48, depth_range=RANGE)
-        res = run_cascade(bb, scene, ref_ids=[0])
-    finally:
-        torch.set_num_threads(n)
+    yield weights
+    torch.set_num_threads(n)
+
+
+def test_patchmatchnet_runs_on_a_tiny_scene(pm_weights):
+    bb = get_backbone("patchmatchnet", weights=pm_weights)
+    assert isinstance(bb, PatchmatchNetBackbone)
+    scene, gt = plane_scene(64, 48, depth_range=RANGE)
+    res = run_cascade(bb, scene, ref_ids=[0])
     depth, conf = bb.prediction(scene, 0)
     assert depth.shape == (48, 64) and conf.shape == (48, 64)
     assert torch.isfinite(depth).all() and (conf >= 0).all() and (conf <= 1).all()
@@ -193,35 +197,29 @@ def test_patchmatchnet_runs_on_a_tiny_scene():
     assert torch.allclose(v3.prob.sum(0), torch.ones(48, 64), atol=1e-5)
 
 
-def test_patchmatchnet_started_from_a_depth():
-    weights = shared_path("weights", "patchmatchnet", "patchmatchnet_dtu_module.pt")
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        bb = get_backbone("patchmatchnet", weights=weights)
-        scene, gt = plane_scene(256, 192, depth_range=RANGE)
-        imgs = [scene.images[k: k + 1] for k in range(len(scene.view_ids))]
-        K, E = scene.cameras.K.float()[None], scene.cameras.w2c.float()[None]
-        lo, hi = torch.tensor([RANGE[0]]), torch.tensor([RANGE[1]])
-        # the stage loop is the module's forward: same random state, same result
-        torch.manual_seed(0)
-        d1, c1, _ = bb.module(imgs, K.clone(), E, lo, hi)
-        torch.manual_seed(0)
-        d2, c2 = bb._forward_from(imgs, K.clone(), E, lo, hi, torch.empty(0))
-        assert torch.equal(d1, d2) and torch.equal(c1, c2)
-        # started from the true depth it stays near it; from a wrong constant it ends farther
-        # (measured at 256x192: 0.012 against 0.023 median error, range 3.5)
-        good, conf = bb.prediction(scene, 0, guide=gt[0])
-        bad, _ = bb.prediction(scene, 0, guide=torch.full_like(gt[0], 5.8))
-        # the unguided draw is seeded per view and leaves the global random state alone
-        torch.manual_seed(7)
-        u1 = get_backbone("patchmatchnet", weights=weights).prediction(scene, 1)[0]
-        after = torch.rand(3)
-        torch.manual_seed(7)
-        u2 = get_backbone("patchmatchnet", weights=weights).prediction(scene, 1)[0]
-        assert torch.equal(u1, u2) and torch.equal(after, torch.rand(3))
-    finally:
-        torch.set_num_threads(n)
+def test_patchmatchnet_started_from_a_depth(pm_weights):
+    bb = get_backbone("patchmatchnet", weights=pm_weights)
+    scene, gt = plane_scene(256, 192, depth_range=RANGE)
+    imgs = [scene.images[k: k + 1] for k in range(len(scene.view_ids))]
+    K, E = scene.cameras.K.float()[None], scene.cameras.w2c.float()[None]
+    lo, hi = torch.tensor([RANGE[0]]), torch.tensor([RANGE[1]])
+    # the stage loop is the module's forward: same random state, same result
+    torch.manual_seed(0)
+    d1, c1, _ = bb.module(imgs, K.clone(), E, lo, hi)
+    torch.manual_seed(0)
+    d2, c2 = bb._forward_from(imgs, K.clone(), E, lo, hi, torch.empty(0))
+    assert torch.equal(d1, d2) and torch.equal(c1, c2)
+    # started from the true depth it stays near it; from a wrong constant it ends farther
+    # (measured at 256x192: 0.012 against 0.023 median error, range 3.5)
+    good, conf = bb.prediction(scene, 0, guide=gt[0])
+    bad, _ = bb.prediction(scene, 0, guide=torch.full_like(gt[0], 5.8))
+    # the unguided draw is seeded per view and leaves the global random state alone
+    torch.manual_seed(7)
+    u1 = get_backbone("patchmatchnet", weights=pm_weights).prediction(scene, 1)[0]
+    after = torch.rand(3)
+    torch.manual_seed(7)
+    u2 = get_backbone("patchmatchnet", weights=pm_weights).prediction(scene, 1)[0]
+    assert torch.equal(u1, u2) and torch.equal(after, torch.rand(3))
     e_good = float((good - gt[0]).abs().median())
     e_bad = float((bad - gt[0]).abs().median())
     assert e_good < 0.01 * (RANGE[1] - RANGE[0]) and e_bad > 1.5 * e_good
