@@ -45,6 +45,11 @@ def test_bad_inputs_exit_2_with_one_line(scene, tmp_path, capsys):
     assert code == 2 and "stepz" in out.err
     code, out = _run(["reconstruct", str(tmp_path / "nope"), "-o", str(tmp_path / "o3")], capsys)
     assert code == 2 and "nope" in out.err
+    # usage errors: click's message and exit code 2, not a traceback
+    code, out = _run(["mvs", str(scene), "--bogus"], capsys)
+    assert code == 2 and "No such option: --bogus" in out.err and "Traceback" not in out.err
+    code, out = _run(["reconstruct", str(scene), "--steps", "abc"], capsys)
+    assert code == 2 and "--steps" in out.err and "Traceback" not in out.err
 
 
 def test_reconstruct_mvs_only_and_config_roundtrip(scene, tmp_path, capsys):

@@ -481,10 +481,11 @@ def main(argv: list[str] | None = None) -> None:
     except typer.Abort:
         print("aborted", file=sys.stderr)
         raise SystemExit(130) from None
-    except Exception as e:  # click usage errors
-        import click
-
-        if isinstance(e, click.ClickException):
+    except Exception as e:
+        # click's usage errors (an unknown option, a bad value): the message, not a traceback.
+        # Recognised by their interface: typer >= 0.2x raises its vendored copy of click's
+        # classes, older typer the click package's own
+        if callable(getattr(e, "show", None)) and isinstance(getattr(e, "exit_code", None), int):
             e.show()
             raise SystemExit(e.exit_code) from None
         raise
