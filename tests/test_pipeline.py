@@ -205,6 +205,45 @@ def test_guide_network_enters_only_the_guided_stages_key(tiny_run, tmp_path):
     assert changed == {"mvs23", "fusion"}, changed
 
 
+def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
+    """output.fusion_network: a backbone that can start from a depth map is started from the
+    guide; its depth joins fusion as a third set. Only the fusion stage reruns."""
+    import shutil
+
+    from svolsdf.mvs.adapters import DepthConfidenceAdapter
+    from svolsdf.mvs.backbone import register_backbone
+
+    @register_backbone("test_guide_echo")
+    class _Echo(DepthConfidenceAdapter):
+        """Predicts the depth it starts from (nothing without one)."""
+
+        can_start_from_depth = True
+
+        def predict(self, images, cameras, depth_range, init_depth=None):
+            if init_depth is None:
+                raise AssertionError("the fusion network must be started from the guide")
+            return init_depth, torch.full_like(init_depth, 0.9)
+
+    out0, _, p0 = tiny_run
+    out = tmp_path / "run"
+    shutil.copytree(out0, out)
+    cfg = load_config(out / "config.yaml")
+    cfg.output.fusion_network = "test_guide_echo"
+    p = Pipeline(cfg, out, progress=False)
+    p.run()
+    assert set(p.timing) - {"total"} == {"fusion"}, p.timing
+    k0, k1 = p0._keys(), p._keys()
+    assert {k for k in k0 if k0[k] != k1[k]} == {"fusion"}
+    per_set = json.loads((out / "timing.json").read_text())["fusion"]["points_per_set"]
+    assert per_set["network"] > 0 and set(per_set) == {"guided", "unguided", "network"}
+    for v in p.views:  # the echo's depth is the guide
+        guide = np.load(out / "field" / "render_depth" / f"{v}.npy")
+        assert np.allclose(np.load(out / "network" / "depth" / f"{v}.npy"), guide)
+    cfg.output.fusion_network = "planesweep"  # only fusion reruns, and stops there
+    with pytest.raises(InputError, match="cannot start from a depth map"):
+        Pipeline(cfg, out, progress=False).run()
+
+
 def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
     cfg = _tiny_cfg(tiny_scene)
     cfg.scene.views = [0, 1, 99]

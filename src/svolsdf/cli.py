@@ -251,6 +251,10 @@ def reconstruct(
     background: Annotated[bool | None, typer.Option(
         "--background/--no-background",
         help="NeRF++ inverted-sphere background for unbounded scenes (METHOD.md 5.5).")] = None,
+    fusion_network: Annotated[Path | None, typer.Option(
+        "--fusion-network", help="Weights of a PatchmatchNet (TorchScript) to start from the "
+                                 "field's depth and fuse as a further hypothesis "
+                                 "(output.fusion_network).")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
 ) -> None:
     """Reconstruct a scene: MVS, S-VolSDF optimization, guided MVS, fusion and mesh.
@@ -266,6 +270,8 @@ def reconstruct(
         "train.mode": mode, "train.ablation": ablation, "train.steps": steps,
         "device": device, "output.mesh_resolution": mesh_resolution, "train.seed": seed,
         "field.background": background, "threads": threads,
+        "output.fusion_network": None if fusion_network is None else "patchmatchnet",
+        "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
     })
     summary = Pipeline(cfg, out, progress=not no_progress).run()
     typer.echo(f"points: {summary['points']}")

@@ -241,9 +241,16 @@ class Pipeline:
         k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
                         *([guide_init] if guide_init is not None else []))
         k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
-        k_fusion = _hash(k_mvs23, {k: v for k, v in c["output"].items() if k.startswith("fusion")
-                                   or k == "use_masks"},
-                         k_unguided if self._wants_unguided() else None)
+        # fusion_network* enter only when set: runs without it keep their keys
+        fo = {k: v for k, v in c["output"].items() if (k.startswith("fusion") or k == "use_masks")
+              and not (k.startswith("fusion_network") and v is None)}
+        net = None
+        if self._wants_network():
+            net = backbone_signature(self.cfg.output.fusion_network,
+                                     weights=self.cfg.output.fusion_network_weights,
+                                     max_sources=self.cfg.mvs.max_sources)
+        k_fusion = _hash(k_mvs23, fo, k_unguided if self._wants_unguided() else None,
+                         *([net] if net is not None else []))
         k_mesh = _hash(k_field, c["output"]["mesh_resolution"], c["output"]["mesh_format"],
                        k_mvs23 if c["output"]["finer_stage_optimization"] else None,
                        c["output"]["use_masks"],
@@ -856,6 +863,33 @@ class Pipeline:
         self._time("mvs23", t0)
         return depths
 
+    def _wants_network(self) -> bool:
+        """`OutputConfig.fusion_network` applies: set, in svolsdf mode (which has a guide)."""
+        return self.cfg.output.fusion_network is not None and self.cfg.train.mode == "svolsdf"
+
+    def _network_depths(self, guide: dict[int, torch.Tensor]
+                        ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
+        """`OutputConfig.fusion_network`'s depth and confidence of every input view (H, W), the
+        network started from ``guide`` (world z-depth); also written to
+        OUT/network/{depth,confidence}/<view>.npy."""
+        from svolsdf.io.images import write_depth_preview
+        from svolsdf.mvs.backbone import get_backbone
+
+        o = self.cfg.output
+        bb = get_backbone(o.fusion_network, weights=o.fusion_network_weights,
+                          max_sources=self.cfg.mvs.max_sources)
+        if not getattr(bb, "can_start_from_depth", False):
+            raise InputError(f"output.fusion_network: the {o.fusion_network!r} backbone cannot "
+                             "start from a depth map (patchmatchnet can)")
+        scene = self.load()
+        depth, conf = {}, {}
+        for v in self.views:
+            depth[v], conf[v] = bb.prediction(scene, v, guide=guide[v])
+            for sub, m in (("depth", depth[v]), ("confidence", conf[v])):
+                _save_npy(self.out / "network" / sub / f"{v}.npy", m.numpy().astype(np.float32))
+            write_depth_preview(self.out / "network" / "depth" / f"{v}.png", depth[v])
+        return depth, conf
+
     def _wants_unguided(self) -> bool:
         """`OutputConfig.fusion_unguided` applies: svolsdf mode, whose stages 2-3 are guided."""
         return self.cfg.output.fusion_unguided and self.cfg.train.mode == "svolsdf"
@@ -933,13 +967,23 @@ class Pipeline:
                     ds = F.interpolate(ds[None, None], size=tuple(depths[v].shape),
                                        mode="nearest")[0, 0]
                 surface[v] = ds
+        net = net_confs = None
+        if self._wants_network():  # the learned network, started from the guide
+            t1 = time.perf_counter()
+            d, c = self._network_depths(self.stage_guide())
+            net, net_confs = {"network": d}, ({"network": c} if confs is not None else None)
+            log.info("fusion network %s: %d view(s) in %.1f s", o.fusion_network,
+                     len(self.views), time.perf_counter() - t1)
         fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface,
-                                alt_depths=alt, alt_confidences=alt_confs)
+                                alt_depths=alt, alt_confidences=alt_confs,
+                                extra_depths=net, extra_confidences=net_confs)
         extra = {}
-        if alt is not None:
+        if alt is not None or net is not None:
+            sets = {"guided": "", "unguided": ":alt" if alt is not None else None,
+                    "network": ":network" if net is not None else None}
             extra["points_per_set"] = {
-                "guided": sum(fused.stats[v]["points"] for v in self.views),
-                "unguided": sum(fused.stats[f"{v}:alt"]["points"] for v in self.views)}
+                name: sum(fused.stats[f"{v}{sfx}" if sfx else v]["points"] for v in self.views)
+                for name, sfx in sets.items() if sfx is not None}
         pts = fused.points.numpy()
         cols = None if fused.colors is None else fused.colors.numpy()
         write_points_ply(path, pts, cols)

@@ -241,6 +241,39 @@ def test_primary_mask_dilation_narrows_only_the_first_hypothesis():
     assert all(same.stats[v]["points"] == same.stats[f"{v}:alt"]["points"] for v in cams)
 
 
+def test_fusion_extra_hypotheses_per_view():
+    """extra_depths: a named third set is a reference too, a source agrees through it, and it
+    takes the primary (guided) mask dilation."""
+    cams = three_cameras()
+    exact = {v: sphere_depth(c).float() for v, c in cams.items()}
+    none = {v: torch.zeros_like(d) for v, d in exact.items()}
+    first = {0: exact[0].clone(), 1: none[1], 2: none[2]}
+    alt = {v: none[v] for v in cams}
+    net = {0: none[0], 1: none[1], 2: exact[2].clone()}  # only view 2 has the third set
+    two = fuse_depth_maps(first, cams, alt_depths=alt)
+    assert two.points.shape[0] == 0
+    out = fuse_depth_maps(first, cams, alt_depths=alt, extra_depths={"net": net})
+    assert set(out.stats) == {0, 1, 2, "0:alt", "1:alt", "2:alt", "0:net", "1:net", "2:net"}
+    assert out.stats[0]["points"] > 50 and out.stats["2:net"]["points"] > 50
+    assert out.points.shape[0] == sum(s["points"] for s in out.stats.values())
+    # its references take the primary dilation, as the first set's
+    masks = {v: torch.zeros(40, 48) for v in cams}
+    for m in masks.values():
+        m[18:22, 22:26] = 1
+    cfg = FusionConfig(mask_dilation=6, primary_mask_dilation=1)
+    full = {v: d.clone() for v, d in exact.items()}
+    out = fuse_depth_maps(full, cams, masks=masks, cfg=cfg, alt_depths=full,
+                          extra_depths={"net": full})
+    for v in cams:
+        assert out.stats[f"{v}:net"]["points"] == out.stats[v]["points"]
+        assert out.stats[f"{v}:net"]["points"] < out.stats[f"{v}:alt"]["points"]
+    with pytest.raises(ValueError, match="extra_confidences"):
+        fuse_depth_maps(first, cams, confidences={v: torch.ones(40, 48) for v in cams},
+                        extra_depths={"net": net})
+    with pytest.raises(ValueError, match="extra_depths"):
+        fuse_depth_maps(first, cams, extra_depths={"net": {0: net[0]}})
+
+
 def test_fusion_second_hypothesis_per_view():
     """alt_depths: each view's second depth map is a reference too, and a source view agrees
     when either of its maps does (counted once)."""

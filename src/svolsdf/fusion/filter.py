@@ -394,6 +394,8 @@ def fuse_depth_maps(
     surface_depths: dict[int, Tensor] | None = None,
     alt_depths: dict[int, Tensor] | None = None,
     alt_confidences: dict[int, Tensor] | None = None,
+    extra_depths: dict[str, dict[int, Tensor]] | None = None,
+    extra_confidences: dict[str, dict[int, Tensor]] | None = None,
 ) -> FusedPoints:
     """Filter every depth map against the others and fuse the survivors (METHOD.md 6.3).
 
@@ -409,7 +411,9 @@ def fuse_depth_maps(
     of each view is a reference in turn; a source view is consistent when either of its
     hypotheses agrees (it still counts once, and its reprojected depth is the first hypothesis
     that agrees, ``depths`` before ``alt_depths``). The points of both are returned, the
-    ``depths`` references' first.
+    ``depths`` references' first. ``extra_depths`` adds further named hypotheses the same way
+    (after ``alt_depths``; the pipeline's `OutputConfig.fusion_network`); they are guided by the
+    field, so their references take ``cfg.primary_mask_dilation`` as ``depths`` does.
 
     Depth maps may be at another resolution than the cameras, images and masks: cameras are
     resized to the depth size (`Cameras.resize`), masks are dilated at their own resolution and
@@ -428,10 +432,14 @@ def fuse_depth_maps(
         alt_depths: view id -> (H2, W2) second z-depth hypothesis, or None.
         alt_confidences: view id -> (H2, W2) confidence of ``alt_depths``; needed with
             ``alt_depths`` when ``confidences`` are given.
+        extra_depths: name -> (view id -> (H3, W3) z-depth), further hypotheses, or None.
+        extra_confidences: name -> (view id -> (H3, W3) confidence); needed with
+            ``extra_depths`` when ``confidences`` are given.
 
     Returns:
         `FusedPoints` (points (N, 3), colors (N, 3) uint8 or None, normals (N, 3) or None,
-        stats: keyed by view id, and by "<view id>:alt" for the second hypotheses).
+        stats: keyed by view id, by "<view id>:alt" for the second hypotheses and by
+        "<view id>:<name>" for ``extra_depths``).
     """
     cfg = cfg or FusionConfig()
     ids = list(depths)
@@ -441,11 +449,18 @@ def fuse_depth_maps(
     if alt_depths is not None and confidences is not None and alt_confidences is None:
         raise ValueError("alt_depths with confidences needs alt_confidences")
     use_alt = alt_depths is not None
+    extra_depths = extra_depths or {}
+    if extra_depths and confidences is not None and (
+            extra_confidences is None or set(extra_confidences) != set(extra_depths)):
+        raise ValueError("extra_depths with confidences needs extra_confidences of the same sets")
+    extras = [(f"extra_depths[{k!r}]", d) for k, d in extra_depths.items()]
+    if confidences is not None:
+        extras += [(f"extra_confidences[{k!r}]", extra_confidences[k]) for k in extra_depths]
     for name, d in (("cameras", cameras), ("images", images), ("confidences", confidences),
                     ("masks", masks), ("surface_depths", surface_depths if use_surface else None),
                     ("alt_depths", alt_depths),
                     ("alt_confidences", alt_confidences if confidences is not None and use_alt
-                     else None)):
+                     else None), *extras):
         if d is not None and any(v not in d for v in ids):
             missing = [v for v in ids if v not in d]
             raise ValueError(f"{name} has no entry for view(s) {missing}")
@@ -454,18 +469,25 @@ def fuse_depth_maps(
         _check_camera(cameras[v], f"cameras[{v}]")
         if use_alt:
             _check_depth(alt_depths[v], f"alt_depths[{v}]")
-    # view id -> its hypotheses, primary first
-    hyps = {v: [depths[v]] + ([alt_depths[v]] if use_alt else []) for v in ids}
+        for k, d in extra_depths.items():
+            _check_depth(d[v], f"extra_depths[{k!r}][{v}]")
+    # view id -> its hypotheses, primary first; each set's stats suffix and whether the field
+    # guided it (the primary mask dilation)
+    sets = [("", True)] + ([(":alt", False)] if use_alt else []) + \
+        [(f":{k}", True) for k in extra_depths]
+    hyps = {v: [depths[v]] + ([alt_depths[v]] if use_alt else [])
+            + [d[v] for d in extra_depths.values()] for v in ids}
     confs = {v: [confidences[v]] + ([alt_confidences[v]] if use_alt else [])
+             + [extra_confidences[k][v] for k in extra_depths]
              for v in ids} if confidences is not None else None
 
     all_pts, all_cols, all_nrm = [], [], []
     stats: dict = {}
-    for h in range(2 if use_alt else 1):
+    for h, (suffix, guided) in enumerate(sets):
         for ref in ids:
-            key = ref if h == 0 else f"{ref}:alt"
+            key = ref if h == 0 else f"{ref}{suffix}"
             r = _fuse_reference(ref, h, hyps, cameras, images, confs, masks, cfg,
-                                surface_depths if use_surface else None)
+                                surface_depths if use_surface else None, guided)
             all_pts.append(r["points"])
             if r["colors"] is not None:
                 all_cols.append(r["colors"])
@@ -484,9 +506,11 @@ def fuse_depth_maps(
 def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
                     cameras: dict[int, Cameras], images: dict[int, Tensor] | None,
                     confs: dict[int, list[Tensor]] | None, masks: dict[int, Tensor] | None,
-                    cfg: FusionConfig, surface_depths: dict[int, Tensor] | None) -> dict:
+                    cfg: FusionConfig, surface_depths: dict[int, Tensor] | None,
+                    primary: bool) -> dict:
     """Hypothesis ``h`` of view ``ref`` as the reference of `fuse_depth_maps`: its kept points
-    (N, 3), colours (N, 3) uint8 or None, normals (N, 3) or None and stats."""
+    (N, 3), colours (N, 3) uint8 or None, normals (N, 3) or None and stats. ``primary``: its
+    mask takes ``cfg.primary_mask_dilation`` (when set)."""
     d_ref = hyps[ref][h].float()
     H, W = d_ref.shape
     cam_ref = _at_size(cameras[ref], d_ref)
@@ -512,7 +536,7 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         ds = surface_depths[ref].to(d_ref.device).float()
         if tuple(ds.shape) != (H, W):
             raise ValueError(f"surface_depths[{ref}] is {tuple(ds.shape)} but its depth map "
-                             f"({'alt_depths' if h else 'depths'}[{ref}]) is {(H, W)}")
+                             f"(hypothesis {h} of view {ref}) is {(H, W)}")
         on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
         support = count + on_surface.int()
     geo = valid & (support >= cfg.min_consistent)
@@ -522,14 +546,14 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         conf = confs[ref][h].to(d_ref.device)
         conf = conf.reshape(conf.shape[-2:])
         if tuple(conf.shape) != (H, W):
-            name = "confidences" if h == 0 else "alt_confidences"
-            raise ValueError(f"{name}[{ref}] is {tuple(conf.shape)} but its depth map is {(H, W)}")
+            raise ValueError(f"the confidence of hypothesis {h} of view {ref} is "
+                             f"{tuple(conf.shape)} but its depth map is {(H, W)}")
         photo = conf > cfg.conf_thresh
         keep &= photo
     inside = torch.ones_like(geo)
     if masks is not None and cfg.use_masks:
         radius = cfg.mask_dilation
-        if h == 0 and cfg.primary_mask_dilation is not None:
+        if primary and cfg.primary_mask_dilation is not None:
             radius = cfg.primary_mask_dilation
         dil = dilate_mask(masks[ref], radius)
         inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
