@@ -239,9 +239,15 @@ def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
     for v in p.views:  # the echo's depth is the guide
         guide = np.load(out / "field" / "render_depth" / f"{v}.npy")
         assert np.allclose(np.load(out / "network" / "depth" / f"{v}.npy"), guide)
-    cfg.output.fusion_network = "planesweep"  # only fusion reruns, and stops there
+    # checked before any stage runs
+    cfg.output.fusion_network = "planesweep"
     with pytest.raises(InputError, match="cannot start from a depth map"):
-        Pipeline(cfg, out, progress=False).run()
+        Pipeline(cfg, tmp_path / "run2", progress=False).run()
+    cfg.output.fusion_network = "patchmatchnet"
+    cfg.output.fusion_network_weights = str(tmp_path / "none.pt")
+    with pytest.raises(InputError, match="none.pt"):
+        Pipeline(cfg, tmp_path / "run3", progress=False).run()
+    assert not (tmp_path / "run3" / "mvs").exists()
 
 
 def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):

@@ -331,6 +331,8 @@ class Pipeline:
                              "ablation (it optimizes the field against the stage-2 volumes)")
         if mode not in ("svolsdf", "volsdf", "mvs-only"):
             raise InputError(f"unknown mode {mode!r} (svolsdf, volsdf or mvs-only)")
+        if self._wants_network():
+            self._network_backbone()  # bad weights fail now, not after the field's minutes
         # stage keys chain their inputs: a changed config reruns that stage and the later ones
         if mode in ("svolsdf", "mvs-only") or self.cfg.train.ablation:
             self.stage_mvs1()
@@ -867,12 +869,8 @@ class Pipeline:
         """`OutputConfig.fusion_network` applies: set, in svolsdf mode (which has a guide)."""
         return self.cfg.output.fusion_network is not None and self.cfg.train.mode == "svolsdf"
 
-    def _network_depths(self, guide: dict[int, torch.Tensor]
-                        ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
-        """`OutputConfig.fusion_network`'s depth and confidence of every input view (H, W), the
-        network started from ``guide`` (world z-depth); also written to
-        OUT/network/{depth,confidence}/<view>.npy."""
-        from svolsdf.io.images import write_depth_preview
+    def _network_backbone(self):
+        """The `OutputConfig.fusion_network` backbone (its weights loaded and checked)."""
         from svolsdf.mvs.backbone import get_backbone
 
         o = self.cfg.output
@@ -881,6 +879,16 @@ class Pipeline:
         if not getattr(bb, "can_start_from_depth", False):
             raise InputError(f"output.fusion_network: the {o.fusion_network!r} backbone cannot "
                              "start from a depth map (patchmatchnet can)")
+        return bb
+
+    def _network_depths(self, guide: dict[int, torch.Tensor]
+                        ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
+        """`OutputConfig.fusion_network`'s depth and confidence of every input view (H, W), the
+        network started from ``guide`` (world z-depth); also written to
+        OUT/network/{depth,confidence}/<view>.npy."""
+        from svolsdf.io.images import write_depth_preview
+
+        bb = self._network_backbone()
         scene = self.load()
         depth, conf = {}, {}
         for v in self.views:
