@@ -27,10 +27,7 @@ from pathlib import Path
 
 # benchmarks/_machine.py (the script's folder is on sys.path)
 from _machine import copy_run, cpu_name, write_results
-
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
-WEIGHTS = SHARED / "weights/patchmatchnet/patchmatchnet_dtu_module.pt"
+from _network import network_args, score_dtu65
 
 
 def _with_network(d_run: Path, out: Path, weights: Path) -> Path:
@@ -74,16 +71,7 @@ def main() -> None:
                     help="fast-preset runs of synthetic scenes (and their --mode mvs-only runs)")
     ap.add_argument("--dtu", default=None, metavar="D_RUN[:A_RUN]",
                     help="a fast-preset run of ../shared/data/dtu_scan65 (views 25 22 28)")
-    ap.add_argument("--weights", type=Path, default=WEIGHTS)
-    ap.add_argument("--out", type=Path, default=Path("/tmp/fusion_network"))
-    ap.add_argument("--pgt", type=Path, default=Path("/tmp/dtu_pseudo_gt"),
-                    help="cache folder of benchmarks/dtu_pseudo_gt.py (its --out)")
-    ap.add_argument("--results", type=Path,
-                    default=REPO / "benchmarks/results/fusion_network.md")
-    args = ap.parse_args()
-    if not args.weights.is_file():
-        sys.exit(f"{args.weights}: PatchmatchNet weights not found (--weights)")
-    args.out.mkdir(parents=True, exist_ok=True)
+    args = network_args(ap, "/tmp/fusion_network", "fusion_network.md")
 
     rows = []
     for item in args.runs:
@@ -105,17 +93,9 @@ def main() -> None:
     if args.dtu:
         d, a = _pair(args.dtu)
         n = _with_network(d, args.out, args.weights)
-        res = args.out / "dtu_pseudo_gt_scan65.md"
-        runs = ([f"(a) MVS alone={a}"] if a else []) + [f"(d) fast preset={d}",
-                                                        f"(d) + fusion network={n}"]
-        cmd = [sys.executable, str(REPO / "benchmarks/dtu_pseudo_gt.py"),
-               "--scene", str(SHARED / "data/dtu_scan65"), "--out", str(args.pgt),
-               "--results", str(res), "--runs", *runs]
-        print("$", " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True)
-        dtu_text = ["## dtu_scan65 (views 25 22 28) against the 49-view pseudo ground truth", "",
-                    "(benchmarks/dtu_pseudo_gt.py's output follows)", "",
-                    *res.read_text().splitlines()[1:], ""]
+        runs = {**({"(a) MVS alone": a} if a else {}), "(d) fast preset": d,
+                "(d) + fusion network": n}
+        dtu_text = score_dtu65(runs, args.pgt, args.out)
 
     cmd = ("python benchmarks/fusion_network.py"
            + (f" --runs {' '.join(args.runs)}" if args.runs else "")

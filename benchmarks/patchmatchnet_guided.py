@@ -38,10 +38,7 @@ from pathlib import Path
 
 # benchmarks/_machine.py (the script's folder is on sys.path)
 from _machine import copy_run, cpu_name, write_results
-
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
-WEIGHTS = SHARED / "weights/patchmatchnet/patchmatchnet_dtu_module.pt"
+from _network import SHARED, network_args, score_dtu65
 
 
 def _run(*args: str) -> None:
@@ -94,16 +91,7 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="*", type=Path, default=[],
                     help="synthetic scene folders with exact ground truth")
     ap.add_argument("--dtu", action="store_true", help="also ../shared/data/dtu_scan65")
-    ap.add_argument("--weights", type=Path, default=WEIGHTS)
-    ap.add_argument("--out", type=Path, default=Path("/tmp/pm_bench"))
-    ap.add_argument("--pgt", type=Path, default=Path("/tmp/dtu_pseudo_gt"),
-                    help="cache folder of benchmarks/dtu_pseudo_gt.py (its --out)")
-    ap.add_argument("--results", type=Path,
-                    default=REPO / "benchmarks/results/patchmatchnet_guided.md")
-    args = ap.parse_args()
-    if not args.weights.is_file():
-        sys.exit(f"{args.weights}: PatchmatchNet weights not found (--weights)")
-    args.out.mkdir(parents=True, exist_ok=True)
+    args = network_args(ap, "/tmp/pm_bench", "patchmatchnet_guided.md")
 
     scenes = []
     for s in args.seeds:
@@ -122,15 +110,7 @@ def main() -> None:
     if args.dtu:
         sc = SHARED / "data/dtu_scan65"
         runs = _three_runs(sc, args.out / "dtu_scan65", args.weights, "--views", "25", "22", "28")
-        res = args.out / "dtu_pseudo_gt_scan65.md"
-        cmd = [sys.executable, str(REPO / "benchmarks/dtu_pseudo_gt.py"), "--scene", str(sc),
-               "--out", str(args.pgt), "--results", str(res),
-               "--runs", *(f"{k}={v}" for k, v in runs.items())]
-        print("$", " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True)
-        dtu_text = ["## dtu_scan65 (views 25 22 28) against the 49-view pseudo ground truth", "",
-                    f"(`{' '.join(cmd[1:])}`; its output follows)", "",
-                    *res.read_text().splitlines()[1:], ""]
+        dtu_text = score_dtu65(runs, args.pgt, args.out)
         dtu_text += [f"- {k}: stages (s) {_timing(v)}" for k, v in runs.items()] + [""]
 
     cmd = "python benchmarks/patchmatchnet_guided.py " + " ".join(
