@@ -551,7 +551,6 @@ def main() -> None:
                   "dtu_scan65 (views 25 22 28, all 25 DTU test views) are measured by "
                   "`python benchmarks/novel_views_dtu.py` (benchmarks/results/novel_views_dtu.md);"
                   " `--dtu` here runs a shorter version."]
-    args.results.parent.mkdir(parents=True, exist_ok=True)
     write_results(args.results, "\n".join(lines) + "\n")
     (args.results.with_suffix(".json")).write_text(
         json.dumps({"runs": runs, "more": more, "dtu": dtu}, indent=1))

@@ -200,6 +200,7 @@ class Pipeline:
         self._volumes1: list[ProbabilityVolume] | None = None
         self._reg1: tuple | None = None  # (volumes1, their regressed copies)
         self._model = None
+        self._net: tuple | None = None  # (its config, the fusion network's backbone)
 
     # ------------------------------------------------------------------ bookkeeping
     def _state_path(self) -> Path:
@@ -376,13 +377,10 @@ class Pipeline:
         if m.backbone == "planesweep":
             return {"num_depths": nd, "width": m.width, **common}
         # casmvsnet and the depth + confidence adapters share these names
-        kw = {"ndepths": nd, "width_mode": m.width, **common}
-        from dataclasses import fields
-
         from svolsdf.mvs.backbone import backbone_config_class
 
-        cls = backbone_config_class(m.backbone)
-        if cls is not None and "guide_init" in {f.name for f in fields(cls)}:
+        kw = {"ndepths": nd, "width_mode": m.width, **common}
+        if hasattr(backbone_config_class(m.backbone), "guide_init"):  # the adapters' option
             kw["guide_init"] = m.guide_network
         return kw
 
@@ -870,16 +868,20 @@ class Pipeline:
         return self.cfg.output.fusion_network is not None and self.cfg.train.mode == "svolsdf"
 
     def _network_backbone(self):
-        """The `OutputConfig.fusion_network` backbone (its weights loaded and checked)."""
+        """The `OutputConfig.fusion_network` backbone (its weights loaded and checked once per
+        config; `run` asks for it first, the fusion stage reuses it)."""
         from svolsdf.mvs.backbone import get_backbone
 
         o = self.cfg.output
-        bb = get_backbone(o.fusion_network, weights=o.fusion_network_weights,
-                          max_sources=self.cfg.mvs.max_sources)
-        if not getattr(bb, "can_start_from_depth", False):
-            raise InputError(f"output.fusion_network: the {o.fusion_network!r} backbone cannot "
-                             "start from a depth map (patchmatchnet can)")
-        return bb
+        key = (o.fusion_network, o.fusion_network_weights, self.cfg.mvs.max_sources)
+        if self._net is None or self._net[0] != key:
+            bb = get_backbone(o.fusion_network, weights=o.fusion_network_weights,
+                              max_sources=self.cfg.mvs.max_sources)
+            if not getattr(bb, "can_start_from_depth", False):
+                raise InputError(f"output.fusion_network: the {o.fusion_network!r} backbone "
+                                 "cannot start from a depth map (patchmatchnet can)")
+            self._net = (key, bb)
+        return self._net[1]
 
     def _network_depths(self, guide: dict[int, torch.Tensor]
                         ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
@@ -987,11 +989,11 @@ class Pipeline:
                                 extra_depths=net, extra_confidences=net_confs)
         extra = {}
         if alt is not None or net is not None:
-            sets = {"guided": "", "unguided": ":alt" if alt is not None else None,
-                    "network": ":network" if net is not None else None}
+            sets = {"guided": "", **({"unguided": ":alt"} if alt is not None else {}),
+                    **({"network": ":network"} if net is not None else {})}
             extra["points_per_set"] = {
                 name: sum(fused.stats[f"{v}{sfx}" if sfx else v]["points"] for v in self.views)
-                for name, sfx in sets.items() if sfx is not None}
+                for name, sfx in sets.items()}
         pts = fused.points.numpy()
         cols = None if fused.colors is None else fused.colors.numpy()
         write_points_ply(path, pts, cols)
