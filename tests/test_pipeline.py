@@ -205,6 +205,29 @@ def test_guide_network_enters_only_the_guided_stages_key(tiny_run, tmp_path):
     assert changed == {"mvs23", "fusion"}, changed
 
 
+def test_fusion_unguided_dilation_enters_only_the_fusion_key(tiny_run):
+    """output.fusion_unguided_dilation: the fast preset narrows the unguided set's mask to 4 px;
+    the option changes only the fusion key."""
+    from dataclasses import asdict, replace
+
+    from svolsdf.config import preset
+
+    assert preset("fast").output.fusion_unguided_dilation == 4
+    assert preset("paper").output.fusion_unguided_dilation is None
+    _, _, p = tiny_run
+    base = p.cfg
+    keys = {}
+    try:
+        for d in (None, 4, 8):
+            p.cfg = replace(base, output=replace(base.output, fusion_unguided_dilation=d))
+            keys[d] = p._keys()
+    finally:
+        p.cfg = base
+    for a, b in ((None, 4), (4, 8)):
+        assert {k for k in keys[a] if keys[a][k] != keys[b][k]} == {"fusion"}
+    assert "fusion_unguided_dilation" in asdict(base.output)
+
+
 def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
     """output.fusion_network: a backbone that can start from a depth map is started from the
     guide; its depth joins fusion as a third set. Only the fusion stage reruns."""

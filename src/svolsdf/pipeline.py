@@ -242,9 +242,11 @@ class Pipeline:
         k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
                         *([guide_init] if guide_init is not None else []))
         k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
-        # fusion_network* enter only when set: runs without it keep their keys
+        # fusion_network* and fusion_unguided_dilation enter only when set: runs without them
+        # keep their keys
         fo = {k: v for k, v in c["output"].items() if (k.startswith("fusion") or k == "use_masks")
-              and not (k.startswith("fusion_network") and v is None)}
+              and not ((k.startswith("fusion_network") or k == "fusion_unguided_dilation")
+                       and v is None)}
         net = None
         if self._wants_network():
             net = backbone_signature(self.cfg.output.fusion_network,
@@ -942,6 +944,7 @@ class Pipeline:
                             use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
         if self.cfg.train.mode == "svolsdf":  # OUT/depth is the field-guided depth
             fcfg.primary_mask_dilation = o.fusion_guided_dilation
+            fcfg.alt_mask_dilation = o.fusion_unguided_dilation
         sdir = self.out / "field" / "render_depth"
         if self.cfg.output.finer_stage_optimization:
             sdir = self.out / "field" / "stage2" / "render_depth"  # the refined surface

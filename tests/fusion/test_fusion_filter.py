@@ -217,10 +217,11 @@ def test_fusion_surface_counts_as_one_source():
                         surface_depths={v: s[:20] for v, s in surface.items()})
 
 
-def test_primary_mask_dilation_narrows_only_the_first_hypothesis():
+def test_primary_and_alt_mask_dilation_narrow_only_their_hypothesis():
     """primary_mask_dilation: the references of ``depths`` are kept inside masks dilated by it,
-    those of ``alt_depths`` inside masks dilated by mask_dilation, each exactly the pixels of
-    its own dilated mask (every depth is exact, so the geometry keeps them all)."""
+    those of ``alt_depths`` inside masks dilated by mask_dilation (or alt_mask_dilation), each
+    exactly the pixels of its own dilated mask (every depth is exact, so the geometry keeps
+    them all)."""
     cams = three_cameras()
     exact = {v: sphere_depth(c).float() for v, c in cams.items()}
     masks = {v: torch.zeros(40, 48) for v in cams}
@@ -239,6 +240,14 @@ def test_primary_mask_dilation_narrows_only_the_first_hypothesis():
     same = fuse_depth_maps(exact, cams, masks=masks, cfg=FusionConfig(mask_dilation=6),
                            alt_depths=both)
     assert all(same.stats[v]["points"] == same.stats[f"{v}:alt"]["points"] for v in cams)
+    # alt_mask_dilation narrows the second hypothesis alone
+    cfg = FusionConfig(mask_dilation=6, alt_mask_dilation=1)
+    out = fuse_depth_maps(exact, cams, masks=masks, cfg=cfg, alt_depths=both)
+    for v in cams:
+        wide = dilate_mask(masks[v], 6) & (exact[v] > 0)
+        narrow = dilate_mask(masks[v], 1) & (exact[v] > 0)
+        assert out.stats[v]["points"] == int(wide.sum())
+        assert out.stats[f"{v}:alt"]["points"] == int(narrow.sum())
 
 
 def test_fusion_extra_hypotheses_per_view():

@@ -87,6 +87,12 @@ class FusionConfig:
     (`OutputConfig.fusion_guided_dilation`): near the silhouette a guided depth inherits the
     field's errors, which are one 3D surface and so pass the multi-view check."""
 
+    alt_mask_dilation: int | None = None
+    """Dilation radius for the references of ``alt_depths`` (the second hypothesis); None =
+    ``mask_dilation``. The pipeline narrows it for the unguided stages 2-3 in the fast preset
+    (`OutputConfig.fusion_unguided_dilation`): as a second hypothesis beside the guided depth,
+    its points in the rim between the object and the dilated mask were mostly background."""
+
     surface_rel_thresh: float = 0.0
     """With ``surface_depths`` (the optimized surface's depth rendered in each reference view): a
     pixel whose depth lies within this relative difference of the surface's depth counts as one
@@ -413,7 +419,8 @@ def fuse_depth_maps(
     that agrees, ``depths`` before ``alt_depths``). The points of both are returned, the
     ``depths`` references' first. ``extra_depths`` adds further named hypotheses the same way
     (after ``alt_depths``; the pipeline's `OutputConfig.fusion_network`); they are guided by the
-    field, so their references take ``cfg.primary_mask_dilation`` as ``depths`` does.
+    field, so their references take ``cfg.primary_mask_dilation`` as ``depths`` does;
+    ``alt_depths``' references take ``cfg.alt_mask_dilation`` (when set).
 
     Depth maps may be at another resolution than the cameras, images and masks: cameras are
     resized to the depth size (`Cameras.resize`), masks are dilated at their own resolution and
@@ -471,10 +478,13 @@ def fuse_depth_maps(
             _check_depth(alt_depths[v], f"alt_depths[{v}]")
         for k, d in extra_depths.items():
             _check_depth(d[v], f"extra_depths[{k!r}][{v}]")
-    # view id -> its hypotheses, primary first; each set's stats suffix and whether the field
-    # guided it (the primary mask dilation)
-    sets = [("", True)] + ([(":alt", False)] if use_alt else []) + \
-        [(f":{k}", True) for k in extra_depths]
+    # view id -> its hypotheses, primary first; each set's stats suffix and its mask dilation
+    # (the field-guided sets take the primary one)
+    primary = cfg.mask_dilation if cfg.primary_mask_dilation is None \
+        else cfg.primary_mask_dilation
+    second = cfg.mask_dilation if cfg.alt_mask_dilation is None else cfg.alt_mask_dilation
+    sets = [("", primary)] + ([(":alt", second)] if use_alt else []) + \
+        [(f":{k}", primary) for k in extra_depths]
     hyps = {v: [depths[v]] + ([alt_depths[v]] if use_alt else [])
             + [d[v] for d in extra_depths.values()] for v in ids}
     confs = {v: [confidences[v]] + ([alt_confidences[v]] if use_alt else [])
@@ -483,11 +493,11 @@ def fuse_depth_maps(
 
     all_pts, all_cols, all_nrm = [], [], []
     stats: dict = {}
-    for h, (suffix, guided) in enumerate(sets):
+    for h, (suffix, radius) in enumerate(sets):
         for ref in ids:
             key = ref if h == 0 else f"{ref}{suffix}"
             r = _fuse_reference(ref, h, hyps, cameras, images, confs, masks, cfg,
-                                surface_depths if use_surface else None, guided)
+                                surface_depths if use_surface else None, radius)
             all_pts.append(r["points"])
             if r["colors"] is not None:
                 all_cols.append(r["colors"])
@@ -507,10 +517,10 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
                     cameras: dict[int, Cameras], images: dict[int, Tensor] | None,
                     confs: dict[int, list[Tensor]] | None, masks: dict[int, Tensor] | None,
                     cfg: FusionConfig, surface_depths: dict[int, Tensor] | None,
-                    primary: bool) -> dict:
+                    radius: int) -> dict:
     """Hypothesis ``h`` of view ``ref`` as the reference of `fuse_depth_maps`: its kept points
-    (N, 3), colours (N, 3) uint8 or None, normals (N, 3) or None and stats. ``primary``: its
-    mask takes ``cfg.primary_mask_dilation`` (when set)."""
+    (N, 3), colours (N, 3) uint8 or None, normals (N, 3) or None and stats. ``radius``: the
+    dilation of its mask, in pixels."""
     d_ref = hyps[ref][h].float()
     H, W = d_ref.shape
     cam_ref = _at_size(cameras[ref], d_ref)
@@ -552,9 +562,6 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         keep &= photo
     inside = torch.ones_like(geo)
     if masks is not None and cfg.use_masks:
-        radius = cfg.mask_dilation
-        if primary and cfg.primary_mask_dilation is not None:
-            radius = cfg.primary_mask_dilation
         dil = dilate_mask(masks[ref], radius)
         inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
         keep &= inside
