@@ -2,7 +2,8 @@
 
 The guide (METHOD.md 6.1) is the field's rendered depth of each input view. With object masks,
 fusion keeps the field-guided depth only within a few pixels of the masks
-(`OutputConfig.fusion_guided_dilation`, the unguided set within 12 px), so the fast preset
+(`OutputConfig.fusion_guided_dilation`; the unguided set, which does not use the guide, within
+`OutputConfig.fusion_unguided_dilation`), so the fast preset
 renders only the masks dilated by `OutputConfig.guide_mask_dilation` pixels. This times
 `Pipeline.render_views` on a finished run's input views for each dilation, round-robin (the
 machine is shared; ratios in one run are what counts), and reports the share of pixels rendered.
