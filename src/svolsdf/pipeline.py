@@ -91,6 +91,11 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+# OutputConfig fusion options that enter the fusion stage's key only when not None: they came
+# after finished runs, which keep their keys (and their fused points) while the option is unset
+_FUSION_KEYS_WHEN_SET = ("fusion_network", "fusion_network_weights", "fusion_unguided_dilation")
+
+
 def _hash(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
@@ -242,11 +247,9 @@ class Pipeline:
         k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
                         *([guide_init] if guide_init is not None else []))
         k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
-        # fusion_network* and fusion_unguided_dilation enter only when set: runs without them
-        # keep their keys
+        # options added after runs existed enter only when set: those runs keep their keys
         fo = {k: v for k, v in c["output"].items() if (k.startswith("fusion") or k == "use_masks")
-              and not ((k.startswith("fusion_network") or k == "fusion_unguided_dilation")
-                       and v is None)}
+              and not (k in _FUSION_KEYS_WHEN_SET and v is None)}
         net = None
         if self._wants_network():
             net = backbone_signature(self.cfg.output.fusion_network,
