@@ -55,7 +55,8 @@ def test_outputs_are_present_and_valid(tiny_run):
     assert len(views) == 3 and info["size"] == [160, 120]  # working size: height a multiple of 8
     for v in views:
         d = np.load(out / "depth" / f"{v}.npy")
-        assert d.shape == (120, 160) and np.isfinite(d).all()
+        # the plane sweep's MVS size: 2x the working size (METHOD.md 9.2.2)
+        assert d.shape == (240, 320) and np.isfinite(d).all()
         assert (out / "depth" / f"{v}.png").is_file()
     pts = read_ply(out / "points.ply")
     assert len(pts["points"]) > 100 and pts.get("colors") is not None
@@ -205,6 +206,33 @@ def test_guide_network_enters_only_the_guided_stages_key(tiny_run, tmp_path):
     assert changed == {"mvs23", "fusion"}, changed
 
 
+def test_mvs_scale_reaches_the_backbone_and_its_keys(tiny_run, tmp_path):
+    """mvs.scale: the plane sweep's scale, casmvsnet's x2_mvsres (1 or 2), refused by the
+    adapters; a changed scale changes every key (the stage-1 volumes differ)."""
+    from dataclasses import replace
+
+    _, _, p = tiny_run
+    base = p.cfg
+    before = p._keys()
+    try:
+        p.cfg = replace(base, mvs=replace(base.mvs, scale=1.5))
+        assert p._backbone_kwargs()["scale"] == 1.5
+        assert p.backbone().cfg.scale == 1.5
+        after = p._keys()
+        assert all(after[k] != before[k] for k in before)
+        for s, x2 in ((1.0, False), (2.0, True)):
+            p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", scale=s))
+            assert p._backbone_kwargs()["x2_mvsres"] is x2
+        p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", scale=1.5))
+        with pytest.raises(InputError, match="1 or 2"):
+            p._backbone_kwargs()
+        p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet", scale=2.0))
+        with pytest.raises(InputError, match="mvs.scale"):
+            p._backbone_kwargs()
+    finally:
+        p.cfg = base
+
+
 def test_fusion_unguided_dilation_enters_only_the_fusion_key(tiny_run):
     """output.fusion_unguided_dilation: the fast preset narrows the unguided set's mask to 4 px;
     the option changes only the fusion key."""
@@ -335,7 +363,7 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
     assert s2.shape == (120, 160) and np.isfinite(s2).all()
     v = json.loads((out2 / "views.json").read_text())["inputs"][0]
     d = np.load(out2 / "depth" / f"{v}.npy")
-    assert d.shape == (120, 160) and np.isfinite(d).all()
+    assert d.shape == (240, 320) and np.isfinite(d).all()  # the MVS size
     assert not np.array_equal(d, np.load(out / "depth" / f"{v}.npy"))
 
 

@@ -234,6 +234,9 @@ def reconstruct(
     ] = None,
     weights: Annotated[Path | None, typer.Option(
         "--weights", help="Weights of a learned MVS backbone.")] = None,
+    mvs_scale: Annotated[float | None, typer.Option(
+        "--mvs-scale", help="MVS at this multiple of the working size (mvs.scale; default: "
+                            "the backbone's).")] = None,
     mode: Annotated[str | None, typer.Option(
         "--mode", help="svolsdf (default), mvs-only, or volsdf (no MVS prior).")] = None,
     ablation: Annotated[str | None, typer.Option(
@@ -267,9 +270,9 @@ def reconstruct(
     cfg = build_config(scene, config, preset_name, {
         "scene.views": _parse_views(views), "scene.image_size": _parse_size(size),
         "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
-        "train.mode": mode, "train.ablation": ablation, "train.steps": steps,
-        "device": device, "output.mesh_resolution": mesh_resolution, "train.seed": seed,
-        "field.background": background, "threads": threads,
+        "mvs.scale": mvs_scale, "train.mode": mode, "train.ablation": ablation,
+        "train.steps": steps, "device": device, "output.mesh_resolution": mesh_resolution,
+        "train.seed": seed, "field.background": background, "threads": threads,
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
     })
@@ -389,8 +392,8 @@ def mvs(
     """MVS alone: per-view depth, confidence and probability volumes, and a fused point cloud.
 
     Writes OUT/mvs/stage{1,2,3}/<view>.npz, OUT/depth/<view>.npy (+ PNG; stage-3 z-depth in
-    world units at the working size), OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and
-    OUT/mvs.json.
+    world units at the backbone's MVS size, 2x the working size for the plane sweep),
+    OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json.
     """
     from svolsdf.mvs.run import MVSJobConfig, run_mvs
     from svolsdf.scene.synthetic import parse_size

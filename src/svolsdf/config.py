@@ -71,6 +71,11 @@ class MVSConfig:
     the released code feeds at most 5 views, the reference and 4 sources); 0 = every other input
     view. Three inputs use both others either way; with more inputs the cap keeps the MVS time
     linear in the number of views (`svolsdf.mvs.backbone.select_sources`)."""
+    scale: float | None = None
+    """The cascade runs at ``scale`` x the working size (stage 3 at scale x; images upsampled
+    bicubically, as the released code's x2_mvsres, METHOD.md 9.2.2), the field at the working
+    size. planesweep: any scale > 0; casmvsnet: 1 or 2 (its x2_mvsres); the patchmatchnet
+    adapter runs at the working size. None = the backbone's own default."""
     guide_network: bool = True
     """Backbones that can start from a depth map (patchmatchnet): rerun the network from the
     field's guide depth at the guided stage 2, so that the surface guides the network itself, as

@@ -380,11 +380,20 @@ class Pipeline:
         nd = tuple(int(x) for x in m.ndepths)
         common = {"inverse_depth": m.inverse_depth, "max_sources": m.max_sources}
         if m.backbone == "planesweep":
-            return {"num_depths": nd, "width": m.width, **common}
+            return {"num_depths": nd, "width": m.width, **common,
+                    **({"scale": float(m.scale)} if m.scale is not None else {})}
         # casmvsnet and the depth + confidence adapters share these names
         from svolsdf.mvs.backbone import backbone_config_class
 
         kw = {"ndepths": nd, "width_mode": m.width, **common}
+        if m.scale is not None:
+            if not hasattr(backbone_config_class(m.backbone), "x2_mvsres"):
+                raise InputError(f"mvs.scale: the {m.backbone} backbone runs at the working "
+                                 f"size; leave mvs.scale unset (got {m.scale})")
+            if float(m.scale) not in (1.0, 2.0):
+                raise InputError(f"mvs.scale: {m.backbone} runs at 1 or 2 x the working size "
+                                 f"(x2_mvsres), got {m.scale}")
+            kw["x2_mvsres"] = float(m.scale) == 2.0
         if hasattr(backbone_config_class(m.backbone), "guide_init"):  # the adapters' option
             kw["guide_init"] = m.guide_network
         return kw
@@ -977,12 +986,8 @@ class Pipeline:
         surface = None
         if use_surface:
             surface = {}
-            for v in self.views:
-                ds = torch.from_numpy(np.load(sdir / f"{v}.npy")).float()
-                if ds.shape != depths[v].shape:  # nearest: no mixing across depth edges
-                    ds = F.interpolate(ds[None, None], size=tuple(depths[v].shape),
-                                       mode="nearest")[0, 0]
-                surface[v] = ds
+            for v in self.views:  # fuse_depth_maps resizes it to each hypothesis' size
+                surface[v] = torch.from_numpy(np.load(sdir / f"{v}.npy")).float()
         net = net_confs = None
         if self._wants_network():  # the learned network, started from the guide
             t1 = time.perf_counter()

@@ -212,9 +212,11 @@ def test_fusion_surface_counts_as_one_source():
     assert fuse_depth_maps(depths, cams, surface_depths=surface).stats[0]["points"] == 0
     with pytest.raises(ValueError, match="surface_depths"):
         fuse_depth_maps(depths, cams, cfg=cfg, surface_depths={0: surface[0]})
-    with pytest.raises(ValueError, match="surface_depths"):
-        fuse_depth_maps(depths, cams, cfg=cfg,
-                        surface_depths={v: s[:20] for v, s in surface.items()})
+    # a surface at another size is resized (nearest) to each depth map's: twice the size,
+    # each pixel repeated, gives back the same points
+    big = {v: s.repeat_interleave(2, 0).repeat_interleave(2, 1) for v, s in surface.items()}
+    out2 = fuse_depth_maps(depths, cams, cfg=cfg, surface_depths=big)
+    assert torch.equal(out2.points, out.points)
 
 
 def test_primary_and_alt_mask_dilation_narrow_only_their_hypothesis():

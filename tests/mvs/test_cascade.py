@@ -46,7 +46,9 @@ def test_guide_centres_stage2_and_stage3_follows_stage2():
         assert torch.allclose(v3.depths.mean(0), c3, atol=1e-4)  # then on stage 2's depth
         # stage 2 moves from the guide (0.05 off) to the surface, stage 3 refines it
         e2 = (v2.depth - F.interpolate(gt[v2.view_id][None, None], size=v2.depth.shape)[0, 0])
-        e3 = (v3.depth - gt[v3.view_id]).abs().median()
+        # the plane sweep runs at 2x the working size (mvs_size): ground truth by nearest
+        e3 = (v3.depth - F.interpolate(gt[v3.view_id][None, None], size=v3.depth.shape)[0, 0])
+        e3 = e3.abs().median()
         assert float(e2.abs().median()) < 0.035 and float(e3) < 0.02
     # without stage 1, a guide alone starts the cascade at stage 2
     res23 = run_cascade(PlaneSweepBackbone(), scene, guide_depth=guide, stages=(2, 3))
@@ -82,10 +84,10 @@ def test_save_cascade_files_and_roundtrip(tmp_path):
             assert torch.allclose(v.prob, orig.prob, atol=2e-3)  # stored as float16
             assert torch.allclose(v.prob.sum(0), torch.ones(v.depth.shape), atol=1e-5)
     d = np.load(files[0]["depth"])
-    assert d.dtype == np.float32 and d.shape == (24, 32)
+    assert d.dtype == np.float32 and d.shape == (48, 64)  # stage 3 at the MVS size, 2x
     assert np.allclose(d, res[3][0].depth.numpy())
     conf = np.load(files[0]["confidence"])
-    expect = combined_confidence([res[k][0] for k in (1, 2, 3)], 32, 24)
+    expect = combined_confidence([res[k][0] for k in (1, 2, 3)], 64, 48)
     assert np.allclose(conf, expect.numpy()) and conf.max() <= 1 + 1e-6
     assert [p.name for _, p in pictures] == ["0.png", "2.png"]
 
@@ -113,14 +115,15 @@ def test_run_mvs_outputs(tiny_scene, tmp_path):
     s = run_mvs(MVSJobConfig(scene=tiny_scene, out=out, views=[0, 1, 2]))
     assert s["size"] == [64, 48] and s["views"] == [0, 1, 2]
     assert s["hypotheses"] == {"1": 192, "2": 32, "3": 8}
-    assert s["stage_sizes"] == {"1": [16, 12], "2": [32, 24], "3": [64, 48]}
+    # the plane sweep's MVS size is 2x the working size (mvs_size, METHOD.md 9.2.2)
+    assert s["stage_sizes"] == {"1": [32, 24], "2": [64, 48], "3": [128, 96]}
     for v in (0, 1, 2):
         for rel in (f"depth/{v}.npy", f"depth/{v}.png", f"confidence/{v}.npy",
                     f"confidence/{v}.png", f"mvs/stage1/{v}.npz", f"mvs/stage3/{v}.npz"):
             assert (out / rel).is_file(), rel
         d = np.load(out / "depth" / f"{v}.npy")
         near, far = s["depth_range"][str(v)]
-        assert d.shape == (48, 64) and np.isfinite(d).all()
+        assert d.shape == (96, 128) and np.isfinite(d).all()
         # finer stages are not clamped to the range (METHOD.md 2.5): allow their half-widths
         slack = (16 + 2) * (far - near) / 192
         assert (d > near - slack).all() and (d < far + slack).all()
@@ -137,7 +140,7 @@ def test_run_mvs_size_and_bad_input(tiny_scene, tmp_path):
                              depth_range=(300.0, 900.0), fuse=False))
     assert s["size"] == [32, 24] and s["views"] == [2, 0] and "fusion" not in s
     assert s["depth_range"]["2"] == [300.0, 900.0]
-    assert np.load(tmp_path / "o" / "depth" / "2.npy").shape == (24, 32)
+    assert np.load(tmp_path / "o" / "depth" / "2.npy").shape == (48, 64)
     with pytest.raises(InputError, match="0 < near < far"):
         run_mvs(MVSJobConfig(scene=tiny_scene, out=tmp_path / "p", depth_range=(5.0, 1.0)))
     with pytest.raises(InputError, match="at least 2 views"):

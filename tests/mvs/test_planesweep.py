@@ -79,7 +79,8 @@ def test_volume_shapes_and_hypotheses(sphere_run):
     scene, _, _, res = sphere_run
     d_min, d_max = RANGE
     delta = base_interval(d_min, d_max)
-    sizes = {1: (192, 18, 24), 2: (32, 36, 48), 3: (8, 72, 96)}
+    # the MVS size is 2x the working size (PlaneSweepConfig.scale)
+    sizes = {1: (192, 36, 48), 2: (32, 72, 96), 3: (8, 144, 192)}
     for k, vols in res.items():
         assert [v.view_id for v in vols] == [0, 1, 2]
         for v in vols:
@@ -95,7 +96,7 @@ def test_volume_shapes_and_hypotheses(sphere_run):
     # stage 1: 192 fronto-parallel planes over [d_min, d_max] (METHOD.md 2.5)
     planes = res[1][0].depths[:, 0, 0]
     assert torch.allclose(planes, torch.linspace(d_min, d_max, 192), atol=1e-5)
-    assert torch.allclose(res[1][0].depths, planes[:, None, None].expand(-1, 18, 24))
+    assert torch.allclose(res[1][0].depths, planes[:, None, None].expand(-1, 36, 48))
     # stages 2-3: per-pixel, centred on the previous stage's upsampled depth, width D r Δ̄
     for k, (D, r) in {2: (32, 1.0), 3: (8, 0.5)}.items():
         for v, p in zip(res[k], res[k - 1], strict=True):
@@ -106,6 +107,27 @@ def test_volume_shapes_and_hypotheses(sphere_run):
             width = v.depths[-1] - v.depths[0]
             # lower/upper = d -+ (D/2) r Δ̄, so the first and last hypotheses are D r Δ̄ apart
             assert torch.allclose(width, torch.full_like(width, D * r * delta), rtol=1e-4)
+
+
+@pytest.mark.parametrize("scale", [2.0, 1.5])
+def test_scale_runs_the_cascade_at_a_multiple_of_the_working_size(scale):
+    """mvs.scale (METHOD.md 9.2.2, the released x2_mvsres): stage k at scale / 2^(3-k) x the
+    working size, cameras resized with it (pixel-centre convention), depth still accurate."""
+    scene, gt = plane_scene(48, 36, slanted=True, depth_range=RANGE)
+    res = run_cascade(PlaneSweepBackbone(scale=scale), scene)
+    for k, vols in res.items():
+        W, H = round(48 * scale / 2 ** (3 - k)), round(36 * scale / 2 ** (3 - k))
+        for v in vols:
+            assert tuple(v.depth.shape) == (H, W) and tuple(v.prob.shape[1:]) == (H, W)
+            K = scene.cameras.resize(W, H).K[scene.index(v.view_id)]
+            assert torch.allclose(v.cameras.K.reshape(3, 3), K.reshape(3, 3))
+    for i, v in enumerate(res[3]):
+        # gt at 48x36, compared by nearest lookup: the slanted plane's depth changes within a
+        # working pixel, so the bound is the scale-1 test's plus that footprint
+        err = _median_error(v, gt[i], torch.ones_like(gt[i], dtype=torch.bool))
+        assert err < 0.015, f"view {i}: {err:.2%}"
+    with pytest.raises(InputError, match="scale"):
+        PlaneSweepBackbone(scale=0.0)
 
 
 def test_width_released_option():
@@ -119,10 +141,10 @@ def test_width_released_option():
 
 def test_guide_depth_centres_stage2():
     scene, gt = plane_scene(32, 24, depth_range=RANGE)
-    guide = torch.full((12, 16), 4.0)
+    guide = torch.full((12, 16), 4.0)  # any size: resized to the stage's
     v = PlaneSweepBackbone().stage(2, scene, ref_ids=[1], guide_depth={1: guide})[0]
-    assert v.view_id == 1 and v.depths.shape == (32, 12, 16)
-    assert torch.allclose(v.depths.mean(0), torch.full((12, 16), 4.0), atol=1e-5)
+    assert v.view_id == 1 and v.depths.shape == (32, 24, 32)  # stage 2 at 2x / 2
+    assert torch.allclose(v.depths.mean(0), torch.full((24, 32), 4.0), atol=1e-5)
 
 
 @pytest.mark.parametrize("max_sources, expected", [(2, 2), (0, 4), (9, 4)])

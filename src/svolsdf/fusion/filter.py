@@ -434,8 +434,9 @@ def fuse_depth_maps(
         confidences: view id -> (H, W) confidence at the depth resolution, or None.
         masks: view id -> (Hm, Wm) or (1, Hm, Wm) object masks, or None.
         cfg: `FusionConfig`; defaults reproduce the released settings.
-        surface_depths: view id -> (H, W) z-depth of the optimized surface at the depth
-            resolution (<= 0 = none), used when ``cfg.surface_rel_thresh > 0``.
+        surface_depths: view id -> (Hs, Ws) z-depth of the optimized surface (<= 0 = none),
+            used when ``cfg.surface_rel_thresh > 0``; resized (nearest, so that no depth mixes
+            across an edge) to each hypothesis' depth size.
         alt_depths: view id -> (H2, W2) second z-depth hypothesis, or None.
         alt_confidences: view id -> (H2, W2) confidence of ``alt_depths``; needed with
             ``alt_depths`` when ``confidences`` are given.
@@ -544,9 +545,8 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
     on_surface = torch.zeros_like(valid)
     if surface_depths is not None:
         ds = surface_depths[ref].to(d_ref.device).float()
-        if tuple(ds.shape) != (H, W):
-            raise ValueError(f"surface_depths[{ref}] is {tuple(ds.shape)} but its depth map "
-                             f"(hypothesis {h} of view {ref}) is {(H, W)}")
+        if tuple(ds.shape) != (H, W):  # hypotheses may differ in size; nearest: no mixing
+            ds = F.interpolate(ds[None, None], size=(H, W), mode="nearest")[0, 0]
         on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
         support = count + on_surface.int()
     geo = valid & (support >= cfg.min_consistent)

@@ -4,8 +4,10 @@ A backbone turns a `Scene` into per-view `ProbabilityVolume`s, one cascade stage
 (ARCHITECTURE.md "Interfaces"). Every view of the scene is the reference once; its sources are the
 other views of the scene, ordered by ``scene.source_views`` (METHOD.md 1.4).
 
-Stage k (1-based, of ``num_stages`` = 3) works at 1 / 2^(3 - k) of the scene's working size
-(stage 1 at 1/4, stage 2 at 1/2, stage 3 at full size), like CasMVSNet (METHOD.md 1.3, 2.5).
+Stage k (1-based, of ``num_stages`` = 3) works at 1 / 2^(3 - k) of the backbone's MVS size
+(stage 1 at 1/4, stage 2 at 1/2, stage 3 at full size), like CasMVSNet (METHOD.md 1.3, 2.5). The
+MVS size is a multiple of the scene's working size (`mvs_size`): 2x for the plane sweep and for
+CasMVSNet (x2_mvsres), as the released code runs (METHOD.md 9.2.2).
 
 Backbones are created by name with :func:`get_backbone`; the built-in names are resolved lazily
 (no import work happens until a backbone is requested):
@@ -43,6 +45,7 @@ __all__ = [
     "backbone_config_class",
     "register_backbone",
     "available_backbones",
+    "mvs_size",
     "stage_size",
     "stage_cameras",
     "expected_depth",
@@ -188,6 +191,11 @@ def get_backbone(name: str, weights=None, **cfg) -> MVSBackbone:
 
 
 # --------------------------------------------------------------------------- helpers
+def mvs_size(width: int, height: int, scale: float = 1.0) -> tuple[int, int]:
+    """(W, H) of a backbone's finest stage: ``scale`` x the working size, rounded."""
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
 def stage_size(k: int, width: int, height: int, num_stages: int = NUM_STAGES) -> tuple[int, int]:
     """(W_k, H_k) of stage ``k``: the working size divided by 2^(num_stages - k), rounded."""
     if not 1 <= k <= num_stages:

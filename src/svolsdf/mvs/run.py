@@ -5,9 +5,11 @@ as the reference once (METHOD.md 0, 2.5; no field, so stage 2 is centred on stag
 and writes under ``out``::
 
     mvs/stage{1,2,3}/<view id>.npz   compressed `ProbabilityVolume`s (prob as float16)
-    depth/<view id>.npy              stage-3 z-depth, world units, float32 (H, W), working size
+    depth/<view id>.npy              stage-3 z-depth, world units, float32 (H, W), MVS size (the
+                                     backbone's scale x the working size: 2x for the plane
+                                     sweep and CasMVSNet, METHOD.md 9.2.2)
     depth/<view id>.png              the same, colour-coded
-    confidence/<view id>.npy         conf1 * conf2 * conf3 at the working size (METHOD.md 6.2)
+    confidence/<view id>.npy         conf1 * conf2 * conf3 at the MVS size (METHOD.md 6.2)
     confidence/<view id>.png         the same as a grey picture
     points.ply                       MVS-only fused point cloud (METHOD.md 6.3, released settings)
     mvs.json                         backbone, views, size, depth ranges, timings, fusion stats
