@@ -132,9 +132,9 @@ class PlaneSweepConfig:
     """The stages run at ``scale`` x the working size (stage 3 at scale x, stage 1 at scale / 4
     x); images are resized from the working size (bicubic when upsampling, as the released
     code's x2_mvsres, METHOD.md 9.2.2) and the volumes, depth maps and fused points follow.
-    2 against 1 on five synthetic scenes (768x576, 3 views): the backbone alone's points
-    Chamfer 0-20 % lower, the fast preset's 9-30 % lower, for ~2 min more per three-view run
-    (benchmarks/results/fast_preset.md, session-17 notes)."""
+    2 against 1 on six synthetic scenes (768x576, 3 views): the backbone alone's points Chamfer
+    up to 20 % lower (1 % higher on one scene), the fast preset's 9-26 % lower, for ~2.5 min
+    more per three-view run (benchmarks/results/fast_preset.md, session-17 notes)."""
     extra: dict = field(default_factory=dict)
     """Unused; room for experiments without changing the signature."""
 
