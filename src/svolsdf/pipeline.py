@@ -984,10 +984,9 @@ class Pipeline:
             if confs is None:
                 alt_confs = None
         surface = None
-        if use_surface:
-            surface = {}
-            for v in self.views:  # fuse_depth_maps resizes it to each hypothesis' size
-                surface[v] = torch.from_numpy(np.load(sdir / f"{v}.npy")).float()
+        if use_surface:  # fuse_depth_maps resizes it to each hypothesis' size
+            surface = {v: torch.from_numpy(np.load(sdir / f"{v}.npy")).float()
+                       for v in self.views}
         net = net_confs = None
         if self._wants_network():  # the learned network, started from the guide
             t1 = time.perf_counter()
