@@ -233,6 +233,40 @@ def test_mvs_scale_reaches_the_backbone_and_its_keys(tiny_run, tmp_path):
         p.cfg = base
 
 
+def test_mvs_native_images_reaches_the_backbone_and_its_keys(tiny_run, monkeypatch):
+    """mvs.native_images (`Scene.images_at`): passed to the plane sweep and casmvsnet, not to the
+    adapters; set, it changes every key; unset (the default), the keys are those from before the
+    option existed."""
+    from dataclasses import replace
+
+    from svolsdf.mvs import backbone as bb
+
+    _, _, p = tiny_run
+    base = p.cfg
+    assert base.mvs.native_images is False
+    before = p._keys()
+    try:
+        p.cfg = replace(base, mvs=replace(base.mvs, native_images=True))
+        assert p.backbone().cfg.native_images is True
+        assert all(v != before[k] for k, v in p._keys().items())
+        p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", native_images=True))
+        assert p._backbone_kwargs()["native_images"] is True
+        p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet", native_images=True))
+        assert "native_images" not in p._backbone_kwargs()
+        p.cfg = base
+        sig = bb.backbone_signature
+
+        def without(name, weights=None, **cfg):  # the signature before the option existed
+            out = sig(name, weights=weights, **cfg)
+            out["config"].pop("native_images")
+            return out
+
+        monkeypatch.setattr(bb, "backbone_signature", without)
+        assert p._keys() == before
+    finally:
+        p.cfg = base
+
+
 def test_fusion_unguided_dilation_enters_only_the_fusion_key(tiny_run):
     """output.fusion_unguided_dilation: the fast preset narrows the unguided set's mask to 4 px;
     the option changes only the fusion key."""

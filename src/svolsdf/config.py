@@ -76,6 +76,13 @@ class MVSConfig:
     bicubically, as the released code's x2_mvsres, METHOD.md 9.2.2), the field at the working
     size. planesweep: any scale > 0; casmvsnet: 1 or 2 (its x2_mvsres); the patchmatchnet
     adapter runs at the working size. None = the backbone's own default."""
+    native_images: bool = False
+    """A cascade larger than the working size reads its images from the files when they are
+    larger (`Scene.images_at`; a 1600x1200 photo gives stage 3 its own detail). false: the
+    working-size images upsampled, as the released code (METHOD.md 9.2.2). On dtu_scan65 against
+    its pseudo ground truth the two gave the same fast-preset Chamfer (1.93 mm) and the backbone
+    alone 2.68 against 2.62 mm (benchmarks/results/dtu_pseudo_gt_dtu_scan65.md, session 18), so
+    the released behaviour stays the default."""
     guide_network: bool = True
     """Backbones that can start from a depth map (patchmatchnet): rerun the network from the
     field's guide depth at the guided stage 2, so that the surface guides the network itself, as

@@ -234,6 +234,10 @@ class Pipeline:
         # mvs.guide_network (the adapters' guide_init) changes only the guided stages 2-3: it
         # enters their key alone, and only for the backbones that take it
         guide_init = sig["config"].pop("guide_init", None)
+        # native_images enters only when set: the default (the released upsampling) keeps the
+        # keys run folders had before the option existed
+        if not sig["config"].get("native_images", True):
+            del sig["config"]["native_images"]
         c["mvs"] = {**{k: v for k, v in c["mvs"].items() if k != "guide_network"},
                     "signature": sig}
         # every key chains from this one: a new release recomputes rather than mixing versions
@@ -380,8 +384,8 @@ class Pipeline:
         nd = tuple(int(x) for x in m.ndepths)
         common = {"inverse_depth": m.inverse_depth, "max_sources": m.max_sources}
         if m.backbone == "planesweep":
-            return {"num_depths": nd, "width": m.width, **common,
-                    **({"scale": float(m.scale)} if m.scale is not None else {})}
+            return {"num_depths": nd, "width": m.width, "native_images": m.native_images,
+                    **common, **({"scale": float(m.scale)} if m.scale is not None else {})}
         # casmvsnet and the depth + confidence adapters share these names
         from svolsdf.mvs.backbone import backbone_config_class
 
@@ -394,6 +398,8 @@ class Pipeline:
                 raise InputError(f"mvs.scale: {m.backbone} runs at 1 or 2 x the working size "
                                  f"(x2_mvsres), got {m.scale}")
             kw["x2_mvsres"] = float(m.scale) == 2.0
+        if hasattr(backbone_config_class(m.backbone), "native_images"):
+            kw["native_images"] = m.native_images
         if hasattr(backbone_config_class(m.backbone), "guide_init"):  # the adapters' option
             kw["guide_init"] = m.guide_network
         return kw

@@ -514,6 +514,10 @@ class CasMVSNetConfig:
     x2_mvsres: bool = True
     """Run the network on the working-size images upsampled 2x (METHOD.md 1.3, 9.2 item 2); the
     stage-3 volume is then at twice the working size."""
+    native_images: bool = False
+    """With ``x2_mvsres``, read the images from their files when those are larger than the
+    working size (`Scene.images_at`), instead of upsampling the working-size images as the
+    released code does (METHOD.md 9.2.2)."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (METHOD.md 2.5, 9.1)."""
     max_sources: int = MAX_SOURCES
@@ -560,7 +564,8 @@ class CasMVSNetBackbone(MVSBackbone):
     def prepare(self, scene: Scene) -> tuple[list[Tensor], Cameras]:
         """Network-size features of every view and the cameras at the network input size.
 
-        Images are resized (bicubic) from the working size to :func:`mvs_input_size`; the features
+        Images are resized to :func:`mvs_input_size` (`Scene.images_at`: from the files when
+        they are larger, else bicubic from the working size); the features
         are cached for the scene's images tensor, so the three stages compute them once.
 
         Returns:
@@ -574,10 +579,8 @@ class CasMVSNetBackbone(MVSBackbone):
             return c[2], c[3]
         Wn, Hn = mvs_input_size(scene.width, scene.height, self.config.x2_mvsres)
         dev = self.config.device
-        images = scene.images.to(dev, torch.float32)
-        if (Wn, Hn) != (scene.width, scene.height):
-            images = F.interpolate(images, size=(Hn, Wn), mode="bicubic",
-                                   align_corners=False).clamp_(0, 1)
+        images = scene.images_at(Wn, Hn, from_files=self.config.native_images).to(
+            dev, torch.float32)
         cams = scene.cameras.resize(Wn, Hn).to(dev, torch.float32)
         log.info("CasMVSNet: features of %d views at %dx%d", len(scene), Wn, Hn)
         feats = self.model.features(images)

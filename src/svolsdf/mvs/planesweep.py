@@ -135,6 +135,11 @@ class PlaneSweepConfig:
     2 against 1 on six synthetic scenes (768x576, 3 views): the backbone alone's points Chamfer
     up to 20 % lower (1 % higher on one scene), the fast preset's 9-26 % lower, for ~2.5 min
     more per three-view run (benchmarks/results/fast_preset.md, session-17 notes)."""
+    native_images: bool = False
+    """Stages larger than the working size read the images again from their files when those are
+    larger (`Scene.images_at`): a 1600x1200 DTU photo gives stage 3 its own detail at 1536x1152.
+    False: the working-size images upsampled, as the released code (METHOD.md 9.2.2); the two
+    score the same on dtu_scan65 (`svolsdf.config.MVSConfig.native_images`)."""
     extra: dict = field(default_factory=dict)
     """Unused; room for experiments without changing the signature."""
 
@@ -411,9 +416,8 @@ class PlaneSweepBackbone(MVSBackbone):
         if key in self._cache:
             return self._cache[key]
         imgs = scene.images.float()
-        if W > scene.width or H > scene.height:  # METHOD.md 9.2.2: bicubic upsampling
-            imgs = F.interpolate(imgs, size=(H, W), mode="bicubic",
-                                 align_corners=False).clamp(0, 1)
+        if W > scene.width or H > scene.height:  # files, or bicubic upsampling (METHOD.md 9.2.2)
+            imgs = scene.images_at(W, H, from_files=self.cfg.native_images)
         elif (W, H) != (scene.width, scene.height):
             imgs = F.interpolate(imgs, size=(H, W), mode="bilinear", align_corners=False,
                                  antialias=True)

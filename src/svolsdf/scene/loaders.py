@@ -237,6 +237,8 @@ def load_scene(path: str | Path, views: list[int] | None = None,
     if (W, H) != size:
         cams = cams.resize(W, H)
     extras["native_size"] = size
+    if src.background is not None:
+        extras["background"] = src.background
     return Scene(
         images=images, cameras=cams, view_ids=view_ids, masks=mask_t, pairs=pairs,
         depth_range=depth[idx], normalization=norm, path=src.path, format=src.format,

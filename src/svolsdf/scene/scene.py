@@ -150,6 +150,46 @@ class Scene:
         return replace(self, images=images, masks=masks,
                        cameras=self.cameras.resize(width, height))
 
+    def images_at(self, width: int, height: int, from_files: bool = True) -> Tensor:
+        """The images at another size, e.g. a backbone's MVS size (`svolsdf.mvs.backbone.mvs_size`).
+
+        Larger than the working size, and with ``from_files``, the images are read again from
+        ``image_paths`` and resized from the files' size (bicubic, antialiased when shrinking, as
+        METHOD.md 1.3), when the files are larger than the working size: a 1600x1200 DTU photo
+        gives its own detail at 1536x1152 instead of the working 768x576 upsampled. Otherwise (or
+        when the files are gone) they are resized from the working-size images: bicubic when
+        enlarging (the released code's x2_mvsres, METHOD.md 9.2.2), antialiased when shrinking.
+
+        Args:
+            width, height: the size in pixels.
+            from_files: allow reading the files (False: always from the working-size images).
+
+        Returns:
+            (V, 3, height, width) float32 in [0, 1]; ``images`` itself at the working size.
+        """
+        if self.images is None:
+            raise InputError(f"{self.path}: the scene was loaded without images")
+        if (width, height) == (self.width, self.height):
+            return self.images
+        native = self.extras.get("native_size")
+        enlarge = width > self.width or height > self.height
+        if (from_files and enlarge and native is not None and len(self.image_paths) == len(self)
+                and native[0] > self.width and native[1] > self.height
+                and all(Path(p).is_file() for p in self.image_paths)):
+            from svolsdf.io.images import read_image, resize_image
+
+            background = self.extras.get("background")
+            out = torch.empty(len(self), 3, height, width, dtype=torch.float32)
+            for k, p in enumerate(self.image_paths):
+                img = read_image(p, background)
+                if tuple(img.shape[-2:]) != (native[1], native[0]):
+                    raise SceneError(f"{p} is now {img.shape[-1]}x{img.shape[-2]}, but the scene "
+                                     f"was loaded from {native[0]}x{native[1]} files")
+                out[k] = resize_image(img, width, height)
+            return out
+        return F.interpolate(self.images.float(), size=(height, width), mode="bicubic",
+                             align_corners=False, antialias=not enlarge).clamp(0, 1)
+
     def source_views(self, ref_id: int, candidates: list[int] | None = None) -> list[int]:
         """Source views for ``ref_id`` among ``candidates`` (default: the loaded views).
 
