@@ -863,22 +863,24 @@ class Pipeline:
                 _save_npy(files[v], d.numpy().astype(np.float32))
                 write_depth_preview(ddir / f"{v}.png", d)
         else:
-            from svolsdf.mvs.cascade import run_cascade, save_cascade
+            from svolsdf.mvs.cascade import run_and_save_cascade, save_cascade
+
+            def picture(d, p):
+                write_depth_preview(p, torch.from_numpy(d))
 
             prev = {v.view_id: v for v in self._volumes1} if guide is None else None
             stages = (2, 3)
             if guide is None and self._volumes1 is None:
                 stages = (1, 2, 3)
+            earlier = {1: self._volumes1} if self._volumes1 is not None else None
             if self.cfg.output.finer_stage_optimization and guide is not None:
                 res = self._finer_stage_cascade(guide)
-            else:
-                res = run_cascade(self.backbone(), self.load(), guide_depth=guide,
-                                  stages=stages, prev=prev)
-            if self._volumes1 is not None:
-                res[1] = self._volumes1
-            save_cascade(res, self.out, picture=lambda d, p: write_depth_preview(
-                p, torch.from_numpy(d)))
-            depths = {v.view_id: v.depth.float() for v in res[max(res)]}
+                save_cascade({**res, **(earlier or {})}, self.out, picture=picture)
+                depths = {v.view_id: v.depth.float() for v in res[max(res)]}
+            else:  # one view at a time: only its finer volumes are in memory
+                depths = run_and_save_cascade(self.backbone(), self.load(), self.out,
+                                              stages=stages, guide_depth=guide, prev=prev,
+                                              earlier=earlier, picture=picture)
         self._mark("mvs23", self.keys["mvs23"])
         self._time("mvs23", t0)
         return depths
@@ -935,13 +937,13 @@ class Pipeline:
         if self._done("unguided") and all(f.is_file() for f in files.values()):
             return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
         t0 = time.perf_counter()
-        from svolsdf.mvs.cascade import run_cascade, save_cascade
+        from svolsdf.mvs.cascade import run_and_save_cascade
 
         vols1 = self._volumes1 if self._volumes1 is not None else self.stage_mvs1()
-        res = run_cascade(self.backbone(), self.load(), stages=(2, 3),
-                          prev={v.view_id: v for v in vols1})
-        save_cascade({1: vols1, **res}, udir, volumes=False)  # depth, confidence over 1-3
-        depths = {v.view_id: v.depth.float().cpu() for v in res[3]}
+        # depth, confidence over stages 1-3, one view at a time
+        depths = run_and_save_cascade(self.backbone(), self.load(), udir, stages=(2, 3),
+                                      prev={v.view_id: v for v in vols1}, earlier={1: vols1},
+                                      volumes=False)
         self._mark("unguided", self.keys["unguided"])
         self._time("unguided", t0)
         return depths

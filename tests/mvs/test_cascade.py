@@ -14,7 +14,12 @@ from tests.mvs.synth import plane_scene
 from svolsdf.cli import main as cli_main
 from svolsdf.errors import InputError
 from svolsdf.io.ply import read_ply
-from svolsdf.mvs.cascade import combined_confidence, run_cascade, save_cascade
+from svolsdf.mvs.cascade import (
+    combined_confidence,
+    run_and_save_cascade,
+    run_cascade,
+    save_cascade,
+)
 from svolsdf.mvs.hypotheses import base_interval
 from svolsdf.mvs.planesweep import PlaneSweepBackbone
 from svolsdf.mvs.run import MVSJobConfig, run_mvs, working_size
@@ -90,6 +95,34 @@ def test_save_cascade_files_and_roundtrip(tmp_path):
     expect = combined_confidence([res[k][0] for k in (1, 2, 3)], 64, 48)
     assert np.allclose(conf, expect.numpy()) and conf.max() <= 1 + 1e-6
     assert [p.name for _, p in pictures] == ["0.png", "2.png"]
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_one_view_at_a_time_writes_what_the_whole_cascade_writes(tmp_path, guided):
+    """`run_and_save_cascade` (the pipeline's stages 2-3, one reference view in memory at a
+    time) gives the files of `run_cascade` + `save_cascade` over all views."""
+    scene, gt = plane_scene(32, 24, depth_range=RANGE)
+    bb = PlaneSweepBackbone()
+    vols1 = run_cascade(bb, scene, stages=(1,))[1]
+    prev = {v.view_id: v for v in vols1}
+    guide = {v: gt[v] + 0.05 for v in scene.view_ids} if guided else None
+    whole = run_cascade(bb, scene, guide_depth=guide, stages=(2, 3), prev=prev)
+    save_cascade({1: vols1, **whole}, tmp_path / "a")
+    depths = run_and_save_cascade(PlaneSweepBackbone(), scene, tmp_path / "b", stages=(2, 3),
+                                  guide_depth=guide, prev=prev, earlier={1: vols1})
+    assert sorted(depths) == sorted(scene.view_ids)
+    files_a = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*.np*"))
+    files_b = sorted(p.relative_to(tmp_path / "b") for p in (tmp_path / "b").rglob("*.np*"))
+    assert files_a == files_b and len(files_a) == 3 * 3 + 2 * 3
+    for f in files_a:
+        if f.suffix == ".npy":
+            np.testing.assert_array_equal(np.load(tmp_path / "a" / f), np.load(tmp_path / "b" / f))
+        else:
+            a, b = np.load(tmp_path / "a" / f), np.load(tmp_path / "b" / f)
+            for k in a.files:
+                np.testing.assert_array_equal(a[k], b[k])
+    for v in whole[3]:
+        torch.testing.assert_close(depths[v.view_id], v.depth.float())
 
 
 def test_combined_confidence_is_the_product():

@@ -415,6 +415,8 @@ class PlaneSweepBackbone(MVSBackbone):
         key = (id(scene), id(scene.images), k)
         if key in self._cache:
             return self._cache[key]
+        if any(c[:2] != key[:2] for c in self._cache):  # another scene: forget the old one
+            self._cache = {}
         imgs = scene.images.float()
         if W > scene.width or H > scene.height:  # files, or bicubic upsampling (METHOD.md 9.2.2)
             imgs = scene.images_at(W, H, from_files=self.cfg.native_images)
@@ -426,7 +428,8 @@ class PlaneSweepBackbone(MVSBackbone):
         if self.cfg.gradient_weight > 0:
             chans = torch.cat([gray, _gradients(gray)], dim=1)
         cams = scene.cameras.resize(W, H)
-        self._cache = {key: (chans, gray, cams)}  # keep only the latest stage
+        # every stage of the latest scene: a cascade run one view at a time alternates them
+        self._cache[key] = (chans, gray, cams)
         return chans, gray, cams
 
     def _centre(self, k: int, vid: int, W: int, H: int, guide_depth, prev) -> Tensor:
