@@ -538,3 +538,16 @@ def test_guide_is_rendered_only_near_the_masks(tiny_run):
         assert p._guide_pixels() is None
     finally:
         p.cfg = cfg
+
+
+def test_field_psnr_on_the_input_views_is_logged_and_kept(tiny_run):
+    """Issue 28: the field's own quality is visible in OUT/log and timing.json."""
+    out, _, p = tiny_run
+    timing = json.loads((out / "timing.json").read_text())
+    fp = timing["guide"]["field_psnr"]
+    assert fp["masked"] is True
+    assert set(fp["per_view_db"]) == {str(v) for v in p.views}
+    # the fitted tiny field explains its own photos (a hull painted grey would not)
+    assert 15.0 < fp["mean_db"] < 60.0
+    log_text = (out / "log").read_text()
+    assert "field: PSNR on the input views (inside the object masks)" in log_text

@@ -726,7 +726,8 @@ class Pipeline:
         for v, d in guide.items():
             _save_npy(files[v], d.numpy().astype(np.float32))
         self._mark("guide", self.keys["guide"])
-        self._time("guide", t0)
+        psnr = getattr(self, "field_psnr", None)
+        self._time("guide", t0, **({"field_psnr": psnr} if psnr is not None else {}))
         return guide
 
     def _rendered_guide(self, previews: bool = False) -> dict[int, torch.Tensor]:
@@ -737,6 +738,8 @@ class Pipeline:
         pixels = self._guide_pixels()
         r = self.render_views(scene.cameras_unit, self.unit_near_far().to(self.device),
                               pixels=pixels)
+        if previews:
+            self._report_field_psnr(r["rgb"], pixels)
         guide = {}
         for i, v in enumerate(self.views):
             d = r["depth"][i] * s
@@ -752,6 +755,37 @@ class Pipeline:
             if previews:
                 self._render_previews(v, r, i)
         return guide
+
+    def _report_field_psnr(self, rgb: torch.Tensor, pixels: torch.Tensor | None) -> None:
+        """Log the field's PSNR on its own input views and keep it in timing.json (issue 28).
+
+        A field that only copies MVS scores well on the points and badly here; a field that
+        explains the photos scores > 20 dB. Masked as the paper's PSNR (METHOD.md 8.3): inside the
+        object masks when the scene has them (rendered pixels only), else over every pixel.
+
+        Args:
+            rgb: (V, H, W, 3) rendered colours of the input views (0 where not rendered).
+            pixels: (V, H, W) bool rendered pixels, or None (all).
+        """
+        from svolsdf.evaluate.images import masked_psnr
+
+        scene = self.load()
+        vals = {}
+        for i, v in enumerate(self.views):
+            m = None
+            if scene.masks is not None and self.cfg.output.use_masks:
+                m = scene.masks[i, 0] > 0.5
+            if pixels is not None:
+                m = pixels[i] if m is None else m & pixels[i].to(m.device)
+            vals[v] = round(float(masked_psnr(rgb[i].permute(2, 0, 1).clamp(0, 1),
+                                              scene.images[i].cpu(), m)), 2)
+        mean = round(sum(vals.values()) / len(vals), 2)
+        where = "inside the object masks" if scene.masks is not None and \
+            self.cfg.output.use_masks else "whole images"
+        log.info("field: PSNR on the input views (%s): %s; mean %.2f dB", where,
+                 ", ".join(f"{v}: {p:.2f}" for v, p in vals.items()), mean)
+        self.field_psnr = {"masked": scene.masks is not None and self.cfg.output.use_masks,
+                           "per_view_db": {str(v): p for v, p in vals.items()}, "mean_db": mean}
 
     def _guide_pixels(self) -> torch.Tensor | None:
         """(V, H, W) bool: the pixels whose guide depth is rendered, the object masks dilated by
