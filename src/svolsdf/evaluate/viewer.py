@@ -69,13 +69,18 @@ def cluster_decimate(vertices: np.ndarray, faces: np.ndarray, max_faces: int,
     cell = max(edge, 1e-12) * np.sqrt(len(f) / max_faces)
     lo = v.min(0)
     for _ in range(12):
-        key = np.floor((v - lo) / cell).astype(np.int64)
-        _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        ijk = np.floor((v - lo) / cell).astype(np.int64)
+        dims = ijk.max(0) + 1
+        key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]  # one int64 per cell
+        _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
         inv = inv.ravel()
         nf = inv[f]
         ok = (nf[:, 0] != nf[:, 1]) & (nf[:, 1] != nf[:, 2]) & (nf[:, 0] != nf[:, 2])
-        nf = np.unique(np.sort(nf[ok], axis=1), axis=0, return_index=True)[1]
-        nf = inv[f][ok][nf]  # keep the original winding of the first copy
+        nf = nf[ok]
+        s = np.sort(nf, axis=1)
+        n = np.int64(len(counts))
+        _, first = np.unique((s[:, 0] * n + s[:, 1]) * n + s[:, 2], return_index=True)
+        nf = nf[np.sort(first)]  # one copy of each face, its original winding
         if len(nf) <= max_faces:
             break
         cell *= 1.25
@@ -226,7 +231,8 @@ def scene_figure(points: tuple[np.ndarray, np.ndarray | None] | None = None,
         center = {"x": float(c[0]), "y": float(c[1]), "z": float(c[2])}
         up = {"x": float(u[0]), "y": float(u[1]), "z": float(u[2])}
     layout = {"height": cfg.height, "margin": {"l": 0, "r": 0, "t": 10, "b": 0},
-              "legend": {"itemclick": "toggle", "title": {"text": "click to show / hide"}},
+              "legend": {"itemclick": "toggle", "y": 0.9,
+                         "title": {"text": "click to show / hide"}},
               "scene": {"aspectmode": "data", "xaxis": axis, "yaxis": axis, "zaxis": axis,
                         "camera": {"up": up, "eye": eye, "center": center}},
               "meta": {"origin": [float(x) for x in origin]}, "uirevision": "keep"}
