@@ -7,6 +7,7 @@ import base64
 import json
 import os
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -152,7 +153,7 @@ def test_subsample():
     assert len(np.unique(i)) == 10 and (np.diff(i) > 0).all()
 
 
-def test_report_without_metrics_says_so(run, tmp_path):
+def test_report_says_what_is_missing(run, tmp_path):
     import shutil
 
     out = tmp_path / "copy"
@@ -160,6 +161,11 @@ def test_report_without_metrics_says_so(run, tmp_path):
     (out / "metrics.json").unlink()
     page = write_run_report(out).read_text()
     assert "No metrics.json: run svolsdf evaluate" in page
+    # the scene moved away: the page still comes, without photos, saying why
+    (out / "config.yaml").write_text(f"scene:\n  path: {tmp_path / 'gone'}\n")
+    page = write_run_report(out).read_text()
+    assert "Inputs not shown" in page and "Novel views not shown" in page
+    assert "<h2>3D view" in page and "<h2>Input views" not in page
 
 
 def test_report_in_headless_chromium(run, tmp_path):
@@ -172,11 +178,20 @@ def test_report_in_headless_chromium(run, tmp_path):
         pytest.skip(msg)
     pytest.importorskip("websocket", reason="websocket-client is missing (the dev extra)")
     write_run_report(run)
-    shot = tmp_path / "report.png"
-    page = load_page(run / "report.html", screenshot=shot, timeout=40,
-                     wait_for="document.querySelectorAll('#view3d canvas').length")
-    assert page.value and page.value >= 1, f"no canvas in the 3D view; see {shot}"
+    keep = os.environ.get("SVOLSDF_SCREENSHOT_DIR")  # e.g. a CI artifact folder
+    shot = (Path(keep) if keep else tmp_path) / "report_in_chromium.png"
+    shot.parent.mkdir(parents=True, exist_ok=True)
+    page = load_page(run / "report.html", screenshot=shot, timeout=40, wait_for="""(() => {
+        const n = document.querySelectorAll('#view3d canvas').length;
+        const div = document.getElementById('view3d');
+        return n ? {canvases: n, traces: div.data.map(t => t.name),
+                    hidden: div.data.filter(t => t.visible === 'legendonly').length} : null;
+    })()""")
+    assert page.value, f"no canvas in the 3D view; see {shot}"
     assert not page.errors, f"{page.errors}; see {shot}"
+    traces = page.value["traces"]
+    assert traces[0].startswith("mesh") and "camera 0" in traces, traces
+    assert "points: distance to ground truth" in traces and page.value["hidden"] >= 1
     assert shot.stat().st_size > 10_000
     img = np.asarray(Image.open(shot).convert("L"))
     assert img.std() > 5, f"blank page; see {shot}"

@@ -170,7 +170,7 @@ def _metrics_table(metrics: dict, units: str | None) -> str:
     body = "".join(f"<tr><td>{html.escape(a)}</td><td>{_fmt(b)}</td><td>{html.escape(c)}</td>"
                    f"<td class='why'>{html.escape(d)}</td></tr>" for a, b, c, d in rows)
     return (f'<table id="metrics"><thead><tr><th>metric</th><th>value</th><th>unit</th>'
-            f"<th>meaning</th></tr></thead><tbody>{body}</tbody></table>")
+            f"<th class='why'>meaning</th></tr></thead><tbody>{body}</tbody></table>")
 
 
 def _per_view_table(views: list[ViewImages]) -> str:
@@ -330,8 +330,12 @@ def _orbit_section(mesh, cameras, frames: int) -> str:
         return ""
     from svolsdf.ibr.path import orbit_cameras
 
-    cams = orbit_cameras(_display_cameras(cameras, 280), frames + 1, closed=True)[
-        list(range(frames))]
+    try:
+        cams = orbit_cameras(_display_cameras(cameras, 280), frames + 1, closed=True)[
+            list(range(frames))]
+    except ValueError as e:  # e.g. a camera centre on the look-at point
+        log.warning("report: no orbit (%s)", e)
+        return ""
     figs = [_img(_png_b64(pic, 280), f"orbit {k + 1}/{frames}")
             for k, (pic, _, _) in enumerate(_mesh_pictures(mesh, cams))]
     return ("<h2>The mesh from an orbit through the input views</h2>"
@@ -398,7 +402,8 @@ td.why{text-align:left;color:#555;font-size:.82em}
 .grid,.row{display:flex;flex-wrap:wrap;gap:8px;margin-bottom:8px}figure{margin:0}
 figcaption{font-size:.8em;color:#555;max-width:1200px}img{max-width:100%}
 .view3d{width:100%;border:1px solid #ddd}
-.cbar{width:240px;font-size:.75em;color:#444;margin-top:2px}.grad{height:10px}
+.row figure img{width:300px;height:auto}th.why{text-align:left}
+.cbar{width:300px;font-size:.75em;color:#444;margin-top:2px}.grad{height:10px}
 .ticks{display:flex;justify-content:space-between}.cbl{text-align:center}
 .key{display:flex;align-items:center;gap:10px;font-size:.85em}.key figure img{width:56px}
 .key figcaption{display:none}pre{background:#f6f6f6;padding:.6em;font-size:.8em;overflow:auto}

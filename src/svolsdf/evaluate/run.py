@@ -494,7 +494,11 @@ def write_run_report(out: str | Path, metrics: dict | None = None,
         if d["faces"] is not None and len(d["faces"]):
             mesh = (d["points"], d["faces"], d["colors"])
     if views is None and scene_path is not None:
-        loaded, _ = _render_views(out, scene_path, None, True, [])
+        try:
+            loaded, _ = _render_views(out, scene_path, None, True, [])
+        except InputError as e:
+            notes.append(f"Novel views not shown: {e}")
+            loaded = {}
         views = []
         for key, group in loaded.items():
             for v in group:
