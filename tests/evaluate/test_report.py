@@ -122,6 +122,13 @@ def test_scene_figure_layers(run):
     json.dumps(fig, allow_nan=False)  # what the page embeds must be valid JSON
 
 
+def test_scene_figure_checks_shapes():
+    with pytest.raises(ValueError, match=r"points must be \(N, 3\)"):
+        scene_figure((np.zeros((4, 2)), None))
+    with pytest.raises(ValueError, match="4 points but 3 colours"):
+        scene_figure((np.zeros((4, 3)), np.zeros((3, 3), np.uint8)))
+
+
 def test_cluster_decimate_meets_budget():
     import trimesh
 

@@ -240,11 +240,10 @@ def _normal_key(size: int = 56) -> np.ndarray:
     return rgb
 
 
-def _inputs_section(inputs, cameras, mesh) -> tuple[str, list | None]:
-    """Input photos beside the mesh from the same cameras; returns the html and the mesh
-    depth per view (for the depth section), or None without a mesh."""
+def _inputs_section(inputs, cameras, mesh) -> str:
+    """Input photos beside the mesh (shaded, and its normals) from the same cameras."""
     if not inputs:
-        return "", None
+        return ""
     shots = None
     if mesh is not None and cameras is not None and len(mesh[1]):
         shots = _mesh_pictures(mesh, _display_cameras(cameras))
@@ -262,7 +261,7 @@ def _inputs_section(inputs, cameras, mesh) -> tuple[str, list | None]:
                "away from the camera, so a surface facing the camera is olive; the sphere is "
                "the colour key.</div>")
     title = "Input views and the mesh" if shots is not None else "Input views"
-    return f"<h2>{title}</h2>{key}{''.join(rows)}", shots
+    return f"<h2>{title}</h2>{key}{''.join(rows)}"
 
 
 def _depth_section(out_dir: Path, view_ids: list[int], gt_depth: dict | None,
@@ -484,7 +483,7 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
                 "legend entry to show or hide that layer.</p>" + figure_div(fig)
                 + "".join(f"<p class='note'>{html.escape(n)}</p>" for n in view_notes)
                 + _gt_distance_summary(point_errors, units))
-    inputs_html, _ = _inputs_section(inputs, cameras, mesh)
+    inputs_html = _inputs_section(inputs, cameras, mesh)
     parts = [f"<h1>{html.escape(title)}</h1>"]
     parts += [f"<p>{html.escape(n)}</p>" for n in notes]
     parts.append(view)

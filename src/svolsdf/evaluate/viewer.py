@@ -154,6 +154,7 @@ def scene_figure(points: tuple[np.ndarray, np.ndarray | None] | None = None,
         (figure dict, lines saying what was subsampled or decimated).
     """
     cfg = cfg or ViewerConfig()
+    _check_inputs(points, mesh, point_errors)
     notes: list[str] = []
     parts = [a for a in (points[0] if points else None, mesh[0] if mesh else None,
                          point_errors[0] if point_errors else None) if a is not None and len(a)]
@@ -237,6 +238,28 @@ def scene_figure(points: tuple[np.ndarray, np.ndarray | None] | None = None,
                         "camera": {"up": up, "eye": eye, "center": center}},
               "meta": {"origin": [float(x) for x in origin]}, "uirevision": "keep"}
     return {"data": data, "layout": layout}, notes
+
+
+def _check_inputs(points, mesh, point_errors) -> None:
+    def rows(a, name, cols=3):
+        a = np.asarray(a)
+        if a.ndim != 2 or a.shape[1] != cols:
+            raise ValueError(f"scene_figure: {name} must be (N, {cols}), got {a.shape}")
+        return len(a)
+
+    if points is not None:
+        n = rows(points[0], "points")
+        if points[1] is not None and rows(points[1], "point colours") != n:
+            raise ValueError(f"scene_figure: {n} points but {len(points[1])} colours")
+    if mesh is not None:
+        n = rows(mesh[0], "mesh vertices")
+        rows(mesh[1], "mesh faces")
+        if len(mesh) > 2 and mesh[2] is not None and rows(mesh[2], "vertex colours") != n:
+            raise ValueError(f"scene_figure: {n} vertices but {len(mesh[2])} vertex colours")
+    if point_errors is not None and rows(point_errors[0], "error points") != len(
+            point_errors[1]):
+        raise ValueError(f"scene_figure: {len(point_errors[0])} error points but "
+                         f"{len(point_errors[1])} distances")
 
 
 def plotly_js() -> str:
