@@ -4,7 +4,8 @@ Takes a finished run folder (or makes a small one: a 128x96 synthetic scene, 50 
 copies it, and scales it up: points.ply becomes N points (the run's points repeated with a
 jitter of a tenth of their spacing, colours kept) and mesh.ply is subdivided (each face into 4)
 until it has at least M faces. Then times ``svolsdf report OUT`` as a user runs it (a fresh
-process, imports included) and once in-process with the report's own breakdown in the log.
+process, imports included), once in-process with the report's own breakdown in the log, and
+``svolsdf evaluate OUT`` (the metrics, then the same report) for scale.
 
 Usage:
     python benchmarks/report_speed.py [--run RUN] [--points 2000000] [--faces 1000000]
@@ -90,6 +91,10 @@ def main() -> None:
         (run / "report.html").unlink(missing_ok=True)
         cli = _svolsdf("report", str(run))
         size_mb = (run / "report.html").stat().st_size / 1e6
+        try:  # metrics and report; needs the LPIPS weights when the run has renders
+            ev = _svolsdf("evaluate", str(run))
+        except subprocess.CalledProcessError:
+            ev = None
         logging.basicConfig(level=logging.INFO, format="%(message)s")
         from svolsdf.evaluate.run import write_run_report
 
@@ -107,7 +112,9 @@ def main() -> None:
              "ground truth, and the mesh decimated to at most 300,000 faces", "",
              "| what | seconds |", "|---|---|",
              f"| `svolsdf report OUT` (fresh process, imports included) | {cli:.1f} |",
-             f"| `write_run_report(OUT)` in-process | {inproc:.1f} |", "",
+             f"| `write_run_report(OUT)` in-process | {inproc:.1f} |",
+             "| `svolsdf evaluate OUT` (Chamfer on all points, image metrics, then the report) | "
+             + ("failed (LPIPS weights?)" if ev is None else f"{ev:.1f}") + " |", "",
              f"report.html: {size_mb:.1f} MB", ""]
     write_results(args.results, "\n".join(lines))
     print("\n".join(lines))
