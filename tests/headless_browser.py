@@ -18,6 +18,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -160,6 +161,8 @@ def load_page(path: Path, wait_for: str = "true", timeout: float = 30.0,
             url = m.group(1) if m else None
         if url is None:
             raise RuntimeError(f"{exe} did not start (exit code {proc.poll()})")
+        # keep draining its log: a full pipe would block the browser
+        threading.Thread(target=lambda: [None for _ in proc.stderr], daemon=True).start()
         cdp = _CDP(url)
         target = cdp.send("Target.createTarget", {"url": "about:blank"})["targetId"]
         sid = cdp.send("Target.attachToTarget", {"targetId": target, "flatten": True})[
@@ -207,6 +210,5 @@ def load_page(path: Path, wait_for: str = "true", timeout: float = 30.0,
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
-        proc.stderr.close()
         shutil.rmtree(profile, ignore_errors=True)
     return result
