@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -82,3 +83,33 @@ def test_background_flag_reaches_the_config(monkeypatch, tmp_path):
         seen.clear()
         main(argv)  # standalone_mode=False: returns normally on success
         assert seen["cfg"].field.background is want
+
+
+def test_demo_ends_with_the_report(monkeypatch, tmp_path, capsys):
+    # the reconstruction is replaced by a stand-in that writes the ground truth as its result
+    import svolsdf.pipeline as pl
+    from svolsdf.io.ply import read_ply, write_mesh_ply, write_points_ply
+
+    class GroundTruthRun:
+        def __init__(self, cfg, out, progress=True):
+            self.scene, self.out = Path(cfg.scene.path), Path(out)
+
+        def run(self):
+            self.out.mkdir(parents=True)
+            gt = read_ply(self.scene / "gt_points.ply")["points"]
+            write_points_ply(self.out / "points.ply", gt[::4])
+            m = read_ply(self.scene / "gt_mesh.ply")
+            write_mesh_ply(self.out / "mesh.ply", m["points"], m["faces"])
+            (self.out / "views.json").write_text(json.dumps(
+                {"inputs": [0, 1, 2], "scene": str(self.scene)}))
+            (self.out / "config.yaml").write_text(f"scene:\n  path: {self.scene}\n")
+            return {"points": str(self.out / "points.ply"), "mesh": str(self.out / "mesh.ply"),
+                    "timing": {"total": {"seconds": 1.0}}}
+
+    monkeypatch.setattr(pl, "Pipeline", GroundTruthRun)
+    main(["demo", "-o", str(tmp_path / "demo"), "--size", "64x48"])
+    report = tmp_path / "demo" / "run" / "report.html"
+    assert f"report {report}" in capsys.readouterr().out.splitlines()[-1]
+    page = report.read_text()
+    assert "<h2>3D view" in page and "Chamfer overall (points)" in page
+    assert json.loads((report.parent / "metrics.json").read_text())["chamfer"]["overall"] < 1

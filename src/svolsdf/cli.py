@@ -128,6 +128,21 @@ def evaluate(
                                                    f" and {out / 'report.html'}"))
 
 
+@app.command("report")
+def report(
+    out: Annotated[Path, typer.Argument(help="Run folder (points.ply, mesh.ply, renders/, ...).")],
+    scene: Annotated[Path | None, typer.Option(
+        "--scene", help="Scene folder with the input photos (default: from OUT/config.yaml).")
+    ] = None,
+) -> None:
+    """Regenerate OUT/report.html from the run folder and OUT/metrics.json (no metrics computed:
+    `svolsdf evaluate` computes them and writes the report too)."""
+    from svolsdf.evaluate.run import write_run_report
+
+    path = write_run_report(out, scene_path=scene)
+    typer.echo(f"report {path}")
+
+
 # --------------------------------------------------------------------------- benchmark
 @app.command("benchmark")
 def benchmark(
@@ -296,7 +311,8 @@ def demo(
 ) -> None:
     """Generate a synthetic scene, reconstruct it from 3 views with the fast preset, and score it.
 
-    Prints where the outputs are and the Chamfer distance against the scene's ground truth.
+    Prints where the outputs are and the Chamfer distance against the scene's ground truth, and
+    writes OUT/run/metrics.json and OUT/run/report.html (open it in a browser).
     """
     import json
 
@@ -333,6 +349,10 @@ def demo(
     typer.echo("\n".join(lines))
     typer.echo(f"total {summary['timing']['total']['seconds']:.0f} s; inputs {views}; "
                f"outputs in {run}")
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+
+    evaluate_run(EvaluateConfig(out=run))
+    typer.echo(f"report {run / 'report.html'}")
 
 
 # --------------------------------------------------------------------------- render

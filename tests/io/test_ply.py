@@ -95,3 +95,21 @@ def test_bad_files_raise_input_error_naming_file(tmp_path):
     trunc.write_bytes(full[: len(full) - 50])
     with pytest.raises(InputError, match="trunc.ply"):
         read_ply(trunc)
+
+
+def test_read_ply_triangles_fast_and_polygons_fanned(tmp_path):
+    from plyfile import PlyData, PlyElement
+
+    v = np.random.default_rng(0).random((5, 3))
+    tri = np.array([[0, 1, 2], [2, 3, 4]])
+    write_mesh_ply(tmp_path / "t.ply", v, tri)
+    assert np.array_equal(read_ply(tmp_path / "t.ply")["faces"], tri)
+    vert = np.array([tuple(p) for p in v], dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    faces = np.empty(2, dtype=[("vertex_indices", "O")])
+    faces["vertex_indices"][0] = np.array([0, 1, 2, 3], "i4")
+    faces["vertex_indices"][1] = np.array([2, 3, 4], "i4")
+    for text in (False, True):
+        PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(faces, "face")],
+                text=text).write(tmp_path / "q.ply")
+        got = read_ply(tmp_path / "q.ply")["faces"]
+        assert np.array_equal(got, [[0, 1, 2], [0, 2, 3], [2, 3, 4]])

