@@ -261,6 +261,12 @@ class OutputConfig:
     low_weight_rule: str = "max"
     """Rendered-depth pixels with weight < 0.2: max (the map's maximum depth, released) |
     mvs (keep the stage-1 MVS depth)."""
+    mesh_fit_points: int = 0
+    """Mesh: before marching cubes, refine the SDF grid for this many steps so that its zero
+    level passes through the fused points (`svolsdf.field.fit`; svolsdf mode with the grid
+    field; 0 = off, the paper: the mesh is the optimized field's zero level). The finer MVS
+    stages place depth more precisely than the surface that guided them, so the fused points
+    are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
     finer_stage_optimization: bool = False
     """Paper option (METHOD.md 9.2.13; the released code forbids it): after stage 2, optimize
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render

@@ -261,7 +261,11 @@ class Pipeline:
                                      max_sources=self.cfg.mvs.max_sources)
         k_fusion = _hash(k_mvs23, fo, k_unguided if self._wants_unguided() else None,
                          *([net] if net is not None else []))
+        # mesh_fit_points enters only when set (with the fused points it fits): run folders
+        # made before the option keep their mesh key
+        fit = ([c["output"]["mesh_fit_points"], k_fusion] if self._wants_mesh_fit() else [])
         k_mesh = _hash(k_field, c["output"]["mesh_resolution"], c["output"]["mesh_format"],
+                       *fit,
                        k_mvs23 if c["output"]["finer_stage_optimization"] else None,
                        c["output"]["use_masks"],
                        (k_guide, c["output"]["mesh_cull_tol"]) if c["output"]["mesh_cull_unseen"]
@@ -1071,6 +1075,34 @@ class Pipeline:
             return None
         return torch.stack(maps)
 
+    def _wants_mesh_fit(self) -> bool:
+        """`OutputConfig.mesh_fit_points` applies: set, svolsdf mode (its points come from the
+        finer MVS stages), a grid field."""
+        return (self.cfg.output.mesh_fit_points > 0 and self.cfg.train.mode == "svolsdf"
+                and self.cfg.train.ablation is None and self.cfg.field.kind == "grid")
+
+    def _surface_fitted_to_points(self, model):
+        """A copy of ``model`` whose SDF grid is refined to pass through OUT/points.ply
+        (`OutputConfig.mesh_fit_points`); saved as OUT/field/surface.pt."""
+        import copy
+
+        from svolsdf.field.fit import fit_sdf_to_points
+        from svolsdf.io.ply import read_ply
+
+        scene = self.load()
+        pts = read_ply(self.stage_fusion())["points"]
+        unit = scene.normalization.to_unit(torch.from_numpy(pts).double()).float()
+        fitted = copy.deepcopy(model)
+        fit_sdf_to_points(fitted, unit.to(self.device), steps=self.cfg.output.mesh_fit_points,
+                          seed=self.cfg.train.seed)
+        path = self.out / "field" / "surface.pt"
+        tmp = path.with_suffix(".tmp")
+        torch.save({"model_state_dict": fitted.state_dict(),
+                    "grid_resolution": getattr(fitted, "resolution", None),
+                    "bounds": getattr(fitted, "bounds", None)}, tmp)
+        os.replace(tmp, path)
+        return fitted
+
     def stage_mesh(self) -> Path:
         o = self.cfg.output
         path = self.out / ("mesh.obj" if o.mesh_format == "obj" else "mesh.ply")
@@ -1094,6 +1126,8 @@ class Pipeline:
         refined = self.out / "field" / "stage2" / "model.pt"
         if o.finer_stage_optimization and refined.is_file():
             self._load_model(model, refined)  # the field after the finer-stage optimization
+        if self._wants_mesh_fit():
+            model = self._surface_fitted_to_points(model)
         model.eval()
         b = getattr(model, "bounds", None)
         bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else self.field_bounds()
