@@ -50,10 +50,15 @@ def _parse_views(text: str | None) -> list[int] | None:
     out = []
     for tok in text.replace(",", " ").split():
         try:
-            out.append(int(tok))
+            v = int(tok)
         except ValueError:
             raise InputError(f"--views: '{tok}' is not a view id (give integers, e.g. "
                              f"--views 25,22,28)") from None
+        if v in out:
+            raise InputError(f"--views {text}: view {v} is given twice (give each view once)")
+        out.append(v)
+    if not out:
+        raise InputError("--views: no view ids given (e.g. --views 25,22,28)")
     return out
 
 
@@ -197,8 +202,14 @@ def _parse_size(text: str | None) -> list[int] | None:
 
 
 def build_config(scene: Path | None, config: Path | None, preset_name: str | None,
-                 overrides: dict) -> object:
-    """Config from --config (or the preset), then the command-line overrides."""
+                 overrides: dict, labels: dict[str, str] | None = None) -> object:
+    """Config from --config (or the preset), then the command-line overrides, validated
+    (`svolsdf.config.validate_config`) before anything runs.
+
+    Args:
+        overrides: dotted config key -> value (None: not given).
+        labels: dotted config key -> its option, for error messages.
+    """
     from svolsdf.config import apply_overrides, load_config, preset
 
     if config is not None:
@@ -208,12 +219,23 @@ def build_config(scene: Path | None, config: Path | None, preset_name: str | Non
                              f"{cfg.preset}); drop one of them")
     else:
         cfg = preset(preset_name or "fast")
-    if scene is not None:
-        cfg.scene.path = str(scene)
-    apply_overrides(cfg, overrides)
+    apply_overrides(cfg, {"scene.path": None if scene is None else str(scene), **overrides},
+                    labels={"scene.path": "SCENE", **(labels or {})})
     if not cfg.scene.path:
         raise InputError("no scene given (pass SCENE or a --config with scene.path)")
     return cfg
+
+
+#: config key -> the `reconstruct` option that sets it (for error messages)
+_RECONSTRUCT_OPTIONS = {
+    "scene.views": "--views", "scene.image_size": "--size", "mvs.backbone": "--backbone",
+    "mvs.weights": "--weights", "mvs.scale": "--mvs-scale", "train.mode": "--mode",
+    "train.ablation": "--ablation", "train.steps": "--steps", "device": "--device",
+    "output.mesh_resolution": "--mesh-resolution", "train.seed": "--seed",
+    "field.background": "--background", "threads": "--threads",
+    "output.fusion_network": "--fusion-network",
+    "output.fusion_network_weights": "--fusion-network",
+}
 
 
 @app.command("reconstruct")
@@ -275,7 +297,7 @@ def reconstruct(
         "train.seed": seed, "field.background": background, "threads": threads,
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
-    })
+    }, _RECONSTRUCT_OPTIONS)
     summary = Pipeline(cfg, out, progress=not no_progress).run()
     typer.echo(f"points: {summary['points']}")
     if summary.get("mesh"):
@@ -300,7 +322,7 @@ def demo(
     """
     import json
 
-    from svolsdf.config import preset
+    from svolsdf.config import apply_overrides, preset
     from svolsdf.evaluate.synthetic import synthetic_chamfer
     from svolsdf.io.ply import read_ply
     from svolsdf.pipeline import Pipeline
@@ -311,10 +333,8 @@ def demo(
     if not (scene_dir / "gt_points.ply").is_file():
         typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
         make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
-    cfg = preset("fast")
-    cfg.scene.path = str(scene_dir)
-    if steps is not None:
-        cfg.train.steps = steps
+    cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
+                          labels={"train.steps": "--steps"})
     run = out / "run"
     typer.echo(f"reconstructing into {run} (fast preset) ...")
     summary = Pipeline(cfg, run, progress=not no_progress).run()

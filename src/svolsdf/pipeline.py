@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS, Config, save_config
+from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS, Config, save_config, validate_config
 from svolsdf.errors import InputError
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.scene import Scene
@@ -192,7 +192,7 @@ class Pipeline:
     """
 
     def __init__(self, cfg: Config, out: str | Path, progress: bool = True):
-        self.cfg = cfg
+        self.cfg = validate_config(cfg)  # a bad value fails here, before any stage
         self.out = Path(out)
         if self.out.exists() and not self.out.is_dir():
             raise InputError(f"{self.out}: output path exists and is not a folder")
@@ -334,13 +334,7 @@ class Pipeline:
         log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s, %d torch thread(s)",
                  scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,
                  self.cfg.preset, threads)
-        mode = self.cfg.train.mode
-        if self.cfg.output.finer_stage_optimization and (
-                mode != "svolsdf" or self.cfg.train.ablation is not None):
-            raise InputError("output.finer_stage_optimization needs mode svolsdf without an "
-                             "ablation (it optimizes the field against the stage-2 volumes)")
-        if mode not in ("svolsdf", "volsdf", "mvs-only"):
-            raise InputError(f"unknown mode {mode!r} (svolsdf, volsdf or mvs-only)")
+        mode = self.cfg.train.mode  # its value and the options it allows: validate_config
         if self._wants_network():
             self._network_backbone()  # bad weights fail now, not after the field's minutes
         # stage keys chain their inputs: a changed config reruns that stage and the later ones
