@@ -14,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, RunInterrupted
 
 app = typer.Typer(
     add_completion=False,
@@ -24,6 +24,18 @@ app = typer.Typer(
 )
 
 _STATE = {"debug": False}
+
+
+class _Stopped(Exception):
+    """A run that Ctrl-C stopped, with its message (typer would turn the `RunInterrupted`, a
+    KeyboardInterrupt, into a bare exit status 130)."""
+
+
+def _run_pipeline(pipeline) -> dict:
+    try:
+        return pipeline.run()
+    except RunInterrupted as e:
+        raise _Stopped(str(e)) from None
 
 
 @app.callback()
@@ -126,9 +138,11 @@ def evaluate(
                          report=not no_report)
     m = evaluate_run(cfg)
     c, im = m["chamfer"], m["images"]
+    lp = im["lpips"]
     typer.echo(f"chamfer acc {c['accuracy']} comp {c['completeness']} overall {c['overall']}; "
                f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
-               f"lpips {im['lpips']['mean']}")
+               f"lpips {lp['mean']}" + (f" ({lp['missing']})" if lp.get("missing") and
+                                        im["psnr"]["mean"] is not None else ""))
     typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
                                                    f" and {out / 'report.html'}"))
 
@@ -298,7 +312,7 @@ def reconstruct(
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
     }, _RECONSTRUCT_OPTIONS)
-    summary = Pipeline(cfg, out, progress=not no_progress).run()
+    summary = _run_pipeline(Pipeline(cfg, out, progress=not no_progress))
     typer.echo(f"points: {summary['points']}")
     if summary.get("mesh"):
         typer.echo(f"mesh:   {summary['mesh']}")
@@ -337,7 +351,7 @@ def demo(
                           labels={"train.steps": "--steps"})
     run = out / "run"
     typer.echo(f"reconstructing into {run} (fast preset) ...")
-    summary = Pipeline(cfg, run, progress=not no_progress).run()
+    summary = _run_pipeline(Pipeline(cfg, run, progress=not no_progress))
     views = json.loads((run / "views.json").read_text())["inputs"]
     lines = []
     result = {}
@@ -492,12 +506,21 @@ def join_list_options(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point (``svolsdf``)."""
+    """Console entry point (``svolsdf``).
+
+    Exit status: 0 done; 2 bad input, a bad option, or a file or folder that cannot be read or
+    written (one line, ``--debug`` for the traceback); 130 Ctrl-C (one line; a stopped
+    reconstruction names its stage, and a rerun resumes it).
+    """
     argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
     debug = "--debug" in argv
     try:
-        app(args=argv, standalone_mode=False)
-    except (InputError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
+        # without standalone mode typer returns the status of typer.Exit, and of Ctrl-C (130)
+        code = app(args=argv, standalone_mode=False)
+    except _Stopped as e:
+        print(e, file=sys.stderr)
+        raise SystemExit(130) from None
+    except (InputError, OSError) as e:  # OSError: a missing, unreadable or unwritable path
         if debug:
             raise
         msg = str(e) if not isinstance(e, OSError) or not e.filename else (
@@ -518,6 +541,10 @@ def main(argv: list[str] | None = None) -> None:
             e.show()
             raise SystemExit(e.exit_code) from None
         raise
+    if code == 130:
+        print("interrupted", file=sys.stderr)
+    if isinstance(code, int) and code != 0:
+        raise SystemExit(code)
 
 
 if __name__ == "__main__":

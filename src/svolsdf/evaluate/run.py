@@ -13,7 +13,8 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
     chamfer: {accuracy, completeness, overall, protocol, source}
     chamfer_mesh: {accuracy, completeness, overall, protocol, source}
     fscore, fscore_threshold, precision, recall
-    images:     {psnr: {mean, per_view}, ssim: {mean, per_view}, lpips: {mean, per_view}}
+    images:     {psnr: {mean, per_view, missing}, ssim: {...}, lpips: {...}}
+                (missing: why the metric is null, e.g. no renders or no LPIPS weights)
     images_ibr: the same for renders_ibr/
     timing: {..timing.json.., evaluate_seconds}
     settings: what was evaluated against what
@@ -42,6 +43,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -76,7 +78,7 @@ class EvaluateConfig:
     """F-score threshold in world units (default: 1% of the ground truth's bbox diagonal)."""
     max_dist: float | None = None
     """Generic Chamfer cut-off (default none; the DTU protocol always uses 20 mm)."""
-    lpips_net: str = "vgg"
+    lpips_net: Literal["vgg", "alex"] = "vgg"
     """LPIPS backbone, 'vgg' (the paper's) or 'alex'."""
     lpips_weights: Path | None = None
     """LPIPS weights file or folder (default: shared/weights/lpips)."""
@@ -158,8 +160,9 @@ def _render_files(folder: Path, views: list[int] | None) -> dict[int, Path]:
     return dict(sorted(files.items()))
 
 
-def _empty_images() -> dict:
-    return {k: {"mean": None, "per_view": {}} for k in ("psnr", "ssim", "lpips")}
+def _empty_images(missing: str | None = None) -> dict:
+    return {k: {"mean": None, "per_view": {}, "missing": missing}
+            for k in ("psnr", "ssim", "lpips")}
 
 
 def _finite_or_none(x):
@@ -275,11 +278,19 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
 
     sets = {"images": _render_files(cfg.out / "renders", cfg.views),
             "images_ibr": _render_files(cfg.out / "renders_ibr", cfg.views)}
+    for key, files in sets.items():
+        if not files:
+            folder = "renders" if key == "images" else "renders_ibr"
+            metrics[key] = _empty_images(f"no {folder}/<view id>.png" + (
+                f" of views {cfg.views}" if cfg.views is not None else ""))
     if not any(sets.values()):
         notes.append("No renders (renders/<view id>.png): image metrics are null.")
         return [], None
     if scene_path is None:
         notes.append("No scene (config.yaml or --scene): image metrics are null.")
+        for key, files in sets.items():
+            if files:
+                metrics[key] = _empty_images("no scene (config.yaml or --scene)")
         return [], None
     from svolsdf.scene.loaders import load_scene
 
@@ -292,11 +303,19 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
     metrics["settings"]["masks"] = scene.masks is not None
     from svolsdf.evaluate.lpips import LPIPS, lpips_distance
 
-    lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
+    lp = lp_missing = None
+    try:
+        lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
+    except InputError as e:  # PSNR, SSIM and the geometry do not need it
+        lp_missing = f"LPIPS not computed: {e}"
+        log.warning("%s (pass --lpips-weights)", lp_missing)
+        notes.append(lp_missing + ".")
     metrics["settings"]["lpips_net"] = cfg.lpips_net
     metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
     views: list[ViewImages] = []
     for key, files in sets.items():
+        if not files:
+            continue
         block = _empty_images()
         for vid, path in files.items():
             pred = read_image(path)
@@ -309,7 +328,7 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
             mask = scene.masks[k] if scene.masks is not None else None
             vals = {"psnr": masked_psnr(pred, gt, mask),
                     "ssim": ssim(pred, gt, mask, data_range=cfg.ssim_data_range),
-                    "lpips": lpips_distance(pred, gt, lp, mask)}
+                    "lpips": lpips_distance(pred, gt, lp, mask) if lp is not None else None}
             for m, v in vals.items():
                 block[m]["per_view"][str(vid)] = _finite_or_none(v)
             views.append(ViewImages(vid, pred, gt, mask, vals,
@@ -317,6 +336,8 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
         for m in block:
             vs = [v for v in block[m]["per_view"].values() if v is not None]
             block[m]["mean"] = float(np.mean(vs)) if vs else None
+        if lp is None:
+            block["lpips"]["missing"] = lp_missing
         metrics[key] = block
     return views, scene
 
@@ -337,6 +358,15 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     out = Path(cfg.out)
     if not out.is_dir():
         raise InputError(f"{out}: run folder does not exist")
+    if cfg.lpips_net not in ("vgg", "alex"):
+        raise InputError(f"--lpips-net {cfg.lpips_net!r}: expected 'vgg' or 'alex'")
+    # nothing to score: not a run folder (a scene folder, say); write nothing into it
+    found = [n for n in ("points.ply", "mesh.ply") if (out / n).is_file()] + [
+        n for n in ("renders", "renders_ibr") if _render_files(out / n, None)]
+    if not found:
+        raise InputError(f"{out}: not a run folder (no points.ply, mesh.ply or "
+                         "renders/<view id>.png); give the output folder of svolsdf "
+                         "reconstruct, mvs or render")
     from svolsdf.io.ply import read_ply
 
     run_cfg = _read_config(out)
