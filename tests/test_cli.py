@@ -118,6 +118,7 @@ def _stages(out):
     return json.loads((out / "stages.json").read_text())
 
 
+@pytest.mark.slow  # a real process: ~15 s
 def test_ctrl_c_exits_130_naming_the_stage_and_a_rerun_resumes(scene, tmp_path):
     # a real process and a real SIGINT during the optimization
     import os
