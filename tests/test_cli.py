@@ -297,3 +297,17 @@ def test_a_failed_run_writes_its_error_to_out_log(scene, tmp_path, capsys):
     assert code == 2 and img.name in res.err
     line = res.err.strip().removeprefix("error: ")
     assert f"ERROR svolsdf.pipeline: error: {line}" in (out / "log").read_text()
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["render", "RUN", "--chunk", "0"], "--chunk 0"),
+    (["render", "RUN", "--views", "1", "1"], "view 1 is given twice"),
+    (["evaluate", "RUN", "--threshold", "-1"], "--threshold -1.0"),
+    (["evaluate", "RUN", "--ssim-data-range", "0"], "--ssim-data-range 0.0"),
+    (["evaluate", "RUN", "--lpips-net", "squeeze"], "--lpips-net 'squeeze'"),
+])
+def test_bad_render_and_evaluate_options_exit_2(small_run, capsys, argv, msg):
+    before = sorted(p.name for p in small_run.iterdir())
+    code, out = _run([str(small_run) if a == "RUN" else a for a in argv], capsys)
+    assert code == 2 and msg in out.err and len(out.err.strip().splitlines()) == 1, out.err
+    assert sorted(p.name for p in small_run.iterdir()) == before

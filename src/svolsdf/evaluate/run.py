@@ -360,6 +360,10 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
         raise InputError(f"{out}: run folder does not exist")
     if cfg.lpips_net not in ("vgg", "alex"):
         raise InputError(f"--lpips-net {cfg.lpips_net!r}: expected 'vgg' or 'alex'")
+    for name, v in (("--threshold", cfg.threshold), ("--ssim-data-range", cfg.ssim_data_range),
+                    ("max_dist", cfg.max_dist)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise InputError(f"{name} {v}: expected a number > 0")
     # nothing to score: not a run folder (a scene folder, say); write nothing into it
     found = [n for n in ("points.ply", "mesh.ply") if (out / n).is_file()] + [
         n for n in ("renders", "renders_ibr") if _render_files(out / n, None)]

@@ -271,6 +271,8 @@ def render_outputs(
         raise InputError(f"--path {path!r}: the only camera path is 'orbit'")
     if path == "orbit" and frames < 2:
         raise InputError(f"--frames {frames}: an orbit needs at least 2 frames")
+    if chunk < 1:
+        raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     p = open_run(out, progress=False)
     scene = p.load()
     norm = scene.normalization
