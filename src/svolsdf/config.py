@@ -553,17 +553,19 @@ def preset(name: str) -> Config:
     return PRESETS[name]()
 
 
-def _from_dict(cls, data: dict, where: str):
+def _from_dict(cls, data: dict, where: str, prefix: str = ""):
     obj = cls()
     names = {f.name: f for f in fields(cls)}
     for k, v in data.items():
         if k not in names:
-            raise InputError(f"{where}: unknown key {k!r} (known: {', '.join(names)})")
+            raise InputError(f"{where}: unknown key {prefix + str(k)!r} (known in "
+                             f"{prefix.rstrip('.') or 'the top level'}: {', '.join(names)})")
         cur = getattr(obj, k)
         if dataclasses.is_dataclass(cur):
             if not isinstance(v, dict):
-                raise InputError(f"{where}: {k} must be a mapping")
-            setattr(obj, k, _from_dict(type(cur), v, f"{where}.{k}"))
+                raise InputError(f"{where}: {prefix}{k} = {_short(v)}: expected a mapping of "
+                                 f"{', '.join(f.name for f in fields(cur))}")
+            setattr(obj, k, _from_dict(type(cur), v, where, f"{prefix}{k}."))
         else:
             setattr(obj, k, v)
     return obj
