@@ -311,3 +311,25 @@ def test_bad_render_and_evaluate_options_exit_2(small_run, capsys, argv, msg):
     code, out = _run([str(small_run) if a == "RUN" else a for a in argv], capsys)
     assert code == 2 and msg in out.err and len(out.err.strip().splitlines()) == 1, out.err
     assert sorted(p.name for p in small_run.iterdir()) == before
+
+
+def test_sigterm_stops_a_run_with_status_143_and_the_stage(scene, tmp_path, capsys,
+                                                           monkeypatch):
+    import os
+    import signal
+    import time
+
+    import svolsdf.pipeline as pl
+
+    def terminated(self):
+        os.kill(os.getpid(), signal.SIGTERM)  # as `kill PID` would, during stage 1
+        time.sleep(30)
+
+    monkeypatch.setattr(pl.Pipeline, "stage_mvs1", terminated)
+    before = signal.getsignal(signal.SIGTERM)
+    out = tmp_path / "o"
+    code, res = _run(["reconstruct", str(scene), "-o", str(out), "--no-progress"], capsys)
+    assert code == 143
+    assert res.err.strip().splitlines()[-1].startswith("interrupted: stage mvs1 stopped")
+    assert "stage mvs1 stopped" in (out / "log").read_text()
+    assert signal.getsignal(signal.SIGTERM) == before  # main restores the handler

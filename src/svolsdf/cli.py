@@ -8,6 +8,7 @@ line naming the file and the problem; ``--debug`` shows the traceback instead.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -509,17 +510,27 @@ def main(argv: list[str] | None = None) -> None:
     """Console entry point (``svolsdf``).
 
     Exit status: 0 done; 2 bad input, a bad option, or a file or folder that cannot be read or
-    written (one line, ``--debug`` for the traceback); 130 Ctrl-C (one line; a stopped
-    reconstruction names its stage, and a rerun resumes it).
+    written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one line; a
+    stopped reconstruction names its stage, and a rerun resumes it).
     """
     argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
     debug = "--debug" in argv
+    got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
+
+    def terminate(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, terminate)
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
     try:
         # without standalone mode typer returns the status of typer.Exit, and of Ctrl-C (130)
         code = app(args=argv, standalone_mode=False)
     except _Stopped as e:
         print(e, file=sys.stderr)
-        raise SystemExit(130) from None
+        raise SystemExit(128 + got[0] if got else 130) from None
     except (InputError, OSError) as e:  # OSError: a missing, unreadable or unwritable path
         if debug:
             raise
@@ -541,8 +552,12 @@ def main(argv: list[str] | None = None) -> None:
             e.show()
             raise SystemExit(e.exit_code) from None
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     if code == 130:
-        print("interrupted", file=sys.stderr)
+        print("terminated" if got else "interrupted", file=sys.stderr)
+        code = 128 + got[0] if got else 130
     if isinstance(code, int) and code != 0:
         raise SystemExit(code)
 
