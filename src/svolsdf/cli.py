@@ -194,7 +194,10 @@ def benchmark(
         modes=modes.replace(",", " ").split(), out=out, preset=preset_name, steps=steps,
         views=_parse_views(views), size=None if size is None else parse_size(size),
         device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report)
-    rows = run_benchmark(cfg)
+    try:
+        rows = run_benchmark(cfg)
+    except RunInterrupted as e:  # the stage that stopped, not a bare status 130
+        raise _Stopped(str(e)) from None
     failed = sum(r["status"] != "ok" for r in rows)
     typer.echo((out / "benchmark.md").read_text())
     typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'} and "
