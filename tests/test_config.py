@@ -124,6 +124,11 @@ def test_values_are_normalized():
     assert cfg.train.lr == 1.0 and isinstance(cfg.train.lr, float)
     assert cfg.train.beta_end == 1e-3 and cfg.scene.views == [2, 0, 1]
     assert cfg.scene.lighting == "max" and cfg.mvs.weights == "w.pt"
+    import numpy as np  # numbers from code: numpy scalars become Python numbers
+
+    cfg.train.steps, cfg.scene.image_size = np.int64(5), [np.int32(64), np.int64(48)]
+    validate_config(cfg)
+    assert type(cfg.train.steps) is int and [type(x) for x in cfg.scene.image_size] == [int, int]
 
 
 def test_overrides_are_validated_and_name_their_option():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import os
 import types
 from collections.abc import Mapping
@@ -36,6 +37,7 @@ __all__ = [
     "apply_overrides",
     "validate_config",
 ]
+
 
 def _limited(default: Any = dataclasses.MISSING, *, factory: Any = dataclasses.MISSING,
              **limits: Any) -> Any:
@@ -369,8 +371,9 @@ def _check_value(value: Any, tp: Any, lim: dict) -> Any:
         raise _Rejected("true or false")
     if tp is int:
         what = "an integer" + _range_text(lim)
-        if isinstance(value, bool) or not isinstance(value, int):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
             raise _Rejected(what)
+        value = int(value)  # numpy integers too
         _check_range(value, lim, "an integer")
         return value
     if tp is float:
@@ -381,7 +384,7 @@ def _check_value(value: Any, tp: Any, lim: dict) -> Any:
                 value = float(value)
             except ValueError:
                 raise _Rejected(what) from None
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise _Rejected(what)
         value = float(value)
         if not math.isfinite(value):
