@@ -333,3 +333,19 @@ def test_sigterm_stops_a_run_with_status_143_and_the_stage(scene, tmp_path, caps
     assert res.err.strip().splitlines()[-1].startswith("interrupted: stage mvs1 stopped")
     assert "stage mvs1 stopped" in (out / "log").read_text()
     assert signal.getsignal(signal.SIGTERM) == before  # main restores the handler
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--weights", "w.pt"], "takes no weights"),  # the plane sweep has none
+    (["--backbone", "casmvsnet"], "needs --weights"),
+    (["--fusion-network", "nope.pt"], "nope.pt"),
+])
+def test_backbone_options_fail_before_the_output_folder(scene, tmp_path, capsys, argv, msg):
+    code, out = _run(["reconstruct", str(scene), "-o", str(tmp_path / "o"), *argv], capsys)
+    assert code == 2 and msg in out.err and not (tmp_path / "o").exists(), out.err
+
+
+def test_demo_checks_its_options_before_rendering_a_scene(tmp_path, capsys):
+    code, out = _run(["demo", "-o", str(tmp_path / "d"), "--steps", "-1"], capsys)
+    assert code == 2 and "--steps (train.steps) = -1" in out.err
+    assert not (tmp_path / "d").exists()

@@ -348,11 +348,12 @@ def demo(
 
     w, h = _parse_size(size)
     scene_dir = out / "scene"
+    # the run's options first: a bad one fails before minutes of scene rendering
+    cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
+                          labels={"train.steps": "--steps"})
     if not (scene_dir / "gt_points.ply").is_file():
         typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
         make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
-    cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
-                          labels={"train.steps": "--steps"})
     run = out / "run"
     typer.echo(f"reconstructing into {run} (fast preset) ...")
     summary = _run_pipeline(Pipeline(cfg, run, progress=not no_progress))

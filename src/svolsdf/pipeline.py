@@ -373,6 +373,7 @@ class Pipeline:
         from svolsdf.io.folders import ensure_writable_folder
 
         t_all = time.perf_counter()
+        self._check_options()
         ensure_writable_folder(self.out)
         with _folder_lock(self.out):
             handler = self._setup_log()
@@ -393,6 +394,20 @@ class Pipeline:
                 if handler is not None:  # this run's OUT/log only gets this run's messages
                     logging.getLogger("svolsdf").removeHandler(handler)
                     handler.close()
+
+    def _check_options(self) -> None:
+        """Fail on a missing scene folder or on backbone options (weights, scale) that cannot
+        run before the output folder is touched."""
+        path = Path(self.cfg.scene.path)
+        if not path.exists():
+            raise InputError(f"{path}: scene folder does not exist")
+        if not path.is_dir():
+            raise InputError(f"{path} is not a folder; pass the scene folder")
+        c = self.cfg
+        if c.train.mode in ("svolsdf", "mvs-only") or c.train.ablation:
+            self.backbone()  # built once and dropped: its weights load again in stage 1
+        if self._wants_network():
+            self._network_backbone()  # kept: the fusion stage reuses it
 
     def _interrupt_message(self) -> str:
         msg = f"interrupted: stage {self._stage} stopped"
@@ -426,8 +441,6 @@ class Pipeline:
                  scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,
                  self.cfg.preset, threads)
         mode = self.cfg.train.mode  # its value and the options it allows: validate_config
-        if self._wants_network():
-            self._network_backbone()  # bad weights fail now, not after the field's minutes
         # stage keys chain their inputs: a changed config reruns that stage and the later ones
         stages = []
         if mode in ("svolsdf", "mvs-only") or self.cfg.train.ablation:
