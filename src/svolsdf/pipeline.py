@@ -433,9 +433,11 @@ class Pipeline:
         scene = self.load()
         self.keys = self._keys()
         save_config(self.cfg, self.out / "config.yaml")
-        (self.out / "views.json").write_text(json.dumps(
+        tmp = self.out / "views.json.tmp"
+        tmp.write_text(json.dumps(
             {"inputs": self.views, "test": self.test_view_ids,
              "size": [scene.width, scene.height], "scene": str(self.cfg.scene.path)}, indent=1))
+        os.replace(tmp, self.out / "views.json")
         threads = set_threads(self.cfg.threads)
         log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s, %d torch thread(s)",
                  scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,

@@ -413,8 +413,9 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     if tj.is_file():
         try:
             metrics["timing"] = dict(json.loads(tj.read_text()))
-        except (ValueError, TypeError) as e:
-            raise InputError(f"{tj}: not a JSON object ({e})") from None
+        except (ValueError, TypeError) as e:  # the stage timings only: the scores do not need it
+            log.warning("%s is unreadable (%s); timing left out", tj, e)
+            notes.append(f"{tj.name} unreadable: stage timings left out.")
     metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
     _write_json(out / "metrics.json", metrics)
 

@@ -295,7 +295,13 @@ def render_outputs(
         rdir, idir = out / "renders" / "orbit", out / "renders_ibr" / "orbit"
         targets: list = list(range(frames))
     else:
-        info = json.loads((out / "views.json").read_text())
+        try:
+            info = json.loads((out / "views.json").read_text())
+        except (OSError, ValueError):
+            info = None
+        if not isinstance(info, dict) or not isinstance(info.get("inputs"), list):
+            log.warning("%s is unreadable; the views follow from config.yaml", out / "views.json")
+            info = {"inputs": p.views, "test": p.test_view_ids}
         if views is None:
             views = list(info.get("test") or []) or list(info["inputs"])
         views = [int(v) for v in views]
