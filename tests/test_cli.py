@@ -349,3 +349,19 @@ def test_demo_checks_its_options_before_rendering_a_scene(tmp_path, capsys):
     code, out = _run(["demo", "-o", str(tmp_path / "d"), "--steps", "-1"], capsys)
     assert code == 2 and "--steps (train.steps) = -1" in out.err
     assert not (tmp_path / "d").exists()
+
+
+def test_unreadable_bookkeeping_files_do_not_stop_render_evaluate_or_a_rerun(small_run,
+                                                                             tmp_path):
+    out = _copy_run(small_run, tmp_path / "run")
+    for name in ("views.json", "timing.json", "stages.json"):
+        (out / name).write_text("{not json")
+    main(["render", str(out), "--views", "0"])
+    assert (out / "renders" / "0.png").is_file()
+    main(["evaluate", str(out), "--no-report"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["overall"] is not None or m["images"]["psnr"]["mean"] is not None
+    # stages.json unreadable: every stage runs again, with a warning
+    main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
+    assert "stages.json is unreadable" in (out / "log").read_text()
+    assert {"mvs1", "field", "mesh"} <= set(_stages(out))

@@ -218,6 +218,7 @@ class Pipeline:
         self._net: tuple | None = None  # (its config, the fusion network's backbone)
         self._stage = "setup"  # the stage run() is in, for the message of an interrupt
         self._trainer = None  # the field stage's Trainer while it runs (its step, ditto)
+        self._warned_state = False
 
     # ------------------------------------------------------------------ bookkeeping
     def _state_path(self) -> Path:
@@ -233,8 +234,9 @@ class Pipeline:
                 return st
         except (ValueError, UnicodeDecodeError):
             pass
-        log.warning("%s is unreadable; every stage runs again", p)
-        p.unlink()
+        if not self._warned_state:  # _mark replaces it
+            log.warning("%s is unreadable; no stage counts as finished", p)
+            self._warned_state = True
         return {}
 
     def _unmark_from(self, stage: str) -> None:

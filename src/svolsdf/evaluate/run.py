@@ -141,14 +141,16 @@ def _scene_info(cfg: dict) -> tuple[Path | None, list[int] | None]:
 
 
 def run_views(out: Path, key: str) -> list[int]:
-    """The view ids under ``key`` ("inputs" or "test") of OUT/views.json; [] without the file."""
+    """The view ids under ``key`` ("inputs" or "test") of OUT/views.json; [] without the file,
+    or when it is unreadable (a warning says so)."""
     p = Path(out) / "views.json"
     if not p.is_file():
         return []
     try:
         return [int(v) for v in json.loads(p.read_text()).get(key) or []]
     except (ValueError, TypeError, AttributeError):
-        raise InputError(f"{p}: expected a JSON object with a list {key!r}") from None
+        log.warning("%s: expected a JSON object with a list %r; its views are not used", p, key)
+        return []
 
 
 def _render_files(folder: Path, views: list[int] | None) -> dict[int, Path]:
