@@ -373,7 +373,10 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
         raise InputError(f"{out}: not a run folder (no points.ply, mesh.ply or "
                          "renders/<view id>.png); give the output folder of svolsdf "
                          "reconstruct, mvs or render")
+    from svolsdf.io.folders import ensure_writable_folder
     from svolsdf.io.ply import read_ply
+
+    ensure_writable_folder(out, "run folder")  # metrics.json goes there: fail before the work
 
     run_cfg = _read_config(out)
     scene_path, input_views = _scene_info(run_cfg)
