@@ -365,3 +365,20 @@ def test_unreadable_bookkeeping_files_do_not_stop_render_evaluate_or_a_rerun(sma
     main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
     assert "stages.json is unreadable" in (out / "log").read_text()
     assert {"mvs1", "field", "mesh"} <= set(_stages(out))
+
+
+def test_read_only_run_folder_render_and_evaluate_exit_2_before_work(small_run, capsys,
+                                                                     monkeypatch):
+    import errno
+    import os
+    import tempfile
+
+    def read_only(*a, **k):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    before = sorted(p.name for p in small_run.iterdir())
+    for argv in (["render", str(small_run), "--views", "0"], ["evaluate", str(small_run)]):
+        code, out = _run(argv, capsys)
+        assert code == 2 and "Read-only file system" in out.err, out.err
+    assert sorted(p.name for p in small_run.iterdir()) == before

@@ -274,6 +274,9 @@ def render_outputs(
     if chunk < 1:
         raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     p = open_run(out, progress=False)
+    from svolsdf.io.folders import ensure_writable_folder
+
+    ensure_writable_folder(out, "run folder")  # renders/ goes there: fail before rendering
     scene = p.load()
     norm = scene.normalization
     s = float(norm.scale)
