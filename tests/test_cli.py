@@ -113,3 +113,303 @@ def test_demo_ends_with_the_report(monkeypatch, tmp_path, capsys):
     page = report.read_text()
     assert "<h2>3D view" in page and "Chamfer overall (points)" in page
     assert json.loads((report.parent / "metrics.json").read_text())["chamfer"]["overall"] < 1
+
+
+# --------------------------------------------------------------------------- issue 29's cases
+#: a seconds-long run of the 64x48 scene: a 16^3 grid, 32 rays, a checkpoint every 10 steps
+SMALL = ("field: {grid_start_resolution: 16, grid_resolution: 16}\n"
+         "output: {mesh_resolution: 24, fusion_unguided: false}\n"
+         "train: {rays: 32, checkpoint_every: 10, steps: STEPS}\n")
+
+
+def _small_config(tmp_path, scene, steps=30):
+    p = tmp_path / "small.yaml"
+    p.write_text(f"scene: {{path: {scene}}}\n" + SMALL.replace("STEPS", str(steps)))
+    return p
+
+
+@pytest.fixture(scope="module")
+def small_run(scene, tmp_path_factory):
+    """A finished run of the small config (points, mesh, field/model.pt)."""
+    d = tmp_path_factory.mktemp("small")
+    out = d / "run"
+    main(["reconstruct", "-o", str(out), "--config", str(_small_config(d, scene)),
+          "--no-progress"])
+    return out
+
+
+def _copy_run(src, dest):
+    import shutil
+
+    shutil.copytree(src, dest, ignore=shutil.ignore_patterns(".svolsdf.lock"))
+    return dest
+
+
+def _stages(out):
+    return json.loads((out / "stages.json").read_text())
+
+
+@pytest.mark.slow  # a real process: ~15 s
+def test_ctrl_c_exits_130_naming_the_stage_and_a_rerun_resumes(scene, tmp_path):
+    # a real process and a real SIGINT during the optimization
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    import svolsdf
+
+    out = tmp_path / "run"
+    cfg = _small_config(tmp_path, scene, steps=30)
+    env = dict(os.environ, PYTHONPATH=str(Path(svolsdf.__file__).parents[1]))
+    p = subprocess.Popen([sys.executable, "-m", "svolsdf", "reconstruct", "-o", str(out),
+                          "--config", str(cfg), "--no-progress"], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not (out / "field" / "checkpoint.pt").is_file() and p.poll() is None:
+        assert time.monotonic() - t0 < 120, "no checkpoint in 2 minutes"
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("interrupted: stage field stopped at step ") and "rerun" in last
+    assert "Traceback" not in err
+    assert last in (out / "log").read_text()  # the line is in OUT/log too
+    assert "field" not in _stages(out) and "mvs1" in _stages(out)
+    # the rerun resumes: stage 1 reused, the optimization continued from its checkpoint
+    main(["reconstruct", "-o", str(out), "--config", str(cfg), "--no-progress"])
+    log = (out / "log").read_text()
+    assert "resumed from" in log and (out / "mesh.ply").is_file()
+    assert {"field", "mesh"} <= set(_stages(out))
+
+
+def test_an_interrupt_anywhere_exits_130_with_one_line(monkeypatch, tmp_path, capsys):
+    # typer turns Ctrl-C into exit status 130; main once dropped it (exit 0, no message)
+    import svolsdf.scene.synthetic as synthetic
+
+    def stop(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(synthetic, "make_synthetic_scene", stop)
+    code, out = _run(["synth", str(tmp_path / "s"), "--size", "32x24"], capsys)
+    assert code == 130 and out.err.strip() == "interrupted"
+
+
+@pytest.mark.parametrize("views, repeated", [("0 1 1", "1"), ("2 2", "2")])
+def test_repeated_view_ids_exit_2_naming_the_id(scene, tmp_path, capsys, views, repeated):
+    code, out = _run(["reconstruct", str(scene), "-o", str(tmp_path / "o"), "--views",
+                      *views.split()], capsys)
+    assert code == 2 and f"view {repeated} is given twice" in out.err
+    assert len(out.err.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+    # from a config file too, and for a library caller of load_scene
+    from svolsdf.scene import SceneError, load_scene
+
+    (tmp_path / "c.yaml").write_text(f"scene: {{views: [{views.replace(' ', ', ')}]}}\n")
+    code, out = _run(["reconstruct", str(scene), "-o", str(tmp_path / "o"), "--config",
+                      str(tmp_path / "c.yaml")], capsys)
+    assert code == 2 and f"({repeated} is repeated)" in out.err
+    with pytest.raises(SceneError, match=f"view id {repeated} is given more than once"):
+        load_scene(scene, views=[int(v) for v in views.split()], load_images=False)
+
+
+def test_zero_world_mat_exits_2_naming_file_and_key(scene, tmp_path, capsys):
+    import shutil
+
+    import numpy as np
+
+    bad = tmp_path / "scene"
+    shutil.copytree(scene, bad)
+    cams = dict(np.load(bad / "cameras.npz"))
+    cams["world_mat_1"] = np.zeros((4, 4))
+    np.savez(bad / "cameras.npz", **cams)
+    code, out = _run(["reconstruct", str(bad), "-o", str(tmp_path / "o")], capsys)
+    assert code == 2 and "cameras.npz: world_mat_1:" in out.err and "singular" in out.err
+    assert len(out.err.strip().splitlines()) == 1
+
+
+def test_unwritable_output_folders_exit_2(scene, tmp_path, capsys, monkeypatch):
+    import os
+    import sys
+    from pathlib import Path
+
+    if sys.platform.startswith("linux") and Path("/sys/kernel").is_dir():
+        for argv in (["reconstruct", str(scene), "-o", "/sys/svolsdf-test-out"],
+                     ["reconstruct", str(scene), "-o", "/sys/kernel"],
+                     ["synth", "/sys/svolsdf-test-scene", "--size", "32x24"]):
+            code, out = _run(argv, capsys)
+            assert code == 2 and "cannot write" in out.err, (argv, out.err)
+            assert "Traceback" not in out.err and len(out.err.strip().splitlines()) == 1
+    # a read-only mount: writing the probe file fails with EROFS (root ignores permission
+    # bits, so a chmod cannot stand in for it)
+    import errno
+    import tempfile
+
+    def read_only(*a, **k):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    for argv in (["reconstruct", str(scene), "-o", str(tmp_path / "ro")],
+                 ["synth", str(tmp_path / "ro_scene"), "--size", "32x24"]):
+        code, out = _run(argv, capsys)
+        assert code == 2 and "Read-only file system" in out.err, out.err
+
+
+@pytest.mark.parametrize("argv, key", [
+    (["--steps", "-5"], "--steps (train.steps) = -5"),
+    (["--threads", "-2"], "--threads (threads) = -2"),
+    (["--mode", "fast"], "--mode (train.mode) = 'fast'"),
+    (["--device", "gpu"], "--device (device) = 'gpu'"),
+    (["--mvs-scale", "0"], "--mvs-scale (mvs.scale) = 0.0"),
+])
+def test_bad_option_values_exit_2_before_any_work(scene, tmp_path, capsys, argv, key):
+    code, out = _run(["reconstruct", str(scene), "-o", str(tmp_path / "o"), *argv], capsys)
+    assert code == 2 and out.err.startswith(f"error: {key}: expected"), out.err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("text, key", [
+    ("train: {steps: fifty}", "train.steps = 'fifty'"),
+    ("train: {lr: abc}", "train.lr = 'abc'"),
+    ("scene: {image_size: 160x120}", "scene.image_size = '160x120'"),
+    ("scene: {views: '0 1 2'}", "scene.views = '0 1 2'"),
+    ("output: {use_masks: 'no'}", "output.use_masks = 'no'"),
+    ("train: {rays: -4}", "train.rays = -4"),
+])
+def test_bad_config_values_exit_2_before_any_work(scene, tmp_path, capsys, text, key):
+    (tmp_path / "c.yaml").write_text(text + "\n")
+    code, out = _run(["reconstruct", str(scene), "-o", str(tmp_path / "o"), "--config",
+                      str(tmp_path / "c.yaml")], capsys)
+    assert code == 2 and f"c.yaml: {key}: expected" in out.err, out.err
+    assert not (tmp_path / "o").exists()  # before stage 1, before the folder
+
+
+def test_corrupt_model_render_exits_2_reconstruct_trains_again(small_run, tmp_path, capsys):
+    out = _copy_run(small_run, tmp_path / "run")
+    model = out / "field" / "model.pt"
+    model.write_bytes(model.read_bytes()[:200])  # truncated
+    code, res = _run(["render", str(out), "--views", "0"], capsys)
+    assert code == 2 and "model.pt" in res.err and "Traceback" not in res.err
+    assert len(res.err.strip().splitlines()) == 1
+    main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
+    log = (out / "log").read_text()
+    assert "model.pt is unreadable" in log and "running the stage field again" in log
+    import torch
+
+    assert "model_state_dict" in torch.load(model, weights_only=False)
+    assert {"field", "guide", "mesh"} <= set(_stages(out))
+
+
+def test_corrupt_checkpoint_is_discarded_and_the_optimization_restarts(small_run, tmp_path):
+    out = _copy_run(small_run, tmp_path / "run")
+    # as after a kill during the optimization: its checkpoint, no finished field
+    st = _stages(out)
+    (out / "stages.json").write_text(json.dumps({k: v for k, v in st.items()
+                                                 if k in ("mvs1", "field_partial")}))
+    (out / "field" / "model.pt").unlink()
+    (out / "field" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
+    log = (out / "log").read_text()
+    assert "checkpoint.pt is unreadable" in log and "resumed from" not in log
+    assert (out / "field" / "model.pt").is_file() and {"field", "mesh"} <= set(_stages(out))
+
+
+def test_a_failed_run_writes_its_error_to_out_log(scene, tmp_path, capsys):
+    import shutil
+
+    bad = tmp_path / "scene"
+    shutil.copytree(scene, bad)
+    img = sorted((bad / "image").iterdir())[1]
+    img.write_bytes(b"not a png")
+    out = tmp_path / "o"
+    code, res = _run(["reconstruct", str(bad), "-o", str(out), "--views", "0", "1", "2"], capsys)
+    assert code == 2 and img.name in res.err
+    line = res.err.strip().removeprefix("error: ")
+    assert f"ERROR svolsdf.pipeline: error: {line}" in (out / "log").read_text()
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["render", "RUN", "--chunk", "0"], "--chunk 0"),
+    (["render", "RUN", "--views", "1", "1"], "view 1 is given twice"),
+    (["evaluate", "RUN", "--threshold", "-1"], "--threshold -1.0"),
+    (["evaluate", "RUN", "--ssim-data-range", "0"], "--ssim-data-range 0.0"),
+    (["evaluate", "RUN", "--lpips-net", "squeeze"], "--lpips-net 'squeeze'"),
+])
+def test_bad_render_and_evaluate_options_exit_2(small_run, capsys, argv, msg):
+    before = sorted(p.name for p in small_run.iterdir())
+    code, out = _run([str(small_run) if a == "RUN" else a for a in argv], capsys)
+    assert code == 2 and msg in out.err and len(out.err.strip().splitlines()) == 1, out.err
+    assert sorted(p.name for p in small_run.iterdir()) == before
+
+
+def test_sigterm_stops_a_run_with_status_143_and_the_stage(scene, tmp_path, capsys,
+                                                           monkeypatch):
+    import os
+    import signal
+    import time
+
+    import svolsdf.pipeline as pl
+
+    def terminated(self):
+        os.kill(os.getpid(), signal.SIGTERM)  # as `kill PID` would, during stage 1
+        time.sleep(30)
+
+    monkeypatch.setattr(pl.Pipeline, "stage_mvs1", terminated)
+    before = signal.getsignal(signal.SIGTERM)
+    out = tmp_path / "o"
+    code, res = _run(["reconstruct", str(scene), "-o", str(out), "--no-progress"], capsys)
+    assert code == 143
+    assert res.err.strip().splitlines()[-1].startswith("interrupted: stage mvs1 stopped")
+    assert "stage mvs1 stopped" in (out / "log").read_text()
+    assert signal.getsignal(signal.SIGTERM) == before  # main restores the handler
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--weights", "w.pt"], "takes no weights"),  # the plane sweep has none
+    (["--backbone", "casmvsnet"], "needs --weights"),
+    (["--fusion-network", "nope.pt"], "nope.pt"),
+])
+def test_backbone_options_fail_before_the_output_folder(scene, tmp_path, capsys, argv, msg):
+    code, out = _run(["reconstruct", str(scene), "-o", str(tmp_path / "o"), *argv], capsys)
+    assert code == 2 and msg in out.err and not (tmp_path / "o").exists(), out.err
+
+
+def test_demo_checks_its_options_before_rendering_a_scene(tmp_path, capsys):
+    code, out = _run(["demo", "-o", str(tmp_path / "d"), "--steps", "-1"], capsys)
+    assert code == 2 and "--steps (train.steps) = -1" in out.err
+    assert not (tmp_path / "d").exists()
+
+
+def test_unreadable_bookkeeping_files_do_not_stop_render_evaluate_or_a_rerun(small_run,
+                                                                             tmp_path):
+    out = _copy_run(small_run, tmp_path / "run")
+    for name in ("views.json", "timing.json", "stages.json"):
+        (out / name).write_text("{not json")
+    main(["render", str(out), "--views", "0"])
+    assert (out / "renders" / "0.png").is_file()
+    main(["evaluate", str(out), "--no-report"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["overall"] is not None or m["images"]["psnr"]["mean"] is not None
+    # stages.json unreadable: every stage runs again, with a warning
+    main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
+    assert "stages.json is unreadable" in (out / "log").read_text()
+    assert {"mvs1", "field", "mesh"} <= set(_stages(out))
+
+
+def test_read_only_run_folder_render_and_evaluate_exit_2_before_work(small_run, capsys,
+                                                                     monkeypatch):
+    import errno
+    import os
+    import tempfile
+
+    def read_only(*a, **k):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    before = sorted(p.name for p in small_run.iterdir())
+    for argv in (["render", str(small_run), "--views", "0"], ["evaluate", str(small_run)]):
+        code, out = _run(argv, capsys)
+        assert code == 2 and "Read-only file system" in out.err, out.err
+    assert sorted(p.name for p in small_run.iterdir()) == before

@@ -8,13 +8,14 @@ line naming the file and the problem; ``--debug`` shows the traceback instead.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, RunInterrupted
 
 app = typer.Typer(
     add_completion=False,
@@ -24,6 +25,18 @@ app = typer.Typer(
 )
 
 _STATE = {"debug": False}
+
+
+class _Stopped(Exception):
+    """A run that Ctrl-C stopped, with its message (typer would turn the `RunInterrupted`, a
+    KeyboardInterrupt, into a bare exit status 130)."""
+
+
+def _run_pipeline(pipeline) -> dict:
+    try:
+        return pipeline.run()
+    except RunInterrupted as e:
+        raise _Stopped(str(e)) from None
 
 
 @app.callback()
@@ -50,10 +63,15 @@ def _parse_views(text: str | None) -> list[int] | None:
     out = []
     for tok in text.replace(",", " ").split():
         try:
-            out.append(int(tok))
+            v = int(tok)
         except ValueError:
             raise InputError(f"--views: '{tok}' is not a view id (give integers, e.g. "
                              f"--views 25,22,28)") from None
+        if v in out:
+            raise InputError(f"--views {text}: view {v} is given twice (give each view once)")
+        out.append(v)
+    if not out:
+        raise InputError("--views: no view ids given (e.g. --views 25,22,28)")
     return out
 
 
@@ -121,9 +139,11 @@ def evaluate(
                          report=not no_report)
     m = evaluate_run(cfg)
     c, im = m["chamfer"], m["images"]
+    lp = im["lpips"]
     typer.echo(f"chamfer acc {c['accuracy']} comp {c['completeness']} overall {c['overall']}; "
                f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
-               f"lpips {im['lpips']['mean']}")
+               f"lpips {lp['mean']}" + (f" ({lp['missing']})" if lp.get("missing") and
+                                        im["psnr"]["mean"] is not None else ""))
     typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
                                                    f" and {out / 'report.html'}"))
 
@@ -189,7 +209,10 @@ def benchmark(
         modes=modes.replace(",", " ").split(), out=out, preset=preset_name, steps=steps,
         views=_parse_views(views), size=None if size is None else parse_size(size),
         device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report)
-    rows = run_benchmark(cfg)
+    try:
+        rows = run_benchmark(cfg)
+    except RunInterrupted as e:  # the stage that stopped, not a bare status 130
+        raise _Stopped(str(e)) from None
     failed = sum(r["status"] != "ok" for r in rows)
     typer.echo((out / "benchmark.md").read_text())
     typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'} and "
@@ -212,8 +235,14 @@ def _parse_size(text: str | None) -> list[int] | None:
 
 
 def build_config(scene: Path | None, config: Path | None, preset_name: str | None,
-                 overrides: dict) -> object:
-    """Config from --config (or the preset), then the command-line overrides."""
+                 overrides: dict, labels: dict[str, str] | None = None) -> object:
+    """Config from --config (or the preset), then the command-line overrides, validated
+    (`svolsdf.config.validate_config`) before anything runs.
+
+    Args:
+        overrides: dotted config key -> value (None: not given).
+        labels: dotted config key -> its option, for error messages.
+    """
     from svolsdf.config import apply_overrides, load_config, preset
 
     if config is not None:
@@ -223,12 +252,23 @@ def build_config(scene: Path | None, config: Path | None, preset_name: str | Non
                              f"{cfg.preset}); drop one of them")
     else:
         cfg = preset(preset_name or "fast")
-    if scene is not None:
-        cfg.scene.path = str(scene)
-    apply_overrides(cfg, overrides)
+    apply_overrides(cfg, {"scene.path": None if scene is None else str(scene), **overrides},
+                    labels={"scene.path": "SCENE", **(labels or {})})
     if not cfg.scene.path:
         raise InputError("no scene given (pass SCENE or a --config with scene.path)")
     return cfg
+
+
+#: config key -> the `reconstruct` option that sets it (for error messages)
+_RECONSTRUCT_OPTIONS = {
+    "scene.views": "--views", "scene.image_size": "--size", "mvs.backbone": "--backbone",
+    "mvs.weights": "--weights", "mvs.scale": "--mvs-scale", "train.mode": "--mode",
+    "train.ablation": "--ablation", "train.steps": "--steps", "device": "--device",
+    "output.mesh_resolution": "--mesh-resolution", "train.seed": "--seed",
+    "field.background": "--background", "threads": "--threads",
+    "output.fusion_network": "--fusion-network",
+    "output.fusion_network_weights": "--fusion-network",
+}
 
 
 @app.command("reconstruct")
@@ -290,8 +330,8 @@ def reconstruct(
         "train.seed": seed, "field.background": background, "threads": threads,
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
-    })
-    summary = Pipeline(cfg, out, progress=not no_progress).run()
+    }, _RECONSTRUCT_OPTIONS)
+    summary = _run_pipeline(Pipeline(cfg, out, progress=not no_progress))
     typer.echo(f"points: {summary['points']}")
     if summary.get("mesh"):
         typer.echo(f"mesh:   {summary['mesh']}")
@@ -316,7 +356,7 @@ def demo(
     """
     import json
 
-    from svolsdf.config import preset
+    from svolsdf.config import apply_overrides, preset
     from svolsdf.evaluate.synthetic import synthetic_chamfer
     from svolsdf.io.ply import read_ply
     from svolsdf.pipeline import Pipeline
@@ -324,16 +364,15 @@ def demo(
 
     w, h = _parse_size(size)
     scene_dir = out / "scene"
+    # the run's options first: a bad one fails before minutes of scene rendering
+    cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
+                          labels={"train.steps": "--steps"})
     if not (scene_dir / "gt_points.ply").is_file():
         typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
         make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
-    cfg = preset("fast")
-    cfg.scene.path = str(scene_dir)
-    if steps is not None:
-        cfg.train.steps = steps
     run = out / "run"
     typer.echo(f"reconstructing into {run} (fast preset) ...")
-    summary = Pipeline(cfg, run, progress=not no_progress).run()
+    summary = _run_pipeline(Pipeline(cfg, run, progress=not no_progress))
     views = json.loads((run / "views.json").read_text())["inputs"]
     lines = []
     result = {}
@@ -492,12 +531,31 @@ def join_list_options(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point (``svolsdf``)."""
+    """Console entry point (``svolsdf``).
+
+    Exit status: 0 done; 2 bad input, a bad option, or a file or folder that cannot be read or
+    written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one line; a
+    stopped reconstruction names its stage, and a rerun resumes it).
+    """
     argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
     debug = "--debug" in argv
+    got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
+
+    def terminate(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt
+
     try:
-        app(args=argv, standalone_mode=False)
-    except (InputError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
+        previous = signal.signal(signal.SIGTERM, terminate)
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
+    try:
+        # without standalone mode typer returns the status of typer.Exit, and of Ctrl-C (130)
+        code = app(args=argv, standalone_mode=False)
+    except _Stopped as e:
+        print(e, file=sys.stderr)
+        raise SystemExit(128 + got[0] if got else 130) from None
+    except (InputError, OSError) as e:  # OSError: a missing, unreadable or unwritable path
         if debug:
             raise
         msg = str(e) if not isinstance(e, OSError) or not e.filename else (
@@ -518,6 +576,14 @@ def main(argv: list[str] | None = None) -> None:
             e.show()
             raise SystemExit(e.exit_code) from None
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if code == 130:
+        print("terminated" if got else "interrupted", file=sys.stderr)
+        code = 128 + got[0] if got else 130
+    if isinstance(code, int) and code != 0:
+        raise SystemExit(code)
 
 
 if __name__ == "__main__":

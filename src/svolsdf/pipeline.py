@@ -35,8 +35,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS, Config, save_config
-from svolsdf.errors import InputError
+from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS, Config, save_config, validate_config
+from svolsdf.errors import InputError, RunInterrupted
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.scene import Scene
 
@@ -46,6 +46,16 @@ __all__ = ["Pipeline", "default_views", "test_views", "working_size", "resolve_d
 log = logging.getLogger(__name__)
 
 STAGES = ("mvs1", "field", "guide", "mvs23", "unguided", "fusion", "mesh")
+
+
+def _load_maps(files: dict[int, Path]) -> dict[int, torch.Tensor]:
+    """{view: (H, W) map} from .npy files."""
+    return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+
+
+def _one_line(e: BaseException) -> str:
+    text = " ".join(str(e).split()) or e.__class__.__name__
+    return text if len(text) <= 200 else text[:197] + "..."
 
 
 # --------------------------------------------------------------------------- scene choices
@@ -192,7 +202,7 @@ class Pipeline:
     """
 
     def __init__(self, cfg: Config, out: str | Path, progress: bool = True):
-        self.cfg = cfg
+        self.cfg = validate_config(cfg)  # a bad value fails here, before any stage
         self.out = Path(out)
         if self.out.exists() and not self.out.is_dir():
             raise InputError(f"{self.out}: output path exists and is not a folder")
@@ -206,6 +216,9 @@ class Pipeline:
         self._reg1: tuple | None = None  # (volumes1, their regressed copies)
         self._model = None
         self._net: tuple | None = None  # (its config, the fusion network's backbone)
+        self._stage = "setup"  # the stage run() is in, for the message of an interrupt
+        self._trainer = None  # the field stage's Trainer while it runs (its step, ditto)
+        self._warned_state = False
 
     # ------------------------------------------------------------------ bookkeeping
     def _state_path(self) -> Path:
@@ -213,7 +226,42 @@ class Pipeline:
 
     def _state(self) -> dict:
         p = self._state_path()
-        return json.loads(p.read_text()) if p.is_file() else {}
+        if not p.is_file():
+            return {}
+        try:
+            st = json.loads(p.read_text())
+            if isinstance(st, dict):
+                return st
+        except (ValueError, UnicodeDecodeError):
+            pass
+        if not self._warned_state:  # _mark replaces it
+            log.warning("%s is unreadable; no stage counts as finished", p)
+            self._warned_state = True
+        return {}
+
+    def _unmark_from(self, stage: str) -> None:
+        """Forget ``stage`` and every later stage (their files no longer follow from earlier
+        ones, e.g. after an unreadable file of ``stage`` was discarded)."""
+        later = STAGES[STAGES.index(stage):]
+        st = {k: v for k, v in self._state().items() if k not in later}
+        tmp = self._state_path().with_suffix(".tmp")
+        tmp.write_text(json.dumps(st, indent=1))
+        os.replace(tmp, self._state_path())
+
+    def _reuse(self, stage: str, read, discard: Path | None = None):
+        """``read()`` the files of a finished (or, for the field, started) ``stage``; None when
+        one is unreadable: a warning says so, ``discard`` is deleted, and the stage and the later
+        ones run again."""
+        try:
+            return read()
+        except Exception as e:  # a truncated or corrupt file: numpy, zip or pickle errors
+            what = f"{discard} is" if discard is not None else "a file of the stage is"
+            log.warning("%s: %s unreadable (%s); discarding it and running the stage %s again",
+                        self.out, what, _one_line(e), stage)
+            if discard is not None:
+                discard.unlink(missing_ok=True)
+            self._unmark_from(stage)
+            return None
 
     def _mark(self, stage: str, key: str) -> None:
         st = self._state()
@@ -283,7 +331,13 @@ class Pipeline:
         prev = {}
         tp = self.out / "timing.json"
         if tp.is_file():
-            prev = json.loads(tp.read_text())
+            try:
+                prev = json.loads(tp.read_text())
+            except (ValueError, UnicodeDecodeError):
+                prev = None
+            if not isinstance(prev, dict):
+                log.warning("%s is unreadable; rewriting it", tp)
+                prev = {}
         prev.update(self.timing)
         tmp = tp.with_suffix(".tmp")
         tmp.write_text(json.dumps(prev, indent=1))
@@ -315,49 +369,100 @@ class Pipeline:
 
     # ------------------------------------------------------------------ run
     def run(self) -> dict:
-        """Run (or resume) every stage; returns a summary dict."""
+        """Run (or resume) every stage; returns a summary dict.
+
+        Raises:
+            InputError: bad input (also written to OUT/log).
+            RunInterrupted: Ctrl-C; its message, also in OUT/log, names the stage that stopped
+                and says that a rerun resumes.
+        """
+        from svolsdf.io.folders import ensure_writable_folder
+
         t_all = time.perf_counter()
-        self.out.mkdir(parents=True, exist_ok=True)
+        self._check_options()
+        ensure_writable_folder(self.out)
         with _folder_lock(self.out):
             handler = self._setup_log()
             try:
                 return self._run(t_all)
+            except KeyboardInterrupt:
+                msg = self._interrupt_message()
+                self._log_to_file(logging.WARNING, msg)
+                raise RunInterrupted(msg) from None
+            except InputError as e:  # the command line prints it; OUT/log keeps it too
+                self._log_to_file(logging.ERROR, f"error: {e}")
+                raise
+            except Exception as e:
+                self._log_to_file(logging.ERROR, f"failed in stage {self._stage}: "
+                                  f"{_one_line(e)}", exc_info=True)
+                raise
             finally:
                 if handler is not None:  # this run's OUT/log only gets this run's messages
                     logging.getLogger("svolsdf").removeHandler(handler)
                     handler.close()
 
+    def _check_options(self) -> None:
+        """Fail on a missing scene folder or on backbone options (weights, scale) that cannot
+        run before the output folder is touched."""
+        path = Path(self.cfg.scene.path)
+        if not path.exists():
+            raise InputError(f"{path}: scene folder does not exist")
+        if not path.is_dir():
+            raise InputError(f"{path} is not a folder; pass the scene folder")
+        c = self.cfg
+        if c.train.mode in ("svolsdf", "mvs-only") or c.train.ablation:
+            self.backbone()  # built once and dropped: its weights load again in stage 1
+        if self._wants_network():
+            self._network_backbone()  # kept: the fusion stage reuses it
+
+    def _interrupt_message(self) -> str:
+        msg = f"interrupted: stage {self._stage} stopped"
+        t, resumes = self._trainer, ""
+        if self._stage == "field" and t is not None:
+            msg += f" at step {t.step} of {self.cfg.train.steps}"
+            if self.cfg.train.checkpoint_every > 0:
+                resumes = "; the optimization continues from its last checkpoint"
+        return (f"{msg}; rerun the same command to resume (finished stages in {self.out} are "
+                f"kept{resumes})")
+
+    def _log_to_file(self, level: int, msg: str, exc_info: bool = False) -> None:
+        """Write ``msg`` to OUT/log alone (the console gets it from the command line)."""
+        path = str((self.out / "log").resolve())
+        for h in logging.getLogger("svolsdf").handlers:
+            if isinstance(h, logging.FileHandler) and h.baseFilename == path:
+                rec = log.makeRecord(log.name, level, __file__, 0, msg, (),
+                                     sys.exc_info() if exc_info else None)
+                with contextlib.suppress(Exception):
+                    h.handle(rec)
+
     def _run(self, t_all: float) -> dict:
         scene = self.load()
         self.keys = self._keys()
         save_config(self.cfg, self.out / "config.yaml")
-        (self.out / "views.json").write_text(json.dumps(
+        tmp = self.out / "views.json.tmp"
+        tmp.write_text(json.dumps(
             {"inputs": self.views, "test": self.test_view_ids,
              "size": [scene.width, scene.height], "scene": str(self.cfg.scene.path)}, indent=1))
+        os.replace(tmp, self.out / "views.json")
         threads = set_threads(self.cfg.threads)
         log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s, %d torch thread(s)",
                  scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,
                  self.cfg.preset, threads)
-        mode = self.cfg.train.mode
-        if self.cfg.output.finer_stage_optimization and (
-                mode != "svolsdf" or self.cfg.train.ablation is not None):
-            raise InputError("output.finer_stage_optimization needs mode svolsdf without an "
-                             "ablation (it optimizes the field against the stage-2 volumes)")
-        if mode not in ("svolsdf", "volsdf", "mvs-only"):
-            raise InputError(f"unknown mode {mode!r} (svolsdf, volsdf or mvs-only)")
-        if self._wants_network():
-            self._network_backbone()  # bad weights fail now, not after the field's minutes
+        mode = self.cfg.train.mode  # its value and the options it allows: validate_config
         # stage keys chain their inputs: a changed config reruns that stage and the later ones
+        stages = []
         if mode in ("svolsdf", "mvs-only") or self.cfg.train.ablation:
-            self.stage_mvs1()
+            stages.append(("mvs1", self.stage_mvs1))
         if mode in ("svolsdf", "volsdf") and self.cfg.train.ablation != "soft-consistency-only":
-            self.stage_field()
-        self.stage_guide()
-        self.stage_mvs23()
-        self.stage_unguided()
-        self.stage_fusion()
+            stages.append(("field", self.stage_field))
+        stages += [("guide", self.stage_guide), ("mvs23", self.stage_mvs23),
+                   ("unguided", self.stage_unguided), ("fusion", self.stage_fusion)]
         if self._has_field():
-            self.stage_mesh()
+            stages.append(("mesh", self.stage_mesh))
+        for name, stage in stages:
+            self._stage = name
+            stage()
+        self._stage = "finish"
         self._time("total", t_all)
         summary = {"out": str(self.out), "points": str(self.out / "points.ply"),
                    "mesh": str(self.out / "mesh.ply") if self._has_field() else None,
@@ -418,8 +523,10 @@ class Pipeline:
         d = self.out / "mvs" / "stage1"
         files = [d / f"{v}.npz" for v in self.views]
         if self._done("mvs1") and all(f.is_file() for f in files):
-            self._volumes1 = [ProbabilityVolume.load(f) for f in files]
-            return self._volumes1
+            vols = self._reuse("mvs1", lambda: [ProbabilityVolume.load(f) for f in files])
+            if vols is not None:
+                self._volumes1 = vols
+                return vols
         t0 = time.perf_counter()
         from svolsdf.mvs.cascade import run_cascade
 
@@ -602,38 +709,33 @@ class Pipeline:
                                           mode="nearest")[0, 0] for d in depths])
 
     def stage_field(self):
-        from svolsdf.optimize.trainer import Trainer
-        from svolsdf.prior.consistency import MVSPrior
-
+        """The S-VolSDF optimization (OUT/field/model.pt), resumed from OUT/field/checkpoint.pt
+        after an interrupt; an unreadable model or checkpoint is discarded (with a warning) and
+        the stage runs again."""
         fdir = self.out / "field"
         final = fdir / "model.pt"
         torch.manual_seed(self.cfg.train.seed)  # the box (quantiles of a random subset) too
         model = self.build_model()
         if self._done("field") and final.is_file():
-            self._load_model(model, final)
-            self._model = model.to(self.device)
-            return self._model
+            if self._reuse("field", lambda: self._load_model(model, final) or True, final):
+                self._model = model.to(self.device)
+                return self._model
+            torch.manual_seed(self.cfg.train.seed)  # a fresh model: the load may have filled
+            model = self.build_model()  # part of it
         t0 = time.perf_counter()
         tcfg = self.cfg.train
-        torch.manual_seed(tcfg.seed)
-        prior = None
-        if tcfg.mode == "svolsdf" and self._volumes1 is not None:
-            prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
-            if self.cfg.field.kind == "grid" and self.cfg.field.init == "mvs":
-                from svolsdf.field.init import init_grid_from_mvs
-
-                scene = self.load()
-                init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
-                                   scene.masks if self.cfg.output.use_masks else None,
-                                   unverified_weight=self.cfg.field.init_unverified_weight)
-        trainer = Trainer(model, self.train_data(), tcfg, prior=prior,
-                          sampler=self.make_sampler(prior), out_dir=fdir, device=self.device,
-                          grid_schedule=self._grid_schedule())
+        trainer = self._field_trainer(model)
         if self._state().get("field_partial") == self.keys["field"]:
-            trainer.load_checkpoint()
+            ckpt = trainer.checkpoint_path()
+            if not self._reuse("field", lambda: trainer.load_checkpoint() or True, ckpt):
+                torch.manual_seed(tcfg.seed)  # start again, exactly as a fresh run
+                model = self.build_model()
+                trainer = self._field_trainer(model)
         else:
             self._mark("field_partial", self.keys["field"])
+        self._trainer = trainer  # its step, for the message of an interrupt
         trainer.fit(progress=self.progress)
+        self._trainer = None
         fdir.mkdir(parents=True, exist_ok=True)
         tmp = final.with_suffix(".tmp")
         torch.save({"model_state_dict": model.state_dict(),
@@ -647,10 +749,42 @@ class Pipeline:
                    steps_per_s=round(hist[-1]["steps_per_s"], 3) if hist else None)
         return model
 
+    def _field_trainer(self, model):
+        """The `Trainer` of the field stage for a freshly built ``model`` (its grid initialised
+        from the stage-1 MVS depth where configured)."""
+        from svolsdf.optimize.trainer import Trainer
+        from svolsdf.prior.consistency import MVSPrior
+
+        tcfg = self.cfg.train
+        torch.manual_seed(tcfg.seed)
+        prior = None
+        if tcfg.mode == "svolsdf" and self._volumes1 is not None:
+            prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
+            if self.cfg.field.kind == "grid" and self.cfg.field.init == "mvs":
+                from svolsdf.field.init import init_grid_from_mvs
+
+                scene = self.load()
+                init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
+                                   scene.masks if self.cfg.output.use_masks else None,
+                                   unverified_weight=self.cfg.field.init_unverified_weight)
+        return Trainer(model, self.train_data(), tcfg, prior=prior,
+                       sampler=self.make_sampler(prior), out_dir=self.out / "field",
+                       device=self.device, grid_schedule=self._grid_schedule())
+
     def _load_model(self, model, path: Path) -> None:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        """Load a saved field into ``model``.
+
+        Raises:
+            InputError: the file is unreadable (truncated, not a field file).
+            RuntimeError: it holds another field than ``model`` (torch's message).
+        """
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=False)
+            sd = state["model_state_dict"]
+        except Exception as e:  # zip, pickle, EOF or key errors of a corrupt file
+            raise InputError(f"{path}: not a readable field file ({_one_line(e)})") from None
         # a grid field takes the stored box and grid shapes (GridSDFField._load_from_state_dict)
-        model.load_state_dict(state["model_state_dict"])
+        model.load_state_dict(sd)
 
     def model(self):
         if self._model is None:
@@ -721,7 +855,9 @@ class Pipeline:
         gdir = self.out / "field" / "render_depth"
         files = {v: gdir / f"{v}.npy" for v in self.views}
         if self._done("guide") and all(f.is_file() for f in files.values()):
-            return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+            maps = self._reuse("guide", lambda: _load_maps(files))
+            if maps is not None:
+                return maps
         t0 = time.perf_counter()
         if self.cfg.train.ablation == "soft-consistency-only":
             guide = self._consistency_depth()
@@ -890,7 +1026,9 @@ class Pipeline:
         ddir = self.out / "depth"
         files = {v: ddir / f"{v}.npy" for v in self.views}
         if self._done("mvs23") and all(f.is_file() for f in files.values()):
-            return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+            maps = self._reuse("mvs23", lambda: _load_maps(files))
+            if maps is not None:
+                return maps
         t0 = time.perf_counter()
         from svolsdf.io.images import write_depth_preview
 
@@ -973,7 +1111,9 @@ class Pipeline:
         udir = self.out / "unguided"
         files = {v: udir / "depth" / f"{v}.npy" for v in self.views}
         if self._done("unguided") and all(f.is_file() for f in files.values()):
-            return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+            maps = self._reuse("unguided", lambda: _load_maps(files))
+            if maps is not None:
+                return maps
         t0 = time.perf_counter()
         from svolsdf.mvs.cascade import run_and_save_cascade
 

@@ -239,3 +239,18 @@ def test_real_mvs_only_run(tmp_path, synth_scene):
         assert r[k] == pytest.approx(want[k], rel=1e-9)
     assert r["time_s"] > 0 and r["psnr"] is None  # mvs-only renders no novel views
     assert "| synth_a |" in (out / "benchmark.md").read_text()
+
+
+def test_bad_run_options_fail_before_any_run(tmp_path, monkeypatch):
+    import svolsdf.pipeline as pl
+
+    def never(*a, **k):
+        raise AssertionError("a run started")
+
+    monkeypatch.setattr(pl, "Pipeline", never)
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    cfg = BenchmarkConfig(scenes=[scene], modes=["mvs-only"], out=tmp_path / "b", steps=-5)
+    with pytest.raises(InputError, match=r"--steps \(train.steps\) = -5"):
+        run_benchmark(cfg)
+    assert not (tmp_path / "b").exists()

@@ -102,13 +102,42 @@ def test_evaluate_writes_metrics_and_report(tmp_path):
 
 
 def test_evaluate_without_ground_truth_gives_nulls(tmp_path):
-    out = tmp_path / "empty_run"
+    out = tmp_path / "points_only_run"
     out.mkdir()
+    write_points_ply(out / "points.ply", np.random.default_rng(0).random((50, 3)))
     m = evaluate_run(EvaluateConfig(out=out, report=False))
     assert m["chamfer"]["overall"] is None and m["fscore"] is None
-    assert m["images"]["psnr"] == {"mean": None, "per_view": {}}
+    assert m["images"]["psnr"] == {"mean": None, "per_view": {},
+                                   "missing": "no renders/<view id>.png"}
     assert m["images"]["lpips"]["mean"] is None and "evaluate_seconds" in m["timing"]
     assert not (out / "report.html").exists()
+
+
+def test_a_folder_that_is_not_a_run_is_refused_and_left_alone(tmp_path, capsys):
+    scene = _scene(tmp_path / "scene")
+    before = sorted(p.name for p in scene.rglob("*"))
+    for folder in (scene, tmp_path / "empty"):
+        folder.mkdir(exist_ok=True)
+        with pytest.raises(SystemExit) as e:
+            main(["evaluate", str(folder)])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and "not a run folder" in err and len(err.splitlines()) == 1
+        assert not (folder / "metrics.json").exists() and not (folder / "report.html").exists()
+    assert sorted(p.name for p in scene.rglob("*")) == before
+
+
+def test_missing_lpips_weights_still_scores_geometry_and_other_image_metrics(tmp_path, capsys):
+    out, gt, _ = _run(tmp_path)
+    main(["evaluate", str(out), "--gt-points", str(gt), "--lpips-weights",  # returns: exit 0
+          str(tmp_path / "no_weights"), "--no-report"])
+    printed = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["overall"] is not None and m["fscore"] is not None
+    assert m["images"]["psnr"]["mean"] > 10 and m["images"]["ssim"]["mean"] > 0
+    lp = m["images"]["lpips"]
+    assert lp["mean"] is None and "no_weights" in lp["missing"] and "LPIPS" in lp["missing"]
+    assert m["images"]["psnr"]["missing"] is None
+    assert "LPIPS not computed" in printed
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
@@ -116,6 +145,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
         main(["evaluate", str(tmp_path / "nope")])
     assert e.value.code == 2
     assert "run folder does not exist" in capsys.readouterr().err
+    write_points_ply(tmp_path / "points.ply", np.random.default_rng(0).random((50, 3)))
     with pytest.raises(InputError, match="ObsMask9_10.mat"):
         evaluate_run(EvaluateConfig(out=tmp_path, dtu_gt=tmp_path, scan=9, report=False))
 

@@ -69,6 +69,24 @@ def test_idr_views_and_resize(tmp_path):
     assert abs(float(s.cameras.K[0, 0, 2]) - (0.5 * (K[2][0, 2] + 0.5) - 0.5)) < 1e-9
 
 
+@pytest.mark.parametrize("bad", ["zero", "rank2", "nan"])
+def test_idr_degenerate_world_mat_names_the_file_and_key(tmp_path, bad):
+    from svolsdf.scene.scene import SceneError
+
+    K, w2c = random_cameras(3)
+    root = write_idr(tmp_path / "s", K, w2c)
+    d = dict(np.load(root / "cameras.npz"))
+    if bad == "zero":  # an all-zero matrix once passed the relative singularity test
+        d["world_mat_1"] = np.zeros((4, 4))
+    elif bad == "rank2":
+        d["world_mat_1"][:3, 2] = d["world_mat_1"][:3, 0]
+    else:
+        d["world_mat_1"][0, 0] = np.nan
+    np.savez(root / "cameras.npz", **d)
+    with pytest.raises(SceneError, match=r"cameras\.npz: world_mat_1: "):
+        load_scene(root, load_images=False)
+
+
 @pytest.mark.parametrize("image_dir", ["images", "blended_images"])
 def test_mvsnet_roundtrip(tmp_path, image_dir):
     K, w2c = random_cameras(4)

@@ -312,6 +312,8 @@ def _validate(cfg: BenchmarkConfig) -> None:
                                  "(name it like scan65 or pass --scan N)")
     if cfg.out.exists() and not cfg.out.is_dir():
         raise InputError(f"{cfg.out}: output path exists and is not a folder")
+    for mode in cfg.modes:  # the run configs (--steps, --size, --device ...) are valid
+        _config(cfg, cfg.scenes[0], mode)
 
 
 def _config(cfg: BenchmarkConfig, scene: Path, mode: str):
@@ -325,7 +327,8 @@ def _config(cfg: BenchmarkConfig, scene: Path, mode: str):
         "scene.views": list(cfg.views) if cfg.views else None,
         "scene.image_size": list(cfg.size) if cfg.size else None,
         "device": cfg.device,
-    })
+    }, labels={"train.steps": "--steps", "scene.views": "--views", "scene.image_size": "--size",
+               "device": "--device"})
 
 
 def run_benchmark(cfg: BenchmarkConfig) -> list[dict]:
@@ -343,11 +346,12 @@ def run_benchmark(cfg: BenchmarkConfig) -> list[dict]:
     """
     from svolsdf import pipeline as pipeline_module
     from svolsdf.evaluate.run import EvaluateConfig, evaluate_run, run_views
+    from svolsdf.io.folders import ensure_writable_folder
 
     cfg.scenes = [Path(s) for s in cfg.scenes]
     cfg.out = Path(cfg.out)
     _validate(cfg)
-    cfg.out.mkdir(parents=True, exist_ok=True)
+    ensure_writable_folder(cfg.out)
     rows: list[dict] = []
     labels = _labels(cfg.scenes)
     n = len(cfg.scenes) * len(cfg.modes)

@@ -13,7 +13,8 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
     chamfer: {accuracy, completeness, overall, protocol, source}
     chamfer_mesh: {accuracy, completeness, overall, protocol, source}
     fscore, fscore_threshold, precision, recall
-    images:     {psnr: {mean, per_view}, ssim: {mean, per_view}, lpips: {mean, per_view}}
+    images:     {psnr: {mean, per_view, missing}, ssim: {...}, lpips: {...}}
+                (missing: why the metric is null, e.g. no renders or no LPIPS weights)
     images_ibr: the same for renders_ibr/
     timing: {..timing.json.., evaluate_seconds}
     settings: what was evaluated against what
@@ -42,6 +43,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -76,7 +78,7 @@ class EvaluateConfig:
     """F-score threshold in world units (default: 1% of the ground truth's bbox diagonal)."""
     max_dist: float | None = None
     """Generic Chamfer cut-off (default none; the DTU protocol always uses 20 mm)."""
-    lpips_net: str = "vgg"
+    lpips_net: Literal["vgg", "alex"] = "vgg"
     """LPIPS backbone, 'vgg' (the paper's) or 'alex'."""
     lpips_weights: Path | None = None
     """LPIPS weights file or folder (default: shared/weights/lpips)."""
@@ -139,14 +141,16 @@ def _scene_info(cfg: dict) -> tuple[Path | None, list[int] | None]:
 
 
 def run_views(out: Path, key: str) -> list[int]:
-    """The view ids under ``key`` ("inputs" or "test") of OUT/views.json; [] without the file."""
+    """The view ids under ``key`` ("inputs" or "test") of OUT/views.json; [] without the file,
+    or when it is unreadable (a warning says so)."""
     p = Path(out) / "views.json"
     if not p.is_file():
         return []
     try:
         return [int(v) for v in json.loads(p.read_text()).get(key) or []]
     except (ValueError, TypeError, AttributeError):
-        raise InputError(f"{p}: expected a JSON object with a list {key!r}") from None
+        log.warning("%s: expected a JSON object with a list %r; its views are not used", p, key)
+        return []
 
 
 def _render_files(folder: Path, views: list[int] | None) -> dict[int, Path]:
@@ -158,8 +162,9 @@ def _render_files(folder: Path, views: list[int] | None) -> dict[int, Path]:
     return dict(sorted(files.items()))
 
 
-def _empty_images() -> dict:
-    return {k: {"mean": None, "per_view": {}} for k in ("psnr", "ssim", "lpips")}
+def _empty_images(missing: str | None = None) -> dict:
+    return {k: {"mean": None, "per_view": {}, "missing": missing}
+            for k in ("psnr", "ssim", "lpips")}
 
 
 def _finite_or_none(x):
@@ -269,18 +274,29 @@ def _diag(p: np.ndarray) -> float:
 
 
 def _render_views(out: Path, scene_path: Path | None, views: list[int] | None, masks: bool,
-                  notes: list[str]) -> tuple[dict[str, list[ViewImages]], object]:
+                  notes: list[str], missing: dict[str, str] | None = None
+                  ) -> tuple[dict[str, list[ViewImages]], object]:
     """Renders of renders/ ("images") and renders_ibr/ ("images_ibr") with their ground truth,
-    without metrics; returns them by set and the scene loaded at the renders' size."""
+    without metrics; returns them by set and the scene loaded at the renders' size.
+    ``missing`` (if given) receives, per set, why it has no images."""
     from svolsdf.io.images import read_image
 
+    missing = {} if missing is None else missing
     sets = {"images": _render_files(out / "renders", views),
             "images_ibr": _render_files(out / "renders_ibr", views)}
+    for key, files in sets.items():
+        if not files:
+            folder = "renders" if key == "images" else "renders_ibr"
+            missing[key] = f"no {folder}/<view id>.png" + (
+                f" of views {views}" if views is not None else "")
     if not any(sets.values()):
         notes.append("No renders (renders/<view id>.png): image metrics are null.")
         return {}, None
     if scene_path is None:
         notes.append("No scene (config.yaml or --scene): image metrics are null.")
+        for key, files in sets.items():
+            if files:
+                missing[key] = "no scene (config.yaml or --scene)"
         return {}, None
     from svolsdf.scene.loaders import load_scene
 
@@ -290,6 +306,8 @@ def _render_views(out: Path, scene_path: Path | None, views: list[int] | None, m
     scene = load_scene(scene_path, views=ids, image_size=(w, h), masks=masks)
     loaded: dict[str, list[ViewImages]] = {}
     for key, files in sets.items():
+        if not files:
+            continue
         loaded[key] = []
         for vid, path in files.items():
             pred = read_image(path)
@@ -306,8 +324,13 @@ def _render_views(out: Path, scene_path: Path | None, views: list[int] | None, m
 
 def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str]
             ) -> tuple[list[ViewImages], object]:
-    """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene."""
-    loaded, scene = _render_views(cfg.out, scene_path, cfg.views, cfg.masks, notes)
+    """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene.
+    A set without images, or a metric that cannot be computed (LPIPS without its weights),
+    keeps null values and says why in ``missing``."""
+    missing: dict[str, str] = {}
+    loaded, scene = _render_views(cfg.out, scene_path, cfg.views, cfg.masks, notes, missing)
+    for key, why in missing.items():
+        metrics[key] = _empty_images(why)
     if scene is None:
         return [], None
     metrics["settings"]["scene"] = str(scene_path)
@@ -315,7 +338,13 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
     metrics["settings"]["masks"] = scene.masks is not None
     from svolsdf.evaluate.lpips import LPIPS, lpips_distance
 
-    lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
+    lp = lp_missing = None
+    try:
+        lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
+    except InputError as e:  # PSNR, SSIM and the geometry do not need it
+        lp_missing = f"LPIPS not computed: {e}"
+        log.warning("%s (pass --lpips-weights)", lp_missing)
+        notes.append(lp_missing + ".")
     metrics["settings"]["lpips_net"] = cfg.lpips_net
     metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
     views: list[ViewImages] = []
@@ -324,13 +353,16 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
         for v in group:
             v.metrics = {"psnr": masked_psnr(v.pred, v.gt, v.mask),
                          "ssim": ssim(v.pred, v.gt, v.mask, data_range=cfg.ssim_data_range),
-                         "lpips": lpips_distance(v.pred, v.gt, lp, v.mask)}
+                         "lpips": lpips_distance(v.pred, v.gt, lp, v.mask)
+                         if lp is not None else None}
             for m, x in v.metrics.items():
                 block[m]["per_view"][str(v.view_id)] = _finite_or_none(x)
             views.append(v)
         for m in block:
             vs = [x for x in block[m]["per_view"].values() if x is not None]
             block[m]["mean"] = float(np.mean(vs)) if vs else None
+        if lp is None:
+            block["lpips"]["missing"] = lp_missing
         metrics[key] = block
     return views, scene
 
@@ -351,7 +383,23 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     out = Path(cfg.out)
     if not out.is_dir():
         raise InputError(f"{out}: run folder does not exist")
+    if cfg.lpips_net not in ("vgg", "alex"):
+        raise InputError(f"--lpips-net {cfg.lpips_net!r}: expected 'vgg' or 'alex'")
+    for name, v in (("--threshold", cfg.threshold), ("--ssim-data-range", cfg.ssim_data_range),
+                    ("max_dist", cfg.max_dist)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise InputError(f"{name} {v}: expected a number > 0")
+    # nothing to score: not a run folder (a scene folder, say); write nothing into it
+    found = [n for n in ("points.ply", "mesh.ply") if (out / n).is_file()] + [
+        n for n in ("renders", "renders_ibr") if _render_files(out / n, None)]
+    if not found:
+        raise InputError(f"{out}: not a run folder (no points.ply, mesh.ply or "
+                         "renders/<view id>.png); give the output folder of svolsdf "
+                         "reconstruct, mvs or render")
+    from svolsdf.io.folders import ensure_writable_folder
     from svolsdf.io.ply import read_ply
+
+    ensure_writable_folder(out, "run folder")  # metrics.json goes there: fail before the work
 
     run_cfg = _read_config(out)
     scene_path, input_views = _scene_info(run_cfg)
@@ -388,8 +436,9 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     if tj.is_file():
         try:
             metrics["timing"] = dict(json.loads(tj.read_text()))
-        except (ValueError, TypeError) as e:
-            raise InputError(f"{tj}: not a JSON object ({e})") from None
+        except (ValueError, TypeError) as e:  # the stage timings only: the scores do not need it
+            log.warning("%s is unreadable (%s); timing left out", tj, e)
+            notes.append(f"{tj.name} unreadable: stage timings left out.")
     metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
     _write_json(out / "metrics.json", metrics)
 

@@ -104,6 +104,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     Raises:
         InputError: bad scene, view ids, backbone, weights or depth range.
     """
+    from svolsdf.io.folders import ensure_writable_folder
     from svolsdf.io.images import write_depth_preview
     from svolsdf.mvs.backbone import get_backbone
     from svolsdf.mvs.cascade import run_cascade, save_cascade
@@ -120,6 +121,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     W, H = working_size(tuple(probe.extras.get("native_size", (probe.width, probe.height))),
                         cfg.size)
     backbone = get_backbone(cfg.backbone, weights=cfg.weights)  # weights errors before loading
+    ensure_writable_folder(out)  # before the cascade's minutes
     t0 = time.perf_counter()
     scene = load_scene(cfg.scene, views=cfg.views, image_size=(W, H))
     scene = replace(scene, depth_range=mvs_depth_range(scene, cfg.depth_range))

@@ -339,6 +339,7 @@ class Trainer:
                    dynamic_ncols=True)
         t0 = time.perf_counter()
         s0 = self.step
+        stopped = False
         try:
             while self.step < steps:
                 terms = self.train_step()
@@ -363,10 +364,13 @@ class Trainer:
                     self.save_checkpoint()
                     if on_checkpoint is not None:
                         on_checkpoint(self.step)
+        except KeyboardInterrupt:
+            stopped = True
+            raise
         finally:
             bar.close()
-            if self.out_dir is not None:
-                self.write_log()
+            if self.out_dir is not None:  # Ctrl-C: the CSV, not seconds of plotting
+                self.write_log(plot=not stopped)
         return self.history
 
     # ------------------------------------------------------------------ checkpoints
@@ -419,8 +423,8 @@ class Trainer:
         log.info("resumed from %s at step %d", path, self.step)
         return True
 
-    def write_log(self) -> None:
-        """Loss curves as CSV (and a PNG plot) in out_dir."""
+    def write_log(self, plot: bool = True) -> None:
+        """Loss curves as CSV (and, with ``plot``, a PNG plot) in out_dir."""
         if not self.history or self.out_dir is None:
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -432,6 +436,8 @@ class Trainer:
             for row in self.history:
                 w.writerow(row)
         os.replace(tmp, self.out_dir / "losses.csv")
+        if not plot:
+            return
         try:
             import matplotlib
 

@@ -102,7 +102,12 @@ def open_run(out: str | Path, progress: bool = False):
     if (mode in ("svolsdf", "mvs-only") or abl) and all(f.is_file() for f in stage1):
         from svolsdf.mvs.volume import ProbabilityVolume
 
-        p._volumes1 = [ProbabilityVolume.load(f) for f in stage1]
+        try:
+            p._volumes1 = [ProbabilityVolume.load(f) for f in stage1]
+        except Exception as e:  # a truncated or corrupt .npz
+            raise InputError(f"{out}: a stage-1 volume in {stage1[0].parent} is unreadable "
+                             f"({' '.join(str(e).split())[:200]}); rerun svolsdf reconstruct "
+                             f"-o {out}: it computes it again") from None
     if not p._done("field"):
         # a config or package change alters the stage hash; rendering never retrains
         log.warning("%s: the stored field was trained under another config hash (edited config "
@@ -113,6 +118,9 @@ def open_run(out: str | Path, progress: bool = False):
     model = p.build_model()
     try:
         p._load_model(model, model_path)
+    except InputError as e:  # truncated or corrupt: only a rerun can make it again
+        raise InputError(f"{e}; rerun svolsdf reconstruct -o {out}: it trains the field "
+                         "again") from None
     except RuntimeError as e:
         raise InputError(f"{model_path}: does not match the field of {cfg_path} ({e})") from None
     p._model = model.to(p.device)
@@ -263,7 +271,12 @@ def render_outputs(
         raise InputError(f"--path {path!r}: the only camera path is 'orbit'")
     if path == "orbit" and frames < 2:
         raise InputError(f"--frames {frames}: an orbit needs at least 2 frames")
+    if chunk < 1:
+        raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     p = open_run(out, progress=False)
+    from svolsdf.io.folders import ensure_writable_folder
+
+    ensure_writable_folder(out, "run folder")  # renders/ goes there: fail before rendering
     scene = p.load()
     norm = scene.normalization
     s = float(norm.scale)
@@ -285,7 +298,13 @@ def render_outputs(
         rdir, idir = out / "renders" / "orbit", out / "renders_ibr" / "orbit"
         targets: list = list(range(frames))
     else:
-        info = json.loads((out / "views.json").read_text())
+        try:
+            info = json.loads((out / "views.json").read_text())
+        except (OSError, ValueError):
+            info = None
+        if not isinstance(info, dict) or not isinstance(info.get("inputs"), list):
+            log.warning("%s is unreadable; the views follow from config.yaml", out / "views.json")
+            info = {"inputs": p.views, "test": p.test_view_ids}
         if views is None:
             views = list(info.get("test") or []) or list(info["inputs"])
         views = [int(v) for v in views]

@@ -41,7 +41,9 @@ def decompose_projection(P: Tensor) -> tuple[Tensor, Tensor]:
     if not torch.isfinite(P).all():
         raise ValueError("projection matrix has non-finite entries")
     M = P[:, :3]
-    if abs(float(torch.linalg.det(M))) < 1e-12 * float(M.abs().max()) ** 3:
+    # a zero block passes a relative test (0 < 0 is false): check it first
+    scale = float(M.abs().max())
+    if scale == 0.0 or abs(float(torch.linalg.det(M))) < 1e-12 * scale**3:
         raise ValueError("projection matrix is singular (its left 3x3 block has rank < 3)")
     # RQ decomposition of M via QR of the flipped transpose.
     flip = torch.flip(torch.eye(3, dtype=M.dtype), dims=[0])

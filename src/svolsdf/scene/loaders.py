@@ -136,6 +136,12 @@ def load_scene(path: str | Path, views: list[int] | None = None,
     if views is None:
         idx = list(range(n_all))
     else:
+        if len(views) == 0:
+            raise SceneError(f"{path}: no view ids given")
+        repeated = sorted({v for v in views if list(views).count(v) > 1})
+        if repeated:
+            raise SceneError(f"{path}: view id {repeated[0]} is given more than once (views "
+                             f"{list(views)}); give each view once")
         idx = []
         for v in views:
             try:

@@ -57,6 +57,7 @@ from PIL import Image
 from torch import Tensor
 
 from svolsdf.errors import InputError
+from svolsdf.io.folders import ensure_writable_folder
 from svolsdf.io.ply import atomic_path, write_mesh_ply, write_points_ply
 from svolsdf.scene.cameras import Cameras, decompose_projection
 
@@ -882,7 +883,8 @@ def _write_text(path: Path, text: str) -> None:
 def _prepare_out(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is a file; give a folder for the synthetic scene")
-    if out.is_dir() and any(out.iterdir()):
+    ensure_writable_folder(out, "scene folder")  # before anything is removed or rendered
+    if any(out.iterdir()):
         meta = out / "scene.json"
         ok = False
         if meta.is_file():
@@ -900,7 +902,6 @@ def _prepare_out(out: Path) -> None:
             shutil.rmtree(out / d, ignore_errors=True)
         for f in _SCENE_FILES:
             (out / f).unlink(missing_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
 
 
 def _json_ready(x):

@@ -1,0 +1,292 @@
+"""`svolsdf.config`: presets, YAML round trips and the validation of every field (types,
+enumerations, ranges) when a config is built, including a property-based test of loading."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+from dataclasses import asdict
+from pathlib import Path
+from typing import Literal, Union, get_args, get_origin, get_type_hints
+
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from svolsdf.config import (
+    PRESETS,
+    Config,
+    apply_overrides,
+    config_from_dict,
+    load_config,
+    preset,
+    save_config,
+    validate_config,
+)
+from svolsdf.errors import InputError
+
+
+def _leaves(cls=Config, prefix=""):
+    """(dotted key, annotation, limits) of every non-dataclass field, recursively."""
+    hints = get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            yield from _leaves(tp, prefix + f.name + ".")
+        else:
+            yield prefix + f.name, tp, f.metadata.get("limits", {})
+
+
+LEAVES = list(_leaves())
+
+
+def _nest(flat: dict) -> dict:
+    out: dict = {}
+    for key, v in flat.items():
+        *parents, last = key.split(".")
+        d = out
+        for p in parents:
+            d = d.setdefault(p, {})
+        d[last] = v
+    return out
+
+
+def _get(cfg, key):
+    for p in key.split("."):
+        cfg = getattr(cfg, p)
+    return cfg
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_presets_pass_validation_unchanged(name):
+    cfg = preset(name)
+    before = asdict(cfg)
+    validate_config(cfg)
+    assert asdict(cfg) == before
+    # and survive a YAML round trip exactly
+    assert asdict(config_from_dict(yaml.safe_load(yaml.safe_dump(before)))) == before
+
+
+def test_enumerations_are_literals():
+    # every str option with a fixed set of values is a Literal (the registry-backed backbone
+    # names are checked against the registry instead)
+    kinds = {key: tp for key, tp, _ in LEAVES}
+    for key in ("preset", "device", "mvs.width", "field.kind", "field.init", "train.mode",
+                "train.gce_form", "train.sparse_norm", "train.sampler", "output.mesh_format",
+                "output.low_weight_rule"):
+        assert get_origin(kinds[key]) is Literal, key
+    assert "ce" in get_args(next(a for a in get_args(kinds["train.ablation"])
+                                 if get_origin(a) is Literal))
+
+
+@pytest.mark.parametrize("text, key, value", [
+    ("train: {steps: fifty}", "train.steps", "'fifty'"),
+    ("train: {lr: abc}", "train.lr", "'abc'"),
+    ("scene: {image_size: 160x120}", "scene.image_size", "'160x120'"),
+    ("scene: {image_size: [160]}", "scene.image_size", "[160]"),
+    ("scene: {views: '0 1 2'}", "scene.views", "'0 1 2'"),
+    ("scene: {views: [0, 1, 1]}", "scene.views", "1 is repeated"),
+    ("scene: {views: [3]}", "scene.views", "[3]"),
+    ("output: {use_masks: 'no'}", "output.use_masks", "'no'"),
+    ("output: {use_masks: 1}", "output.use_masks", "1"),
+    ("train: {rays: -4}", "train.rays", "-4"),
+    ("train: {steps: -5}", "train.steps", "-5"),
+    ("threads: -2", "threads", "-2"),
+    ("train: {mode: fast}", "train.mode", "'fast'"),
+    ("train: {ablation: none}", "train.ablation", "'none'"),
+    ("mvs: {backbone: colmap}", "mvs.backbone", "'colmap'"),
+    ("mvs: {ndepths: [192, 32]}", "mvs.ndepths", "[192, 32]"),
+    ("mvs: {scale: 0}", "mvs.scale", "0"),
+    ("train: {object_ray_fraction: 1.5}", "train.object_ray_fraction", "1.5"),
+    ("train: {gce_q: .nan}", "train.gce_q", "nan"),
+    ("device: gpu", "device", "'gpu'"),
+    ("scene: {path: 3}", "scene.path", "3"),
+    ("scene: {lighting: 7}", "scene.lighting", "7"),
+    ("output: {finer_stage_optimization: true}\ntrain: {mode: volsdf}",
+     "output.finer_stage_optimization", "train.mode"),
+])
+def test_bad_values_name_the_key_the_value_and_what_is_allowed(tmp_path, text, key, value):
+    p = tmp_path / "c.yaml"
+    p.write_text(text + "\n")
+    with pytest.raises(InputError) as e:
+        load_config(p)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}: ") and key in msg and value in msg, msg
+    assert "expected" in msg or "needs" in msg, msg
+
+
+def test_values_are_normalized():
+    cfg = config_from_dict({"train": {"lr": 1, "beta_end": "1e-3"},  # PyYAML: '1e-3' is a str
+                            "scene": {"views": (2, 0, 1), "lighting": "max"},
+                            "mvs": {"weights": Path("w.pt")}})
+    assert cfg.train.lr == 1.0 and isinstance(cfg.train.lr, float)
+    assert cfg.train.beta_end == 1e-3 and cfg.scene.views == [2, 0, 1]
+    assert cfg.scene.lighting == "max" and cfg.mvs.weights == "w.pt"
+    import numpy as np  # numbers from code: numpy scalars become Python numbers
+
+    cfg.train.steps, cfg.scene.image_size = np.int64(5), [np.int32(64), np.int64(48)]
+    validate_config(cfg)
+    assert type(cfg.train.steps) is int and [type(x) for x in cfg.scene.image_size] == [int, int]
+
+
+def test_overrides_are_validated_and_name_their_option():
+    cfg = preset("fast")
+    with pytest.raises(InputError, match=r"^--steps \(train\.steps\) = -5: expected an integer"):
+        apply_overrides(cfg, {"train.steps": -5}, labels={"train.steps": "--steps"})
+    with pytest.raises(InputError, match="unknown config key 'train.nope'"):
+        apply_overrides(preset("fast"), {"train.nope": 1})
+    with pytest.raises(InputError, match="unknown config key 'nope.steps'"):
+        apply_overrides(preset("fast"), {"nope.steps": 1})
+    # a field set in code is checked too, when the pipeline is built (before any stage)
+    from svolsdf.pipeline import Pipeline
+
+    cfg = preset("fast")
+    cfg.scene.path = "somewhere"
+    cfg.train.rays = 0
+    with pytest.raises(InputError, match="train.rays = 0"):
+        Pipeline(cfg, "never-created")
+    assert not Path("never-created").exists()
+
+
+def test_unreadable_config_file(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_bytes(b"\xff\xfe\x00bad")
+    with pytest.raises(InputError, match="c.yaml"):
+        load_config(p)
+
+
+# --------------------------------------------------------------------------- property-based
+def _is_allowed(value, tp, lim) -> bool:
+    """An independent oracle: does ``value`` (as YAML gives it) fit ``tp`` and its limits?"""
+    origin, args = get_origin(tp), get_args(tp)
+    if origin is Union or origin is types.UnionType:
+        return (value is None and type(None) in args) or any(
+            _is_allowed(value, a, lim) for a in args if a is not type(None))
+    if origin is Literal:
+        return isinstance(value, str) and value in args
+    if tp is bool:
+        return isinstance(value, bool)
+    if tp in (int, float):
+        if isinstance(value, bool):
+            return False
+        if tp is float and isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                return False
+        if not isinstance(value, (float, int) if tp is float else int):
+            return False
+        if not math.isfinite(value):
+            return False
+        return (lim.get("min") is None or value >= lim["min"]) and (
+            lim.get("max") is None or value <= lim["max"]) and (
+            lim.get("gt") is None or value > lim["gt"])
+    if tp is str:
+        if "choices" in lim:
+            return value in lim["choices"]()
+        return isinstance(value, str)
+    if origin is list:
+        if not isinstance(value, list):
+            return False
+        if "len" in lim and len(value) != lim["len"]:
+            return False
+        if "min_len" in lim and len(value) < lim["min_len"]:
+            return False
+        if lim.get("unique") and len(set(map(repr, value))) != len(value):
+            return False
+        item = {k: v for k, v in lim.items() if k in ("min", "max", "gt")}
+        return all(_is_allowed(v, args[0], item) for v in value)
+    raise AssertionError(f"no oracle for {tp}")
+
+
+_scalars = st.one_of(
+    st.none(), st.booleans(), st.integers(-10, 1000), st.floats(allow_nan=True),
+    st.sampled_from(["", "no", "yes", "fifty", "1e-3", "160x120", "0 1 2", "max", "mvs", "grid",
+                     "svolsdf", "mse", "ply", "cuda", "planesweep", "paper", "released"]),
+)
+_values = st.one_of(_scalars, st.lists(st.integers(-3, 300), max_size=4),
+                    st.lists(_scalars, max_size=3), st.dictionaries(st.text(max_size=3), _scalars,
+                                                                    max_size=2))
+
+
+def _valid(tp, lim) -> st.SearchStrategy:
+    """Values that fit ``tp`` and its limits (so that loading also succeeds, not only fails)."""
+    origin, args = get_origin(tp), get_args(tp)
+    if origin is Union or origin is types.UnionType:
+        return st.one_of(*[st.none() if a is type(None) else _valid(a, lim) for a in args])
+    if origin is Literal:
+        return st.sampled_from(args)
+    if tp is bool:
+        return st.booleans()
+    lo = lim.get("min", lim.get("gt"))
+    if tp is int:
+        lo = 0 if lo is None else lo
+        return st.integers(lo, lim.get("max", lo + 1000))
+    if tp is float:
+        return st.floats(lo if lo is not None else -1e6, lim.get("max", 1e6),
+                         exclude_min=lim.get("gt") is not None, allow_nan=False)
+    if tp is str:
+        return st.sampled_from(lim["choices"]()) if "choices" in lim else st.text(max_size=8)
+    if origin is list:
+        n = lim.get("len")
+        item = {k: v for k, v in lim.items() if k in ("min", "max", "gt")}
+        return st.lists(_valid(args[0], item), min_size=n or lim.get("min_len", 0),
+                        max_size=n or 4, unique=bool(lim.get("unique")))
+    raise AssertionError(f"no strategy for {tp}")
+
+
+@st.composite
+def _mappings(draw) -> dict:
+    """{dotted key: value} for up to four keys, each value valid or not, about half and half."""
+    keys = draw(st.lists(st.sampled_from(LEAVES), max_size=4, unique_by=lambda leaf: leaf[0]))
+    return {k: draw(st.one_of(_valid(tp, lim), _values)) for k, tp, lim in keys}
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_mappings(), st.sampled_from(sorted(PRESETS)))
+def test_loading_any_mapping_gives_a_valid_config_or_a_named_error(flat, name):
+    data = {"preset": name, **_nest(flat)}
+    ok = all(_is_allowed(v, tp, lim) for key, tp, lim in LEAVES if key in flat
+             for v in [flat[key]])
+    try:
+        cfg = config_from_dict(data, where="t.yaml")
+    except InputError as e:
+        msg = str(e)
+        assert msg.startswith("t.yaml: ") and "Traceback" not in msg
+        bad = [k for k, tp, lim in LEAVES if k in flat and not _is_allowed(flat[k], tp, lim)]
+        cross = "finer_stage_optimization" in msg  # a combination the pipeline cannot run
+        assert cross or any(f"{k} = " in msg for k in bad), (msg, bad)
+        assert cross or not ok, msg
+        return
+    assert ok, f"accepted a value the oracle rejects: {flat}"
+    for key, value in flat.items():  # each given value is kept (normalized)
+        got = _get(cfg, key)
+        assert got == value or (isinstance(got, float) and got == float(value)), (key, value)
+    # a loaded config is valid as it is and survives the YAML round trip exactly
+    before = asdict(cfg)
+    validate_config(cfg)
+    assert asdict(cfg) == before
+    again = config_from_dict(yaml.safe_load(yaml.safe_dump(before)))
+    assert asdict(again) == before
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.text(max_size=60))
+def test_any_yaml_text_loads_or_fails_with_the_file_name(tmp_path_factory, text):
+    p = tmp_path_factory.mktemp("y") / "c.yaml"
+    p.write_text(text)
+    try:
+        cfg = load_config(p)
+    except InputError as e:
+        assert str(e).startswith(str(p))
+        return
+    assert asdict(validate_config(cfg)) == asdict(cfg)
+
+
+def test_saved_config_loads_back(tmp_path):
+    cfg = config_from_dict({"train": {"steps": 7, "mode": "volsdf"},
+                            "scene": {"views": [1, 0]}})
+    save_config(cfg, tmp_path / "c.yaml")
+    assert asdict(load_config(tmp_path / "c.yaml")) == asdict(cfg)
