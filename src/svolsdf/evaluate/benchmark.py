@@ -561,6 +561,10 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
     cfg.out = Path(cfg.out)
     _validate(cfg)
     check_executor(cfg.executor)
+    if cfg.executor.name == "ray" and cfg.device == "cuda" and cfg.executor.gpus_per_job <= 0:
+        # Ray hides the GPUs from tasks that reserve none
+        raise InputError("--device cuda with --executor ray needs --gpus-per-job > 0 (e.g. 1): "
+                         "Ray gives each job only the GPUs it reserves")
     cfg.out.mkdir(parents=True, exist_ok=True)
     for scene in cfg.scenes:
         if not _ground_truth(cfg, scene):
