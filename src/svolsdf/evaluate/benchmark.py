@@ -340,7 +340,7 @@ def _ground_truth(cfg: BenchmarkConfig, scene: Path) -> dict:
     if cfg.dtu_gt is not None:
         scan = scan_number(scene) or cfg.scan
         if scan is not None:
-            return {"dtu_gt": Path(cfg.dtu_gt), "scan": int(scan)}
+            return {"dtu_gt": Path(cfg.dtu_gt).absolute(), "scan": int(scan)}
     gt = scene / "gt_points.ply"
     if gt.is_file():
         return {"gt_points": gt}
@@ -401,17 +401,21 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
     """
     sets = _view_sets(cfg)
     jobs = []
+    # absolute paths: a Ray worker on another node does not share this process's directory
+    out = Path(cfg.out).absolute()
     for scene, label in zip(cfg.scenes, _labels(cfg.scenes), strict=True):
+        scene = Path(scene).absolute()
         ev = {**_ground_truth(cfg, scene), "lpips_net": cfg.lpips_net,
-              "lpips_weights": cfg.lpips_weights, "report": cfg.report}
+              "lpips_weights": None if cfg.lpips_weights is None
+              else Path(cfg.lpips_weights).absolute(), "report": cfg.report}
         for views in sets:
-            base, row = Path(cfg.out) / label, label
+            base, row = out / label, label
             if len(sets) > 1:
                 base = base / ("views-" + "-".join(map(str, views)))
                 row = f"{label} [{','.join(map(str, views))}]"
             for mode in cfg.modes:
                 jobs.append(BenchmarkJob(
-                    scene=Path(scene), label=row, mode=mode, views=views, out=base / mode,
+                    scene=scene, label=row, mode=mode, views=views, out=base / mode,
                     preset=cfg.preset, evaluate=ev,
                     overrides={"train.steps": cfg.steps, "scene.views": views,
                                "scene.image_size": list(cfg.size) if cfg.size else None,

@@ -125,7 +125,13 @@ def run_ray(fn: Callable[[Any], dict], jobs: Sequence, on_row: Callable[[int, di
     if not ray.is_initialized():
         if cfg.address is not None:
             log.info("joining the Ray cluster at %s", cfg.address)
-            ray.init(address=cfg.address, log_to_driver=False)
+            try:
+                ray.init(address=cfg.address, log_to_driver=False)
+            except (ConnectionError, RuntimeError, ValueError) as e:
+                raise InputError(f"--address {cfg.address}: could not join a Ray cluster there "
+                                 f"({str(e).strip().splitlines()[0] if str(e) else e!r}); "
+                                 "check `ray status` on that node, or leave --address out to "
+                                 "start a local Ray") from None
         else:
             ray.init(num_cpus=cfg.local_cpus, include_dashboard=False, log_to_driver=False)
         started = True
