@@ -288,7 +288,8 @@ def benchmark_plot(rows: list[dict], path: Path, modes: list[str] | None = None)
         c = keys.index(key)
         for j, m in enumerate(modes):
             vals = [v[j][c] for v in per]
-            ys = [float(v) if v is not None and math.isfinite(float(v)) else 0.0 for v in vals]
+            # not computed: no bar (NaN), not a zero that would read as a perfect score
+            ys = [float(v) if v is not None else math.nan for v in vals]
             xs = [i + (j - (len(modes) - 1) / 2) * width for i in range(len(labels))]
             ax.bar(xs, ys, width, label=m)
         ax.set_xticks(range(len(labels)), labels, rotation=30 if len(labels) > 6 else 0,
