@@ -385,7 +385,8 @@ class PlaneSweepBackbone(MVSBackbone):
     """Training-free plane sweep with ZNCC, guided-filter aggregation and a calibrated softmax.
 
     See the module docstring for the method. ``PlaneSweepBackbone(**fields)`` takes the fields of
-    `PlaneSweepConfig`, or ``config=PlaneSweepConfig(...)``.
+    `PlaneSweepConfig`, or ``config=PlaneSweepConfig(...)``; ``device`` is the torch device the
+    sweep runs on (default the CPU); its volumes stay there.
     """
 
     name = "planesweep"
