@@ -180,8 +180,9 @@ def benchmark(
     steps: Annotated[int | None, typer.Option(
         "--steps", help="Optimization steps (default: the preset's).")] = None,
     views: Annotated[str | None, typer.Option(
-        "--views", help="Input view ids for every scene, e.g. --views 25 22 28 (default: the "
-                        "pipeline's choice).")] = None,
+        "--views", help="Input view ids for every scene, e.g. --views 25 22 28; several sets "
+                        "separated by ';' each make a job: --views '25 22 28; 23 24 33' "
+                        "(default: the pipeline's choice).")] = None,
     size: Annotated[str | None, typer.Option(
         "--size", help="Working image size WxH (default: the pipeline's).")] = None,
     device: Annotated[str | None, typer.Option(
@@ -195,28 +196,48 @@ def benchmark(
         "--lpips-net", help="LPIPS backbone: vgg or alex.")] = "vgg",
     report: Annotated[bool, typer.Option(
         "--report/--no-report", help="Also write each run's report.html.")] = False,
+    executor: Annotated[str, typer.Option(
+        "--executor", help="Where the jobs run: local (this process, one after another) or "
+                           "ray (one Ray task per job; pip install \"svolsdf[cluster]\").")
+    ] = "local",
+    address: Annotated[str | None, typer.Option(
+        "--address", help="Ray cluster to join, e.g. auto or ray://head:10001 (default: start "
+                          "a local Ray). --executor ray only.")] = None,
+    cpus_per_job: Annotated[float, typer.Option(
+        "--cpus-per-job", help="CPUs Ray reserves per job (its torch threads). --executor ray "
+                               "only.")] = 1.0,
+    gpus_per_job: Annotated[float, typer.Option(
+        "--gpus-per-job", help="GPUs Ray reserves per job (use with --device cuda). "
+                               "--executor ray only.")] = 0.0,
 ) -> None:
-    """Run the pipeline on scenes x modes, evaluate, and tabulate like the paper's Table 1.
+    """Run the pipeline on scenes x modes (x view sets), evaluate, and tabulate like the paper's
+    Table 1.
 
     Ground truth: gt_points.ply of synthetic scenes, or DTU's with --dtu-gt. Image metrics on the
-    held-out views that have renders. Writes OUT/benchmark.md, .csv and .json.
+    held-out views that have renders. Each job runs into OUT/<scene>/<mode>/; a rerun skips
+    finished jobs and resumes interrupted ones. Writes OUT/benchmark.md, .csv, .json and .png.
     """
     from svolsdf.evaluate.benchmark import BenchmarkConfig, run_benchmark
+    from svolsdf.evaluate.executors import ExecutorConfig
     from svolsdf.scene.synthetic import parse_size
 
+    sets = [_parse_views(t) for t in views.split(";")] if views is not None else [None]
     cfg = BenchmarkConfig(
         scenes=[Path(s) for s in scenes.split()],
         modes=modes.replace(",", " ").split(), out=out, preset=preset_name, steps=steps,
-        views=_parse_views(views), size=None if size is None else parse_size(size),
-        device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report)
+        views=sets[0] if len(sets) == 1 else None, view_sets=sets if len(sets) > 1 else None,
+        size=None if size is None else parse_size(size),
+        device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report,
+        executor=ExecutorConfig(name=executor, address=address, cpus_per_job=cpus_per_job,
+                                gpus_per_job=gpus_per_job))
     try:
         rows = run_benchmark(cfg)
     except RunInterrupted as e:  # the stage that stopped, not a bare status 130
         raise _Stopped(str(e)) from None
     failed = sum(r["status"] != "ok" for r in rows)
     typer.echo((out / "benchmark.md").read_text())
-    typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'} and "
-               f"{out / 'benchmark.json'} ({len(rows)} runs" +
+    typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'}, "
+               f"{out / 'benchmark.png'} and {out / 'benchmark.json'} ({len(rows)} runs" +
                (f", {failed} failed)" if failed else ")"))
 
 

@@ -517,7 +517,8 @@ class Pipeline:
         from svolsdf.mvs.backbone import get_backbone
 
         m = self.cfg.mvs
-        return get_backbone(m.backbone, weights=m.weights, **self._backbone_kwargs())
+        return get_backbone(m.backbone, weights=m.weights, device=self.device,
+                            **self._backbone_kwargs())
 
     def stage_mvs1(self) -> list[ProbabilityVolume]:
         d = self.out / "mvs" / "stage1"
@@ -534,7 +535,7 @@ class Pipeline:
         d.mkdir(parents=True, exist_ok=True)
         for v in res[1]:
             v.save(d / f"{v.view_id}.npz")
-        self._volumes1 = res[1]
+        self._volumes1 = [v.to("cpu") for v in res[1]]  # as when read back from the files
         self._mark("mvs1", self.keys["mvs1"])
         self._time("mvs1", t0)
         return self._volumes1
@@ -1074,7 +1075,7 @@ class Pipeline:
         key = (o.fusion_network, o.fusion_network_weights, self.cfg.mvs.max_sources)
         if self._net is None or self._net[0] != key:
             bb = get_backbone(o.fusion_network, weights=o.fusion_network_weights,
-                              max_sources=self.cfg.mvs.max_sources)
+                              max_sources=self.cfg.mvs.max_sources, device=self.device)
             if not getattr(bb, "can_start_from_depth", False):
                 raise InputError(f"output.fusion_network: the {o.fusion_network!r} backbone "
                                  "cannot start from a depth map (patchmatchnet can)")
@@ -1182,7 +1183,8 @@ class Pipeline:
                      len(self.views), time.perf_counter() - t1)
         fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface,
                                 alt_depths=alt, alt_confidences=alt_confs,
-                                extra_depths=net, extra_confidences=net_confs)
+                                extra_depths=net, extra_confidences=net_confs,
+                                device=self.device)
         extra = {}
         if alt is not None or net is not None:
             sets = {"guided": "", **({"unguided": ":alt"} if alt is not None else {}),

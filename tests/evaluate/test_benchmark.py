@@ -254,3 +254,42 @@ def test_bad_run_options_fail_before_any_run(tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"--steps \(train.steps\) = -5"):
         run_benchmark(cfg)
     assert not (tmp_path / "b").exists()
+
+
+def test_benchmark_plot_writes_a_chart(tmp_path):
+    from svolsdf.evaluate.benchmark import benchmark_plot
+
+    path = benchmark_plot(ROWS, tmp_path / "b.png", ["svolsdf", "mvs-only"])
+    img = Image.open(path)
+    assert img.size[0] > 300 and img.size[1] > 400  # two panels: Chamfer and PSNR
+    assert not (tmp_path / "b.png.tmp.png").exists()
+    with pytest.raises(InputError, match="no runs"):
+        benchmark_plot([], tmp_path / "c.png")
+
+
+def test_view_sets_and_rerun_skip_with_stand_in_pipeline(tmp_path, monkeypatch, capsys,
+                                                         synth_scene):
+    import svolsdf.pipeline
+
+    monkeypatch.setattr(svolsdf.pipeline, "Pipeline", FakePipeline)
+    FakePipeline.calls = []
+    out = tmp_path / "vs"
+    argv = ["benchmark", "--scenes", str(synth_scene), "--modes", "mvs-only volsdf", "-o",
+            str(out), "--views", "0 1 2; 0,1,3", "--lpips-net", "alex"]
+    main(argv)
+    assert len(FakePipeline.calls) == 4
+    md = (out / "benchmark.md").read_text()
+    assert "| synth_a [0,1,2] |" in md and "| synth_a [0,1,3] |" in md
+    assert (out / "synth_a" / "views-0-1-3" / "mvs-only" / "benchmark_row.json").is_file()
+    assert (out / "benchmark.png").is_file()
+    rows = json.loads((out / "benchmark.json").read_text())
+    assert [r["views"] for r in rows] == [[0, 1, 2], [0, 1, 2], [0, 1, 3], [0, 1, 3]]
+    # a rerun runs only the failed (volsdf) jobs again and writes the same table
+    FakePipeline.calls = []
+    main(argv)
+    assert [c[1] for c in FakePipeline.calls] == ["volsdf", "volsdf"]
+    assert (out / "benchmark.md").read_text() == md
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["benchmark", "--scenes", str(synth_scene), "-o", str(out), "--address", "auto"])
+    assert e.value.code == 2 and "only with --executor ray" in capsys.readouterr().err

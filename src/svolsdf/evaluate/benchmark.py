@@ -1,7 +1,9 @@
-"""``svolsdf benchmark``: the pipeline over scenes x modes, evaluated, as a table like Table 1.
+"""``svolsdf benchmark``: the pipeline over scenes x modes (x input view sets), evaluated, as a
+table like Table 1.
 
-For every scene and mode (``svolsdf``, ``mvs-only``, ``volsdf``) the reconstruction pipeline runs
-into ``OUT/<scene>/<mode>/`` (a rerun resumes finished stages), then `evaluate_run` scores it:
+Every (scene, mode, input views) is a job (`BenchmarkJob`, `benchmark_jobs`); one job function,
+`run_job`, runs the reconstruction pipeline into the job's own folder, ``OUT/<scene>/<mode>/``
+(``OUT/<scene>/views-<ids>/<mode>/`` with several view sets), then `evaluate_run` scores it:
 
 - geometry: the DTU protocol (METHOD.md 8.1) when ``dtu_gt`` is given and the scan number is known
   (from the scene's name, e.g. ``scan65``, or ``scan``); otherwise the generic two-way Chamfer
@@ -10,19 +12,24 @@ into ``OUT/<scene>/<mode>/`` (a rerun resumes finished stages), then `evaluate_r
 - images: PSNR / SSIM / LPIPS (METHOD.md 8.3) of the held-out views named in the run's
   ``views.json`` (``"test"``) that have a render in ``renders/``; none when there are none.
 
+The jobs run on an executor (`svolsdf.evaluate.executors`): ``local``, one after another in this
+process, or ``ray``, one Ray task each on a local or remote Ray cluster; both run `run_job` and
+write the same tables. A job leaves its row in ``benchmark_row.json`` in its folder: a rerun does
+not run finished jobs again, and an interrupted one resumes its pipeline's finished stages.
+
 Results go to ``OUT/benchmark.md`` and ``OUT/benchmark.csv`` (rows: scenes, then the mean; per
-mode: accuracy, completeness, overall Chamfer, PSNR when any run has it, time), and every run's
-numbers to ``OUT/benchmark.json``. The files are rewritten after each run, so an interrupted
-benchmark keeps the finished rows. A run that fails is recorded (``status``) and the benchmark
-goes on.
+mode: accuracy, completeness, overall Chamfer, PSNR when any run has it, time), a bar chart of
+them to ``OUT/benchmark.png``, and every run's numbers to ``OUT/benchmark.json``. The files are
+rewritten after each job, so an interrupted benchmark keeps the finished rows. A job that fails
+is recorded (``status``, the error) and the benchmark goes on.
 
 Time is the sum of the pipeline's stage times from the run's ``timing.json`` (so a resumed run
-still reports the compute its stages took), or this invocation's elapsed time without one.
+still reports the compute its stages took), or the job's elapsed time without one.
 """
-
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import logging
@@ -33,14 +40,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from svolsdf.errors import InputError
+from svolsdf.evaluate.executors import ExecutorConfig
 
 __all__ = [
     "MODES",
     "METRIC_KEYS",
+    "ROW_FILE",
     "BenchmarkConfig",
+    "BenchmarkJob",
     "benchmark_csv",
+    "benchmark_jobs",
     "benchmark_markdown",
+    "benchmark_plot",
+    "failed_row",
+    "finished_row",
+    "job_config",
     "run_benchmark",
+    "run_job",
     "run_metrics",
     "scan_number",
 ]
@@ -71,6 +87,9 @@ class BenchmarkConfig:
     """Optimization steps (default: the preset's)."""
     views: list[int] | None = None
     """Input view ids for every scene (default: the pipeline's choice per scene)."""
+    view_sets: list[list[int]] | None = None
+    """Several input view sets for every scene, one job (and table row) each; replaces
+    ``views``."""
     size: tuple[int, int] | None = None
     """Working image size (W, H) (default: the pipeline's)."""
     device: str | None = None
@@ -85,6 +104,8 @@ class BenchmarkConfig:
     """LPIPS weights file or folder (default: shared/weights/lpips)."""
     report: bool = False
     """Also write each run's report.html."""
+    executor: ExecutorConfig = field(default_factory=ExecutorConfig)
+    """Where the jobs run: in this process (local) or as Ray tasks (`ExecutorConfig`)."""
 
 
 def scan_number(scene: str | Path) -> int | None:
@@ -233,6 +254,58 @@ def benchmark_csv(rows: list[dict], modes: list[str] | None = None) -> str:
     return buf.getvalue()
 
 
+def benchmark_plot(rows: list[dict], path: Path, modes: list[str] | None = None) -> Path:
+    """A bar chart of the table: overall Chamfer per scene and mode (and PSNR when any run has
+    it), the mean last; written to ``path`` (PNG).
+
+    Args:
+        rows: as `benchmark_markdown`'s.
+        path: the image file to write.
+        modes: bar order (default: modes in order of appearance).
+
+    Returns:
+        ``path``.
+    """
+    if not rows:
+        raise InputError("benchmark plot: no runs to plot")
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    scenes, modes, cols, body, means, _ = _table(rows, modes)
+    keys = [k for k, _, _ in cols]
+    panels = [("overall", "Chamfer (lower is better)")]
+    if "psnr" in keys:
+        panels.append(("psnr", "PSNR (dB, higher is better)"))
+    labels = scenes + ["mean"]
+    per = [b[1] for b in body] + [means]
+    fig, axes = plt.subplots(len(panels), 1, squeeze=False,
+                             figsize=(max(4.0, 0.9 * len(labels) * max(1, len(modes)) + 1.5),
+                                      2.8 * len(panels)))
+    width = 0.8 / max(1, len(modes))
+    for ax, (key, title) in zip(axes[:, 0], panels, strict=True):
+        c = keys.index(key)
+        for j, m in enumerate(modes):
+            vals = [v[j][c] for v in per]
+            # not computed: no bar (NaN), not a zero that would read as a perfect score
+            ys = [float(v) if v is not None else math.nan for v in vals]
+            xs = [i + (j - (len(modes) - 1) / 2) * width for i in range(len(labels))]
+            ax.bar(xs, ys, width, label=m)
+        ax.set_xticks(range(len(labels)), labels, rotation=30 if len(labels) > 6 else 0,
+                      ha="right" if len(labels) > 6 else "center")
+        ax.set_title(title, fontsize=10)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
 # --------------------------------------------------------------------------- driver
 def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
                 status: str = "ok") -> dict:
@@ -268,17 +341,163 @@ def _ground_truth(cfg: BenchmarkConfig, scene: Path) -> dict:
     if cfg.dtu_gt is not None:
         scan = scan_number(scene) or cfg.scan
         if scan is not None:
-            return {"dtu_gt": Path(cfg.dtu_gt), "scan": int(scan)}
+            return {"dtu_gt": Path(cfg.dtu_gt).absolute(), "scan": int(scan)}
     gt = scene / "gt_points.ply"
     if gt.is_file():
         return {"gt_points": gt}
     return {}
 
 
+# --------------------------------------------------------------------------- jobs
+@dataclass
+class BenchmarkJob:
+    """One run of the benchmark: a scene in one mode from one set of input views, and how to
+    score it. Plain data (paths, numbers, strings), so it travels to a Ray worker as is."""
+
+    scene: Path
+    """Scene folder."""
+    label: str
+    """The run's row in the table (the scene's label, with the views when there are several
+    view sets)."""
+    mode: str
+    """Pipeline mode (`MODES`)."""
+    views: list[int] | None
+    """Input view ids (None: the pipeline's choice)."""
+    out: Path
+    """The run folder."""
+    preset: str = "fast"
+    """Config preset."""
+    overrides: dict = field(default_factory=dict)
+    """Config overrides (`svolsdf.config.apply_overrides`: dotted key -> value, None = keep)."""
+    evaluate: dict = field(default_factory=dict)
+    """`EvaluateConfig` options: ground truth (gt_points or dtu_gt + scan), lpips_net,
+    lpips_weights, report."""
+
+    def key(self) -> str:
+        """What decides the job's row (not where or on what device it runs): a finished run
+        with the same key is not run again."""
+        over = {k: v for k, v in self.overrides.items() if k != "device"}
+        text = json.dumps({"scene": str(Path(self.scene).resolve()), "mode": self.mode,
+                           "views": self.views, "preset": self.preset, "overrides": over,
+                           "evaluate": self.evaluate, "label": self.label},
+                          sort_keys=True, default=str)
+        return hashlib.sha1(text.encode()).hexdigest()[:16]
+
+
+ROW_FILE = "benchmark_row.json"
+"""A finished job's row in its run folder, with the job's `BenchmarkJob.key`."""
+
+
+def _view_sets(cfg: BenchmarkConfig) -> list[list[int] | None]:
+    if cfg.view_sets:
+        return [list(v) for v in cfg.view_sets]
+    return [list(cfg.views) if cfg.views else None]
+
+
+def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
+    """The jobs of a benchmark, scene-major, then view set, then mode.
+
+    Run folders: ``OUT/<scene>/<mode>/``, or with several view sets
+    ``OUT/<scene>/views-<a>-<b>-<c>/<mode>/`` (row label ``<scene> [a,b,c]``).
+    """
+    sets = _view_sets(cfg)
+    jobs = []
+    # absolute paths: a Ray worker on another node does not share this process's directory
+    out = Path(cfg.out).absolute()
+    for scene, label in zip(cfg.scenes, _labels(cfg.scenes), strict=True):
+        scene = Path(scene).absolute()
+        ev = {**_ground_truth(cfg, scene), "lpips_net": cfg.lpips_net,
+              "lpips_weights": None if cfg.lpips_weights is None
+              else Path(cfg.lpips_weights).absolute(), "report": cfg.report}
+        for views in sets:
+            base, row = out / label, label
+            if len(sets) > 1:
+                base = base / ("views-" + "-".join(map(str, views)))
+                row = f"{label} [{','.join(map(str, views))}]"
+            for mode in cfg.modes:
+                jobs.append(BenchmarkJob(
+                    scene=scene, label=row, mode=mode, views=views, out=base / mode,
+                    preset=cfg.preset, evaluate=ev,
+                    overrides={"train.steps": cfg.steps, "scene.views": views,
+                               "scene.image_size": list(cfg.size) if cfg.size else None,
+                               "device": cfg.device}))
+    return jobs
+
+
+#: the command-line option behind each override, for the messages of `validate_config`
+_OPTION_LABELS = {"train.steps": "--steps", "scene.views": "--views",
+                  "scene.image_size": "--size", "device": "--device"}
+
+
+def job_config(job: BenchmarkJob):
+    """The pipeline `Config` of a job."""
+    from svolsdf.config import apply_overrides, preset
+
+    c = preset(job.preset)
+    c.scene.path = str(job.scene)
+    c.train.mode = job.mode
+    return apply_overrides(c, dict(job.overrides), labels=_OPTION_LABELS)
+
+
+def failed_row(job: BenchmarkJob, error: BaseException) -> dict:
+    """The row of a job that raised ``error``: no metrics, status "failed: <type>: <message>"."""
+    msg = f"failed: {type(error).__name__}: {error}".strip().splitlines()[0]
+    return {**run_metrics({}, job.label, job.mode, None, status=msg), "views": job.views}
+
+
+def finished_row(job: BenchmarkJob) -> dict | None:
+    """The row a previous run of this job left (`ROW_FILE`), if it finished ("ok") with the same
+    `BenchmarkJob.key`; else None (the job runs, resuming the pipeline's finished stages)."""
+    p = Path(job.out) / ROW_FILE
+    try:
+        saved = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(saved, dict) or saved.get("key") != job.key():
+        return None
+    row = saved.get("row")
+    return row if isinstance(row, dict) and row.get("status") == "ok" else None
+
+
+def run_job(job: BenchmarkJob) -> dict:
+    """Run one job: the pipeline into ``job.out`` (resuming its finished stages), then
+    `evaluate_run`; returns its row (`run_metrics` plus ``views``) and writes it to
+    ``job.out/benchmark_row.json``. Never raises: an error becomes a row with ``status``
+    "failed: ..." (`failed_row`). The one job function of both executors."""
+    from svolsdf import pipeline as pipeline_module
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run, run_views
+
+    out = Path(job.out)
+    t0 = time.perf_counter()
+    try:
+        pipeline_module.Pipeline(job_config(job), out, progress=False).run()
+        elapsed = time.perf_counter() - t0
+        metrics = evaluate_run(EvaluateConfig(
+            out=out, scene=Path(job.scene), views=run_views(out, "test"),
+            extra={"benchmark": {"scene": job.label, "mode": job.mode}}, **job.evaluate))
+        t = _stage_seconds(out)
+        row = {**run_metrics(metrics, job.label, job.mode, t if t is not None else elapsed),
+               "views": job.views}
+    except Exception as e:  # one failed run must not lose the others
+        log.error("%s / %s failed: %s", job.label, job.mode, e,
+                  exc_info=not isinstance(e, InputError))
+        row = failed_row(job, e)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = out / (ROW_FILE + ".tmp")
+        tmp.write_text(json.dumps({"key": job.key(), "row": row}, indent=1))
+        tmp.replace(out / ROW_FILE)
+    except OSError as e:
+        log.warning("%s: could not write %s: %s", out, ROW_FILE, e)
+    return row
+
+
+# --------------------------------------------------------------------------- driver
 def _write_tables(cfg: BenchmarkConfig, rows: list[dict]) -> None:
     out = Path(cfg.out)
-    notes = [f"Preset {cfg.preset}" + (f", {cfg.steps} steps" if cfg.steps else "")
-             + (f", input views {cfg.views}" if cfg.views else "")
+    views = (f", input views {cfg.views}" if cfg.views and not cfg.view_sets else
+             f", input view sets {cfg.view_sets}" if cfg.view_sets else "")
+    notes = [f"Preset {cfg.preset}" + (f", {cfg.steps} steps" if cfg.steps else "") + views
              + (f", size {cfg.size[0]}x{cfg.size[1]}" if cfg.size else "") + "."]
     for path, text in ((out / "benchmark.md", benchmark_markdown(
             rows, cfg.modes, title=f"svolsdf benchmark ({len({r['scene'] for r in rows})} "
@@ -288,6 +507,10 @@ def _write_tables(cfg: BenchmarkConfig, rows: list[dict]) -> None:
         tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(text)
         tmp.replace(path)
+    try:
+        benchmark_plot(rows, out / "benchmark.png", cfg.modes)
+    except Exception as e:  # the tables matter; the picture is a convenience
+        log.warning("benchmark plot failed: %s", e)
 
 
 def _validate(cfg: BenchmarkConfig) -> None:
@@ -298,6 +521,10 @@ def _validate(cfg: BenchmarkConfig) -> None:
     bad = [m for m in cfg.modes if m not in MODES]
     if bad:
         raise InputError(f"benchmark: unknown mode(s) {bad} (choose from {', '.join(MODES)})")
+    for vs in cfg.view_sets or []:
+        if not vs:
+            raise InputError("benchmark: an empty input view set (give view ids, e.g. "
+                             "--views '25 22 28; 23 24 33')")
     for s in cfg.scenes:
         if not Path(s).is_dir():
             raise InputError(f"{s}: scene folder does not exist")
@@ -312,76 +539,66 @@ def _validate(cfg: BenchmarkConfig) -> None:
                                  "(name it like scan65 or pass --scan N)")
     if cfg.out.exists() and not cfg.out.is_dir():
         raise InputError(f"{cfg.out}: output path exists and is not a folder")
-    for mode in cfg.modes:  # the run configs (--steps, --size, --device ...) are valid
-        _config(cfg, cfg.scenes[0], mode)
+    for job in benchmark_jobs(cfg)[:len(cfg.modes)]:  # the run configs are valid
+        job_config(job)
 
 
-def _config(cfg: BenchmarkConfig, scene: Path, mode: str):
-    from svolsdf.config import apply_overrides, preset
+def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
+    """Run and evaluate every job (scene x view set x mode); write OUT/benchmark.{md,csv,json}
+    and OUT/benchmark.png.
 
-    c = preset(cfg.preset)
-    c.scene.path = str(scene)
-    c.train.mode = mode
-    return apply_overrides(c, {
-        "train.steps": cfg.steps,
-        "scene.views": list(cfg.views) if cfg.views else None,
-        "scene.image_size": list(cfg.size) if cfg.size else None,
-        "device": cfg.device,
-    }, labels={"train.steps": "--steps", "scene.views": "--views", "scene.image_size": "--size",
-               "device": "--device"})
-
-
-def run_benchmark(cfg: BenchmarkConfig) -> list[dict]:
-    """Run and evaluate every scene x mode; write OUT/benchmark.{md,csv,json}.
+    Jobs run on ``cfg.executor`` (`svolsdf.evaluate.executors`: in this process, or as Ray
+    tasks), each with `run_job` into its own run folder. A job that finished before with the
+    same settings is not run again (its row is read back, `finished_row`); an interrupted one
+    resumes its pipeline's finished stages. The tables are rewritten as each job finishes, with
+    the finished rows in job order, so the executors write the same tables.
 
     Args:
         cfg: `BenchmarkConfig`.
+        progress: show a progress bar over the jobs.
 
     Returns:
-        The per-run rows (see `run_metrics`), in scene-major order.
+        The per-run rows (see `run_metrics`, plus the input ``views``), in job order
+        (`benchmark_jobs`).
 
     Raises:
-        InputError: a missing scene or ground-truth folder, an unknown mode, or a DTU scene
-            without a scan number; raised before any run starts.
+        InputError: a missing scene or ground-truth folder, an unknown mode or executor, a DTU
+            scene without a scan number, or Ray options without Ray; raised before any job
+            starts.
     """
-    from svolsdf import pipeline as pipeline_module
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run, run_views
+    from svolsdf.evaluate.executors import check_executor, run_jobs
     from svolsdf.io.folders import ensure_writable_folder
 
     cfg.scenes = [Path(s) for s in cfg.scenes]
     cfg.out = Path(cfg.out)
     _validate(cfg)
+    check_executor(cfg.executor)
+    if cfg.executor.name == "ray" and cfg.device == "cuda" and cfg.executor.gpus_per_job <= 0:
+        # Ray hides the GPUs from tasks that reserve none
+        raise InputError("--device cuda with --executor ray needs --gpus-per-job > 0 (e.g. 1): "
+                         "Ray gives each job only the GPUs it reserves")
     ensure_writable_folder(cfg.out)
-    rows: list[dict] = []
-    labels = _labels(cfg.scenes)
-    n = len(cfg.scenes) * len(cfg.modes)
-    k = 0
-    for scene, label in zip(cfg.scenes, labels, strict=True):
-        gt = _ground_truth(cfg, scene)
-        if not gt:
+    for scene in cfg.scenes:
+        if not _ground_truth(cfg, scene):
             log.warning("%s: no ground-truth geometry (gt_points.ply or --dtu-gt with a scan "
                         "number): Chamfer columns stay empty", scene)
-        for mode in cfg.modes:
-            k += 1
-            run_dir = cfg.out / label / mode
-            log.info("[%d/%d] %s / %s -> %s", k, n, label, mode, run_dir)
-            t0 = time.perf_counter()
-            try:
-                pipeline_module.Pipeline(_config(cfg, scene, mode), run_dir,
-                                         progress=False).run()
-                elapsed = time.perf_counter() - t0
-                metrics = evaluate_run(EvaluateConfig(
-                    out=run_dir, scene=scene, views=run_views(run_dir, "test"),
-                    lpips_net=cfg.lpips_net, lpips_weights=cfg.lpips_weights,
-                    report=cfg.report, extra={"benchmark": {"scene": label, "mode": mode}},
-                    **gt))
-                t = _stage_seconds(run_dir)
-                row = run_metrics(metrics, label, mode, t if t is not None else elapsed)
-            except Exception as e:  # one failed run must not lose the others
-                log.error("%s / %s failed: %s", label, mode, e, exc_info=not isinstance(
-                    e, InputError))
-                row = run_metrics({}, label, mode, None,
-                                  status=f"failed: {type(e).__name__}: {e}".splitlines()[0])
-            rows.append(row)
-            _write_tables(cfg, rows)
-    return rows
+    jobs = benchmark_jobs(cfg)
+    rows: list[dict | None] = [finished_row(j) for j in jobs]
+    todo = [i for i, r in enumerate(rows) if r is None]
+    if len(todo) < len(jobs):
+        log.info("%d of %d job(s) finished before (%s): not run again",
+                 len(jobs) - len(todo), len(jobs), ROW_FILE)
+    for i in todo:
+        log.info("job %s / %s -> %s", jobs[i].label, jobs[i].mode, jobs[i].out)
+
+    def on_row(k: int, row: dict) -> None:
+        i = todo[k]
+        rows[i] = row
+        log.info("finished %s / %s: %s", jobs[i].label, jobs[i].mode, row["status"])
+        _write_tables(cfg, [r for r in rows if r is not None])
+
+    if len(todo) < len(jobs):
+        _write_tables(cfg, [r for r in rows if r is not None])
+    run_jobs(run_job, [jobs[i] for i in todo], on_row, cfg.executor, failed_row,
+             progress=progress, done=len(jobs) - len(todo))
+    return [r for r in rows if r is not None]

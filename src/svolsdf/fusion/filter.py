@@ -402,6 +402,7 @@ def fuse_depth_maps(
     alt_confidences: dict[int, Tensor] | None = None,
     extra_depths: dict[str, dict[int, Tensor]] | None = None,
     extra_confidences: dict[str, dict[int, Tensor]] | None = None,
+    device: torch.device | str | None = None,
 ) -> FusedPoints:
     """Filter every depth map against the others and fuse the survivors (METHOD.md 6.3).
 
@@ -443,6 +444,9 @@ def fuse_depth_maps(
         extra_depths: name -> (view id -> (H3, W3) z-depth), further hypotheses, or None.
         extra_confidences: name -> (view id -> (H3, W3) confidence); needed with
             ``extra_depths`` when ``confidences`` are given.
+        device: where the filtering runs (the depth maps, confidences and surface depths are
+            moved there; cameras, images and masks follow each reference's depth); None: where
+            ``depths`` are. The returned points are on the CPU either way.
 
     Returns:
         `FusedPoints` (points (N, 3), colors (N, 3) uint8 or None, normals (N, 3) or None,
@@ -479,6 +483,18 @@ def fuse_depth_maps(
             _check_depth(alt_depths[v], f"alt_depths[{v}]")
         for k, d in extra_depths.items():
             _check_depth(d[v], f"extra_depths[{k!r}][{v}]")
+    if device is not None:
+        dev = torch.device(device)
+
+        def move(d):
+            return None if d is None else {v: t.to(dev) for v, t in d.items()}
+
+        depths, confidences, alt_depths, alt_confidences = (
+            move(depths), move(confidences), move(alt_depths), move(alt_confidences))
+        surface_depths = move(surface_depths)
+        extra_depths = {k: move(d) for k, d in extra_depths.items()}
+        if extra_confidences is not None:
+            extra_confidences = {k: move(d) for k, d in extra_confidences.items()}
     # view id -> its hypotheses, primary first; each set's stats suffix and its mask dilation
     # (the field-guided sets take the primary one)
     primary = cfg.mask_dilation if cfg.primary_mask_dilation is None \
@@ -508,9 +524,9 @@ def fuse_depth_maps(
             log.info("fusion: view %s keeps %.1f%% of pixels (valid %.1f%%, geometric %.1f%%)",
                      key, 100 * r["stats"]["kept"], 100 * r["stats"]["valid"],
                      100 * r["stats"]["geo"])
-    points = torch.cat(all_pts, 0)
-    colors = torch.cat(all_cols, 0) if images is not None else None
-    normals = torch.cat(all_nrm, 0) if cfg.estimate_normals else None
+    points = torch.cat(all_pts, 0).cpu()
+    colors = torch.cat(all_cols, 0).cpu() if images is not None else None
+    normals = torch.cat(all_nrm, 0).cpu() if cfg.estimate_normals else None
     return FusedPoints(points, colors, normals, stats)
 
 

@@ -22,9 +22,10 @@ Other backbones can be added with :func:`register_backbone`.
 from __future__ import annotations
 
 import importlib
+import inspect
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, fields, is_dataclass
 from pathlib import Path
 
 import torch
@@ -41,6 +42,7 @@ __all__ = [
     "select_sources",
     "MVSBackbone",
     "get_backbone",
+    "takes_device",
     "backbone_signature",
     "backbone_config_class",
     "register_backbone",
@@ -176,17 +178,34 @@ def backbone_signature(name: str, weights=None, **cfg) -> dict:
     return _backbone_class(name).signature(weights=weights, **cfg)
 
 
-def get_backbone(name: str, weights=None, **cfg) -> MVSBackbone:
+def takes_device(name: str) -> bool:
+    """Whether the backbone called ``name`` runs on a chosen torch device (its config has a
+    ``device`` field, or its constructor a ``device`` argument)."""
+    cls = _backbone_class(name)
+    conf = cls.config_class
+    if conf is not None and is_dataclass(conf) and "device" in {f.name for f in fields(conf)}:
+        return True
+    return "device" in inspect.signature(cls.__init__).parameters
+
+
+def get_backbone(name: str, weights=None, device: torch.device | str | None = None,
+                 **cfg) -> MVSBackbone:
     """Create the backbone called ``name``.
 
     Args:
         name: one of :func:`available_backbones` ("planesweep", "casmvsnet", "patchmatchnet").
         weights: path to the weights file, for backbones that need one.
+        device: torch device the backbone runs on (None: its config's, the CPU by default);
+            ignored by backbones that cannot choose (`takes_device`). Where the work runs, not
+            what it computes: the pipeline passes it here and not to `backbone_signature`, so
+            cached volumes stay valid on another device.
         **cfg: fields of the backbone's config.
 
     Raises:
         InputError: unknown name, or a weights problem reported by the backbone.
     """
+    if device is not None and takes_device(name):
+        cfg["device"] = str(device)
     return _backbone_class(name).create(weights=weights, **cfg)
 
 

@@ -385,13 +385,15 @@ class PlaneSweepBackbone(MVSBackbone):
     """Training-free plane sweep with ZNCC, guided-filter aggregation and a calibrated softmax.
 
     See the module docstring for the method. ``PlaneSweepBackbone(**fields)`` takes the fields of
-    `PlaneSweepConfig`, or ``config=PlaneSweepConfig(...)``.
+    `PlaneSweepConfig`, or ``config=PlaneSweepConfig(...)``; ``device`` is the torch device the
+    sweep runs on (default the CPU); its volumes stay there.
     """
 
     name = "planesweep"
     config_class = PlaneSweepConfig
 
-    def __init__(self, config: PlaneSweepConfig | None = None, **fields) -> None:
+    def __init__(self, config: PlaneSweepConfig | None = None,
+                 device: torch.device | str | None = None, **fields) -> None:
         if config is None:
             try:
                 config = PlaneSweepConfig(**fields)
@@ -404,6 +406,9 @@ class PlaneSweepBackbone(MVSBackbone):
         if config.filter not in ("guided", "box", "none"):
             raise InputError(f"planesweep: filter must be guided, box or none, got {config.filter}")
         self.cfg = config
+        # where the sweep runs; not a config field: it does not change the volumes, so cached
+        # volumes (keyed by the config, `MVSBackbone.signature`) stay valid on another device
+        self.device = torch.device(device if device is not None else "cpu")
         self._cache: dict = {}
 
     # ------------------------------------------------------------------ inputs
@@ -417,9 +422,9 @@ class PlaneSweepBackbone(MVSBackbone):
             return self._cache[key]
         if any(c[:2] != key[:2] for c in self._cache):  # another scene: forget the old one
             self._cache = {}
-        imgs = scene.images.float()
+        imgs = scene.images.float().to(self.device)
         if W > scene.width or H > scene.height:  # files, or bicubic upsampling (METHOD.md 9.2.2)
-            imgs = scene.images_at(W, H, from_files=self.cfg.native_images)
+            imgs = scene.images_at(W, H, from_files=self.cfg.native_images).to(self.device)
         elif (W, H) != (scene.width, scene.height):
             imgs = F.interpolate(imgs, size=(H, W), mode="bilinear", align_corners=False,
                                  antialias=True)
@@ -427,7 +432,7 @@ class PlaneSweepBackbone(MVSBackbone):
         chans = gray
         if self.cfg.gradient_weight > 0:
             chans = torch.cat([gray, _gradients(gray)], dim=1)
-        cams = scene.cameras.resize(W, H)
+        cams = scene.cameras.resize(W, H).to(self.device)
         # every stage of the latest scene: a cascade run one view at a time alternates them
         self._cache[key] = (chans, gray, cams)
         return chans, gray, cams
@@ -440,11 +445,11 @@ class PlaneSweepBackbone(MVSBackbone):
             if g.ndim != 2:
                 raise InputError(
                     f"guide depth of view {vid} must be (H, W), got {tuple(g.shape)}")
-            return upsample_depth(g, W, H)
+            return upsample_depth(g.to(self.device), W, H)
         if prev is None or vid not in prev:
             raise InputError(
                 f"stage {k} of view {vid} needs the previous stage's volume or a guide depth")
-        return upsample_depth(prev[vid].depth.float(), W, H)
+        return upsample_depth(prev[vid].depth.float().to(self.device), W, H)
 
     # ------------------------------------------------------------------ stage
     def stage(
@@ -471,7 +476,8 @@ class PlaneSweepBackbone(MVSBackbone):
             if k == 1:
                 depths = stage_hypotheses(1, near, far, cams.height, cams.width,
                                           num_depths=self.cfg.num_depths[0],
-                                          inverse=self.cfg.inverse_depth).contiguous()
+                                          inverse=self.cfg.inverse_depth,
+                                          device=self.device).contiguous()
             else:
                 centre = self._centre(k, vid, cams.width, cams.height, guide_depth, prev)
                 depths = stage_hypotheses(k, near, far, cams.height, cams.width, guide=centre,

@@ -64,7 +64,7 @@ class MVSJobConfig:
     fuse: bool = True
     """Write the fused MVS-only point cloud points.ply."""
     device: str = "cpu"
-    """Torch device for the scene tensors."""
+    """Torch device of the backbone, the scene tensors and the fusion."""
 
 
 def working_size(native: tuple[int, int], size: tuple[int, int] | None) -> tuple[int, int]:
@@ -120,7 +120,8 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
                          f"({probe.view_ids})")
     W, H = working_size(tuple(probe.extras.get("native_size", (probe.width, probe.height))),
                         cfg.size)
-    backbone = get_backbone(cfg.backbone, weights=cfg.weights)  # weights errors before loading
+    # weights errors before loading
+    backbone = get_backbone(cfg.backbone, weights=cfg.weights, device=cfg.device)
     ensure_writable_folder(out)  # before the cascade's minutes
     t0 = time.perf_counter()
     scene = load_scene(cfg.scene, views=cfg.views, image_size=(W, H))
@@ -173,7 +174,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     }
     if cfg.fuse:
         t0 = time.perf_counter()
-        summary["fusion"] = _fuse(scene, files, out / "points.ply")
+        summary["fusion"] = _fuse(scene, files, out / "points.ply", cfg.device)
         timings["fusion"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     summary["seconds"] = {k: round(v, 3) for k, v in timings.items()}
@@ -184,8 +185,9 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     return summary
 
 
-def _fuse(scene: Scene, files: dict, path: Path) -> dict:
-    """Fuse the stage-3 depth maps (METHOD.md 6.3) into ``path``; returns the stats."""
+def _fuse(scene: Scene, files: dict, path: Path, device: str = "cpu") -> dict:
+    """Fuse the stage-3 depth maps (METHOD.md 6.3) into ``path`` on ``device``; returns the
+    stats."""
     from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
     from svolsdf.io.ply import write_points_ply
 
@@ -196,7 +198,7 @@ def _fuse(scene: Scene, files: dict, path: Path) -> dict:
     images = {v: scene.images[scene.index(v)].cpu() for v in ids}
     masks = None if scene.masks is None else {v: scene.masks[scene.index(v)].cpu() for v in ids}
     fused = fuse_depth_maps(depths, cams, images=images, confidences=confs, masks=masks,
-                            cfg=FusionConfig())
+                            cfg=FusionConfig(), device=device)
     write_points_ply(path, fused.points.numpy(), fused.colors.numpy())
     stats = {str(v): s for v, s in fused.stats.items()}
     stats["points_total"] = int(len(fused.points))

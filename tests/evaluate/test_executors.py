@@ -1,0 +1,172 @@
+"""Tests of svolsdf.evaluate.executors and the benchmark on them: the local and Ray executors
+write the same table for the same jobs, a failed job is a row with its error, a rerun skips
+finished jobs and resumes interrupted ones, a task whose worker dies is a row too.
+
+Ray runs locally with 2 CPUs, started once for the module (the CLI test before it starts and
+stops its own). Scenes are tiny synthetic ones; jobs are real mvs-only pipeline runs."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+
+import pytest
+import ray  # the dev extra installs it, as the cluster extra
+
+from svolsdf.cli import main
+from svolsdf.errors import InputError
+from svolsdf.evaluate.benchmark import ROW_FILE, BenchmarkConfig, run_benchmark
+from svolsdf.evaluate.executors import ExecutorConfig, check_executor, run_local, run_ray
+
+# view 9 does not exist: that job fails in the pipeline, the other runs
+VIEW_SETS = [[0, 1, 2], [0, 1, 9]]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    root = tmp_path_factory.mktemp("exec") / "synth_r"
+    return make_synthetic_scene(root, SynthConfig(views=4, width=96, height=72, gt_points=3000,
+                                                  supersample=1, mesh_resolution=6.0))
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A local Ray with 2 CPUs for the module's tests (the benchmark uses it, and leaves it
+    running, when it finds it started)."""
+    started = not ray.is_initialized()
+    if started:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    if started:
+        ray.shutdown()
+
+
+def _cfg(scene, out, executor="local", **kw):
+    return BenchmarkConfig(scenes=[scene], modes=["mvs-only"], out=out, view_sets=VIEW_SETS,
+                           size=(96, 72), device="cpu",
+                           executor=ExecutorConfig(name=executor, **kw))
+
+
+def _table_without_time(path):
+    rows = list(csv.reader(io.StringIO(path.read_text())))
+    keep = [i for i, h in enumerate(rows[0]) if not h.endswith("_time_s")]
+    return [[r[i] for i in keep] for r in rows]
+
+
+# --------------------------------------------------------------------------- no Ray needed
+def test_executor_options_are_checked():
+    with pytest.raises(InputError, match="unknown executor"):
+        check_executor(ExecutorConfig(name="dask"))
+    with pytest.raises(InputError, match="--address, --gpus-per-job: only with --executor ray"):
+        check_executor(ExecutorConfig(address="auto", gpus_per_job=1))
+    with pytest.raises(InputError, match="--cpus-per-job must be > 0"):
+        check_executor(ExecutorConfig(name="ray", cpus_per_job=0))
+    check_executor(ExecutorConfig(name="ray", address="auto", cpus_per_job=2, gpus_per_job=1))
+
+
+def test_cuda_on_ray_needs_gpus_per_job(scene, tmp_path):
+    cfg = _cfg(scene, tmp_path / "o", "ray")
+    cfg.device = "cuda"
+    with pytest.raises(InputError, match="needs --gpus-per-job > 0"):
+        run_benchmark(cfg)
+    assert not ray.is_initialized()
+
+
+def test_local_executor_runs_in_order():
+    got = []
+    run_local(lambda j: {"job": j * 10}, [1, 2, 3], lambda i, r: got.append((i, r)),
+              progress=False)
+    assert got == [(0, {"job": 10}), (1, {"job": 20}), (2, {"job": 30})]
+
+
+# --------------------------------------------------------------------------- Ray
+def test_cli_ray_executor_starts_and_stops_a_local_ray(scene, tmp_path, capsys, caplog):
+    """Without --address the command starts a local Ray and shuts it down at the end."""
+    if ray.is_initialized():  # pragma: no cover - another module left one running
+        pytest.skip("a Ray is already running in this process")
+    out = tmp_path / "cli"
+    with caplog.at_level(logging.INFO, logger="svolsdf"):
+        main(["benchmark", "--scenes", str(scene), "--modes", "mvs-only", "-o", str(out),
+              "--views", "0 1 2", "--size", "96x72", "--device", "cpu", "--executor", "ray",
+              "--cpus-per-job", "1"])
+    assert not ray.is_initialized()
+    text = capsys.readouterr().out
+    assert "| synth_r |" in text and "1 runs)" in text
+    assert "with the ray executor (local Ray)" in caplog.text
+    for f in ("benchmark.md", "benchmark.csv", "benchmark.json", "benchmark.png"):
+        assert (out / f).is_file()
+    (row,) = json.loads((out / "benchmark.json").read_text())
+    assert row["status"] == "ok" and row["overall"] > 0 and row["views"] == [0, 1, 2]
+
+
+def test_ray_and_local_executors_write_the_same_table(scene, tmp_path, local_ray, caplog):
+    with caplog.at_level(logging.INFO, logger="svolsdf"):
+        rows_r = run_benchmark(_cfg(scene, tmp_path / "ray", "ray"), progress=False)
+    assert "with the ray executor" in caplog.text
+    rows_l = run_benchmark(_cfg(scene, tmp_path / "local"), progress=False)
+    assert [(r["scene"], r["mode"], r["views"]) for r in rows_r] == [
+        ("synth_r [0,1,2]", "mvs-only", [0, 1, 2]), ("synth_r [0,1,9]", "mvs-only", [0, 1, 9])]
+    ok, bad = rows_r
+    # the failed job is a row with its error; the other finished
+    assert ok["status"] == "ok" and ok["overall"] > 0
+    assert bad["status"].startswith("failed: ") and "9" in bad["status"]
+    assert bad["overall"] is None
+    for r, l in zip(rows_r, rows_l, strict=True):
+        assert r["status"] == l["status"]
+        for k in ("accuracy", "completeness", "overall", "fscore"):
+            assert r[k] == pytest.approx(l[k], rel=1e-6, abs=1e-9), k
+    assert _table_without_time(tmp_path / "ray" / "benchmark.csv") == \
+        _table_without_time(tmp_path / "local" / "benchmark.csv")
+    md = (tmp_path / "ray" / "benchmark.md").read_text()
+    assert "| synth_r [0,1,2] |" in md and "- synth_r [0,1,9] / mvs-only: failed: " in md
+    assert (tmp_path / "ray" / "benchmark.png").stat().st_size > 1000
+    for sub in ("views-0-1-2", "views-0-1-9"):
+        assert (tmp_path / "ray" / "synth_r" / sub / "mvs-only" / ROW_FILE).is_file()
+
+
+def test_rerun_skips_finished_jobs_and_resumes_interrupted_ones(scene, tmp_path, local_ray,
+                                                                 caplog):
+    out = tmp_path / "b"
+    first = run_benchmark(_cfg(scene, out, "ray"), progress=False)
+    ok_dir = out / "synth_r" / "views-0-1-2" / "mvs-only"
+    bad_dir = out / "synth_r" / "views-0-1-9" / "mvs-only"
+    row_time = (ok_dir / ROW_FILE).stat().st_mtime_ns
+    bad_time = (bad_dir / ROW_FILE).stat().st_mtime_ns
+    with caplog.at_level(logging.INFO, logger="svolsdf"):
+        again = run_benchmark(_cfg(scene, out, "ray"), progress=False)
+    assert again == first
+    assert "1 of 2 job(s) finished before" in caplog.text
+    assert (ok_dir / ROW_FILE).stat().st_mtime_ns == row_time  # not run again
+    assert (bad_dir / ROW_FILE).stat().st_mtime_ns != bad_time  # a failed job is retried
+    # an interrupted job (no row yet) resumes: its finished pipeline stages are reused
+    (ok_dir / ROW_FILE).unlink()
+    points_time = (ok_dir / "points.ply").stat().st_mtime_ns
+    resumed = run_benchmark(_cfg(scene, out, "ray"), progress=False)
+    assert (ok_dir / "points.ply").stat().st_mtime_ns == points_time
+    assert resumed[0]["overall"] == pytest.approx(first[0]["overall"], rel=1e-12)
+    # other settings are another job: it runs
+    other = _cfg(scene, out, "ray")
+    other.steps = 5
+    other.view_sets = [[0, 1, 2], [0, 1, 9]]
+    assert run_benchmark(other, progress=False)[0]["status"] == "ok"
+    assert (ok_dir / ROW_FILE).stat().st_mtime_ns != row_time
+
+
+def test_a_task_whose_worker_dies_is_a_row(local_ray):
+    def job(k):
+        if k == 2:
+            import os
+
+            os._exit(3)  # the worker process dies: Ray reports it, no Python exception
+        return {"k": k, "status": "ok"}
+
+    got = {}
+    run_ray(job, [1, 2, 3], lambda i, r: got.__setitem__(i, r), ExecutorConfig(name="ray"),
+            on_error=lambda j, e: {"k": j, "status": f"failed: {type(e).__name__}"},
+            progress=False)
+    assert got[0] == {"k": 1, "status": "ok"} and got[2] == {"k": 3, "status": "ok"}
+    assert got[1]["k"] == 2 and got[1]["status"].startswith("failed: ")
