@@ -57,7 +57,7 @@ def run_case(scene_dir: Path, n: int, work: Path, cfg: CalibrateConfig) -> dict:
     auto = auto_views(est, 3)
     auto_names = [est.image_paths[est.index(v)].name for v in auto]
     return {
-        "views": n, "registered": len(s["registered"]), "size": s["size"],
+        "views": n, "ids": ids, "registered": len(s["registered"]), "size": s["size"],
         "seconds": round(seconds, 1), "stages": s["seconds"],
         "centre_error_mm": {"mean": float(err.mean()), "median": float(np.median(err)),
                             "max": float(err.max())},
@@ -107,8 +107,8 @@ def main() -> None:
         "",
         "| views | registered | size | time (s) | features / matching / mapping (s) | "
         "centre error mean / max (mm) | mean / max (% of scene) | focal est. / true (px) | "
-        "reprojection (px) | `--views auto` | peak memory (GB) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "scene size (mm) | reprojection (px) | `--views auto` | peak memory (GB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         st = r["stages"]
@@ -118,10 +118,11 @@ def main() -> None:
             f"{st['mapping']:.0f} | {r['centre_error_mm']['mean']:.2f} / "
             f"{r['centre_error_mm']['max']:.2f} | {r['centre_error_pct']['mean']:.3f} / "
             f"{r['centre_error_pct']['max']:.3f} | {r['focal_px']:.1f} / "
-            f"{r['true_focal_px']:.1f} | {r['reprojection_px']} | "
+            f"{r['true_focal_px']:.1f} | {r['scene_size_mm']:.0f} | {r['reprojection_px']} | "
             f"{' '.join(map(str, r['auto_views']))} | {r['peak_memory_gb']} |")
-    lines += ["", f"Scene size: {rows[0]['scene_size_mm']:.0f} mm. DTU's protocol views are 25 22 "
-              "28; `--views auto` lists view ids of the original 49.", ""]
+    lines += ["", "DTU's protocol views are 25 22 28; `--views auto` (3 views) lists view ids of "
+              "the original 49. The 20 views are ids "
+              f"{' '.join(map(str, rows[0]['ids']))}." if rows[0]['views'] == 20 else "", ""]
     out = REPO / "benchmarks" / "results" / "calibrate_dtu.md"
     out.write_text("\n".join(lines))
     print(f"wrote {out}")

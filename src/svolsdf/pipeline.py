@@ -263,6 +263,9 @@ class Pipeline:
             del sig["config"]["native_images"]
         c["mvs"] = {**{k: v for k, v in c["mvs"].items() if k != "guide_network"},
                     "signature": sig}
+        # how the views were picked does not matter once they are known (self.views), and run
+        # folders from before the option keep their keys
+        c["scene"].pop("view_selection", None)
         # every key chains from this one: a new release recomputes rather than mixing versions
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])

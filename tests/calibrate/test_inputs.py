@@ -87,3 +87,12 @@ def test_video_frames_are_sampled_evenly(tmp_path):
     (tmp_path / "bad.mp4").write_bytes(b"garbage")
     with pytest.raises(InputError, match="bad.mp4: cannot read the video"):
         gather_inputs(tmp_path / "bad.mp4", tmp_path / "w")
+
+
+def test_missing_imageio_ffmpeg_prints_the_install_command(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import fails
+    (tmp_path / "clip.mp4").write_bytes(b"x")
+    with pytest.raises(InputError, match=r"pip install 'svolsdf\[video\]'"):
+        gather_inputs(tmp_path / "clip.mp4", tmp_path / "w")
