@@ -135,7 +135,7 @@ def test_views_auto_reaches_the_config_and_is_reported(monkeypatch, tmp_path, ca
     for argv, n in ((["--views", "auto"], 3), (["--views", "auto", "5"], 5)):
         main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o")] + argv)
         sc = seen["cfg"].scene
-        assert sc.view_selection == "auto" and sc.num_views == n and sc.views is None
+        assert sc.view_selection == "auto" and sc.num_views == n and not sc.views
         assert "views auto: picked [4, 3, 5] of 9 views" in capsys.readouterr().out
     code, out = _run(["reconstruct", str(tmp_path), "--views", "auto,x"], capsys)
     assert code == 2 and "auto [N]" in out.err

@@ -301,7 +301,8 @@ def reconstruct(
 
     auto = _parse_auto_views(views)
     cfg = build_config(scene, config, preset_name, {
-        "scene.views": None if auto else _parse_views(views),
+        # [] (not None) so that auto also replaces views a --config file lists
+        "scene.views": [] if auto else _parse_views(views),
         "scene.view_selection": "auto" if auto else None,
         "scene.num_views": auto or None, "scene.image_size": _parse_size(size),
         "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
