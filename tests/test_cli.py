@@ -413,3 +413,60 @@ def test_read_only_run_folder_render_and_evaluate_exit_2_before_work(small_run, 
         code, out = _run(argv, capsys)
         assert code == 2 and "Read-only file system" in out.err, out.err
     assert sorted(p.name for p in small_run.iterdir()) == before
+
+
+def test_views_auto_reaches_the_config_and_is_reported(monkeypatch, tmp_path, capsys):
+    import svolsdf.pipeline as pl
+
+    seen = {}
+
+    class Recorder:
+        def __init__(self, cfg, out, progress=True):
+            seen["cfg"] = cfg
+            self.views, self.all_view_ids = [4, 3, 5], list(range(9))
+
+        def load(self):
+            seen["loaded"] = True
+
+        def run(self):
+            return {"points": "p", "mesh": None, "timing": {}}
+
+    monkeypatch.setattr(pl, "Pipeline", Recorder)
+    for argv, n in ((["--views", "auto"], 3), (["--views", "auto", "5"], 5)):
+        main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o")] + argv)
+        sc = seen["cfg"].scene
+        assert sc.view_selection == "auto" and sc.num_views == n and not sc.views
+        assert "views auto: picked [4, 3, 5] of 9 views" in capsys.readouterr().out
+    code, out = _run(["reconstruct", str(tmp_path), "--views", "auto,x"], capsys)
+    assert code == 2 and "auto [N]" in out.err
+
+
+def test_calibrate_maps_its_options(monkeypatch, tmp_path, capsys):
+    import svolsdf.calibrate as cal
+
+    seen = {}
+
+    def fake(inputs, out, cfg):
+        seen.update(inputs=inputs, out=out, cfg=cfg)
+        return {"num_inputs": 12, "registered": ["a"] * 11, "unregistered": ["z.jpg"],
+                "video": False, "size": [800, 600], "shared_camera": True,
+                "matcher": cfg.matcher, "mean_reprojection_error_px": 0.5,
+                "seconds": {"total": 3.0}}
+
+    monkeypatch.setattr(cal, "calibrate", fake)
+    main(["calibrate", str(tmp_path), "-o", str(tmp_path / "S"), "--max-size", "800",
+          "--matcher", "sequential", "--no-progress"])
+    cfg = seen["cfg"]
+    assert cfg.max_size == 800 and cfg.matcher == "sequential" and not cfg.progress
+    out = capsys.readouterr().out
+    assert "registered 11 of 12 photos" in out and "not registered: z.jpg" in out
+    assert "--views auto" in out
+
+
+def test_calibrate_errors_exit_2_with_one_line(tmp_path, capsys):
+    pytest.importorskip("pycolmap", reason="svolsdf calibrate needs pycolmap")
+    code, out = _run(["calibrate", str(tmp_path / "none"), "-o", str(tmp_path / "S")], capsys)
+    assert code == 2 and "does not exist" in out.err and len(out.err.strip().splitlines()) == 1
+    code, out = _run(["calibrate", str(tmp_path), "-o", str(tmp_path / "S"), "--matcher", "x"],
+                     capsys)
+    assert code == 2 and "unknown matcher" in out.err

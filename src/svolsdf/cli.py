@@ -75,6 +75,22 @@ def _parse_views(text: str | None) -> list[int] | None:
     return out
 
 
+def _parse_auto_views(text: str | None) -> int | None:
+    """'auto' -> 3, 'auto 5' -> 5; anything else -> None (view ids)."""
+    if text is None:
+        return None
+    tok = text.replace(",", " ").split()
+    if not tok or tok[0].lower() != "auto":
+        return None
+    if len(tok) > 2 or (len(tok) == 2 and not tok[1].isdigit()):
+        raise InputError(f"--views: '{text}' is neither view ids nor 'auto [N]' (e.g. --views "
+                         f"auto 3)")
+    n = int(tok[1]) if len(tok) == 2 else 3
+    if n < 2:
+        raise InputError(f"--views auto {n}: need at least 2 views")
+    return n
+
+
 @app.command("info")
 def info(
     scene: Annotated[Path, typer.Argument(help="Scene folder (IDR/NeuS, DTU raw, MVSNet, "
@@ -298,7 +314,8 @@ def reconstruct(
         help="Scene folder (any format `svolsdf info` reads); optional with --config.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out"),
     views: Annotated[str | None, typer.Option(
-        "--views", help="Input view ids, e.g. --views 25 22 28 (default: DTU's 25 22 28, or a "
+        "--views", help="Input view ids, e.g. --views 25 22 28, or --views auto [N]: N (3) views "
+                        "with good overlap and baselines (default: DTU's 25 22 28, or a "
                         "central view and its two best source views).")] = None,
     size: Annotated[str | None, typer.Option(
         "--size", help="Working size WxH (default: 768 wide, never upsampled).")] = None,
@@ -343,8 +360,12 @@ def reconstruct(
     """
     from svolsdf.pipeline import Pipeline
 
+    auto = _parse_auto_views(views)
     cfg = build_config(scene, config, preset_name, {
-        "scene.views": _parse_views(views), "scene.image_size": _parse_size(size),
+        # [] (not None) so that auto also replaces views a --config file lists
+        "scene.views": [] if auto else _parse_views(views),
+        "scene.view_selection": "auto" if auto else None,
+        "scene.num_views": auto or None, "scene.image_size": _parse_size(size),
         "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
         "mvs.scale": mvs_scale, "train.mode": mode, "train.ablation": ablation,
         "train.steps": steps, "device": device, "output.mesh_resolution": mesh_resolution,
@@ -352,7 +373,12 @@ def reconstruct(
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
     }, _RECONSTRUCT_OPTIONS)
-    summary = _run_pipeline(Pipeline(cfg, out, progress=not no_progress))
+    pipe = Pipeline(cfg, out, progress=not no_progress)
+    if auto:
+        pipe.load()
+        typer.echo(f"views auto: picked {pipe.views} of {len(pipe.all_view_ids)} views "
+                   f"(reference {pipe.views[0]})")
+    summary = _run_pipeline(pipe)
     typer.echo(f"points: {summary['points']}")
     if summary.get("mesh"):
         typer.echo(f"mesh:   {summary['mesh']}")
@@ -445,6 +471,46 @@ def render(
     for key in ("video", "video_ibr"):
         if res[key] is not None:
             typer.echo(f"video {res[key]}")
+
+
+# --------------------------------------------------------------------------- calibrate
+@app.command("calibrate")
+def calibrate(
+    inputs: Annotated[Path, typer.Argument(help="A folder of photos or a video file.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Scene folder to write (COLMAP "
+                                                          "model + images/).")],
+    max_size: Annotated[int, typer.Option(
+        "--max-size", help="Longest image side in pixels for SfM and the scene's images.")
+    ] = 1600,
+    matcher: Annotated[str, typer.Option(
+        "--matcher", help="exhaustive (photos), sequential (video frames) or auto.")] = "auto",
+    frames: Annotated[int, typer.Option("--frames", help="Frames sampled from a video.")] = 40,
+    threads: Annotated[int, typer.Option(
+        "--threads", help="CPU threads for structure from motion (-1: all cores).")] = -1,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+) -> None:
+    """Camera poses for your own photos or video (structure from motion with pycolmap).
+
+    Writes OUT as a COLMAP scene that `svolsdf reconstruct OUT --views auto` reads: the registered
+    photos (undistorted) in OUT/images/, cameras and sparse points in OUT/sparse/0/, and a summary
+    in OUT/calibration.json.
+    """
+    from svolsdf.calibrate import CalibrateConfig
+    from svolsdf.calibrate import calibrate as run_calibrate
+
+    cfg = CalibrateConfig(max_size=max_size, matcher=matcher, frames=frames, threads=threads,
+                          progress=not no_progress)
+    s = run_calibrate(inputs, out, cfg)
+    n_in, n_reg = s["num_inputs"], len(s["registered"])
+    kind = "frames" if s["video"] else "photos"
+    typer.echo(f"registered {n_reg} of {n_in} {kind} at {s['size'][0]}x{s['size'][1]} "
+               f"({'one shared camera' if s['shared_camera'] else 'one camera per photo'}, "
+               f"{s['matcher']} matching, reprojection error "
+               f"{s['mean_reprojection_error_px']} px) in {s['seconds']['total']:.0f} s")
+    if s["unregistered"]:
+        more = " ..." if len(s["unregistered"]) > 10 else ""
+        typer.echo(f"not registered: {', '.join(s['unregistered'][:10])}{more}")
+    typer.echo(f"scene {out}; next: svolsdf reconstruct {out} --views auto -o RUN")
 
 
 # --------------------------------------------------------------------------- mvs / synth

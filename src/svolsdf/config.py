@@ -72,6 +72,10 @@ class SceneConfig:
     else a central view and its two best source views."""
     num_views: int = _limited(3, min=2)
     """Number of input views when ``views`` is not given."""
+    view_selection: Literal["default", "auto"] = "default"
+    """How views are picked when ``views`` is not given: default (DTU's 25 22 28 on 49-view DTU
+    scans, else a central view and its best source views) or auto (``--views auto``: views with
+    good overlap and baselines on any calibrated scene, `svolsdf.pipeline.auto_views`)."""
     image_size: list[int] | None = _limited(None, len=2, min=8)
     """Working size [W, H] for the field; default: 768 wide (4:3 -> 768x576), never upsampled."""
     lighting: int | Literal["max"] = _limited(3, min=0, max=6)

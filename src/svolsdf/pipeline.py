@@ -40,8 +40,8 @@ from svolsdf.errors import InputError, RunInterrupted
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.scene import Scene
 
-__all__ = ["Pipeline", "default_views", "test_views", "working_size", "resolve_device",
-           "peak_rss_gb", "set_threads"]
+__all__ = ["Pipeline", "auto_views", "default_views", "test_views", "working_size",
+           "resolve_device", "peak_rss_gb", "set_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +82,29 @@ def default_views(scene: Scene, n: int = 3) -> list[int]:
     centre = int(torch.argmax(dirs @ mean))
     ref = scene.view_ids[centre]
     return [ref] + scene.source_views(ref)[: n - 1]
+
+
+def auto_views(scene: Scene, n: int = 3) -> list[int]:
+    """``--views auto``: n views with good overlap and baselines on any calibrated scene
+    (`svolsdf.scene.pairs.select_views`), from the views' shared sparse points (COLMAP scenes)
+    or points sampled in the object sphere, seen from the object centre."""
+    from svolsdf.scene.loaders import read_source
+    from svolsdf.scene.pairs import (
+        covisibility,
+        sample_sphere_points,
+        select_views,
+        visible_in_views,
+    )
+
+    src = read_source(scene.path, lighting=scene.extras.get("lighting", 3))
+    cams = scene.cameras
+    if src.points is not None and src.visibility is not None and len(src.points) > 0 and \
+            list(src.view_ids) == list(scene.view_ids):
+        vis = src.visibility
+    else:
+        vis = visible_in_views(cams, sample_sphere_points(scene.normalization, 4096))
+    pos = select_views(covisibility(vis), cams.centers, scene.normalization.center.reshape(3), n)
+    return [scene.view_ids[i] for i in pos]
 
 
 def test_views(scene: Scene, inputs: list[int]) -> list[int]:
@@ -288,6 +311,9 @@ class Pipeline:
             del sig["config"]["native_images"]
         c["mvs"] = {**{k: v for k, v in c["mvs"].items() if k != "guide_network"},
                     "signature": sig}
+        # how the views were picked does not matter once they are known (self.views), and run
+        # folders from before the option keep their keys
+        c["scene"].pop("view_selection", None)
         # every key chains from this one: a new release recomputes rather than mixing versions
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
@@ -353,7 +379,17 @@ class Pipeline:
         sc = self.cfg.scene
         head = load_scene(sc.path, load_images=False, lighting=sc.lighting)
         self.all_view_ids = list(head.view_ids)
-        views = list(sc.views) if sc.views else default_views(head, sc.num_views)
+        if sc.views:
+            views = list(sc.views)
+        elif sc.view_selection == "auto":
+            views = auto_views(head, sc.num_views)
+            log.info("views auto: picked %s of %d (reference %d)", views, len(head),
+                     views[0])
+        elif sc.view_selection == "default":
+            views = default_views(head, sc.num_views)
+        else:
+            raise InputError(f"scene.view_selection: unknown {sc.view_selection!r} (default "
+                             f"or auto)")
         for v in views:
             head.index(v)  # raises a clear error for unknown ids
         if len(views) < 2:

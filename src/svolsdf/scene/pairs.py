@@ -24,6 +24,8 @@ __all__ = [
     "compute_pairs",
     "read_pair_file",
     "sample_sphere_points",
+    "covisibility",
+    "select_views",
     "view_selection_scores",
     "visible_in_views",
     "write_pair_file",
@@ -184,3 +186,70 @@ def compute_pairs(cameras: Cameras, view_ids: list[int], points: Tensor | None =
         pairs[int(vid)] = [j for j, _ in sel]
         scores[int(vid)] = [s for _, s in sel]
     return pairs, scores
+
+
+
+def covisibility(visibility: Tensor) -> Tensor:
+    """(N, V) bool visibility -> (V, V) float64 counts of points seen by both views."""
+    v = visibility.double()
+    return v.T @ v
+
+
+def select_views(covisible: Tensor, centers: Tensor, target: Tensor, n: int = 3,
+                 baseline: float = 20.0, min_angle: float = 5.0, max_angle: float = 45.0
+                 ) -> list[int]:
+    """Pick ``n`` views with good overlap and useful baselines (``--views auto``).
+
+    Like DTU's inputs 25 / 22 / 28 (a reference, and sources on either side of it, 30 degrees
+    away): each pair (reference, source) scores its shared points times a baseline weight
+    w(theta) = exp(-(theta - baseline)^2 / (2 * 10^2)), theta the angle between the two views
+    seen from ``target``. For every candidate reference, sources are added greedily by that
+    score among views ``min_angle`` to ``max_angle`` degrees from the reference and at least
+    ``min_angle`` from every source picked, and no closer to a picked source than to the
+    reference (so sources spread around it rather than line up on one side); the set with the
+    largest total score wins.
+
+    Args:
+        covisible: (V, V) points seen by both views (`covisibility`).
+        centers: (V, 3) camera centres.
+        target: (3,) the point the views look at (the object centre).
+        n: views to pick (2 <= n <= V).
+        baseline, min_angle, max_angle: degrees.
+
+    Returns:
+        n view positions (indices into ``centers``), the reference first.
+
+    Raises:
+        SceneError: fewer than ``n`` views, or no ``n`` views that meet the conditions.
+    """
+    V = centers.shape[0]
+    if covisible.shape != (V, V) or centers.shape != (V, 3) or target.shape != (3,):
+        raise ValueError(f"select_views: covisible (V, V), centers (V, 3), target (3,) expected, "
+                         f"got {tuple(covisible.shape)}, {tuple(centers.shape)}, "
+                         f"{tuple(target.shape)}")
+    if n < 2 or n > V:
+        raise SceneError(f"cannot pick {n} views from a scene of {V} (need 2 <= N <= {V})")
+    d = centers.double() - target.double()
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    angle = torch.rad2deg(torch.arccos((d @ d.T).clamp(-1, 1)))
+    C = covisible.double().clone()
+    C.fill_diagonal_(0.0)
+    score = C / C.max().clamp_min(1e-12) * torch.exp(-((angle - baseline) ** 2) / (2 * 10.0**2))
+    best: tuple[float, list[int]] | None = None
+    for ref in range(V):
+        sel = [ref]
+        allowed = (angle[ref] >= min_angle) & (angle[ref] <= max_angle) & (C[ref] > 0)
+        while len(sel) < n and allowed.any():
+            j = int(torch.argmax(torch.where(allowed, score[ref], -1.0)))
+            sel.append(j)
+            allowed &= (angle[j] >= min_angle) & (angle[j] >= angle[ref])
+            allowed[sel] = False
+        if len(sel) < n:
+            continue
+        total = float(score[ref, sel[1:]].sum())
+        if best is None or total > best[0] + 1e-12:
+            best = (total, sel)
+    if best is None:
+        raise SceneError(f"no {n} views overlap with {min_angle:g}-{max_angle:g} degree "
+                         f"baselines; pick --views by hand")
+    return best[1]

@@ -110,6 +110,10 @@ class SynthConfig:
     """Horizontal angle spanned by a row of cameras, degrees."""
     focal: float = 1.8
     """Focal length as a multiple of the image width (DTU: 2890 px at 1600 px wide)."""
+    intrinsics_jitter: float = 1.0
+    """Scale of the per-view random variation of the intrinsics (focal length +-1 %, principal
+    point +-2 % of the image size, as a rig of different cameras); 0 gives every view the same
+    camera with the principal point at the image centre, as photos from one camera."""
     table_size: float = 800.0
     """Side of the square table, world units."""
     light_dir: tuple[float, float, float] = (-0.35, -0.55, 0.76)
@@ -721,9 +725,10 @@ def _cap_cameras(cfg: SynthConfig, target: np.ndarray, rng: np.random.Generator)
                                   math.sin(el)])
             aim = target + rng.uniform(-3.0, 3.0, size=3)
             w2cs.append(_look_at(target + dist * direction, aim, np.array([0.0, 0.0, 1.0])))
-            f = cfg.focal * W * (1.0 + rng.uniform(-0.01, 0.01))
-            K = np.array([[f, 0, (W - 1) / 2 + rng.uniform(-0.02, 0.02) * W],
-                          [0, f, (H - 1) / 2 + rng.uniform(-0.02, 0.02) * H],
+            jit = cfg.intrinsics_jitter  # the draws happen at any jitter: same stream
+            f = cfg.focal * W * (1.0 + jit * rng.uniform(-0.01, 0.01))
+            K = np.array([[f, 0, (W - 1) / 2 + jit * rng.uniform(-0.02, 0.02) * W],
+                          [0, f, (H - 1) / 2 + jit * rng.uniform(-0.02, 0.02) * H],
                           [0, 0, 1.0]])
             Ks.append(K)
     return Cameras(torch.tensor(np.stack(Ks)), torch.tensor(np.stack(w2cs)), W, H)
