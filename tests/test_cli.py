@@ -162,7 +162,9 @@ def test_ctrl_c_exits_130_naming_the_stage_and_a_rerun_resumes(scene, tmp_path):
     import svolsdf
 
     out = tmp_path / "run"
-    cfg = _small_config(tmp_path, scene, steps=30)
+    # enough steps that the signal, sent once the first checkpoint exists, finds the
+    # optimization still running on a fast machine (30 steps could end before it arrived)
+    cfg = _small_config(tmp_path, scene, steps=600)
     env = dict(os.environ, PYTHONPATH=str(Path(svolsdf.__file__).parents[1]))
     p = subprocess.Popen([sys.executable, "-m", "svolsdf", "reconstruct", "-o", str(out),
                           "--config", str(cfg), "--no-progress"], env=env,
