@@ -551,3 +551,27 @@ def test_field_psnr_on_the_input_views_is_logged_and_kept(tiny_run):
     assert 15.0 < fp["mean_db"] < 60.0
     log_text = (out / "log").read_text()
     assert "field: PSNR on the input views (inside the object masks)" in log_text
+
+
+def test_volsdf_mode_starts_from_a_sphere_with_nothing_from_mvs(tiny_scene, tmp_path):
+    """Issue 28: --mode volsdf is VolSDF: the sphere in the bounding sphere's box, a coarse-to-
+    fine grid, the whole-grid eikonal term; no MVS stage, prior or MVS-derived box."""
+    cfg = _tiny_cfg(tiny_scene, steps=40)
+    cfg.train.mode = "volsdf"
+    cfg.train.checkpoint_every = 0
+    p = Pipeline(cfg, tmp_path / "v", progress=False)
+    p.load()
+    model = p.build_model()
+    assert torch.equal(model.bounds, torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    assert model.resolution == cfg.field.sphere_start_resolution == 16
+    x = torch.tensor([[0.7, 0.0, 0.0], [0.0, -0.8, 0.1]])  # |x| - r, away from the centre's kink
+    assert model.sdf(x).tolist() == pytest.approx((x.norm(dim=-1) - cfg.field.sphere_radius)
+                                                  .tolist(), abs=0.02)
+    assert not getattr(model, "mvs_initialised", False)
+    # doublings to the final resolution, the last at 3/4 of the steps
+    assert p._grid_schedule() == [(15, 32), (30, 64)]
+    summary = p.run()
+    assert p._volumes1 is None and not (tmp_path / "v" / "mvs1").exists()
+    hist = (tmp_path / "v" / "field" / "losses.csv").read_text().splitlines()
+    assert "grid_eikonal" in hist[0]
+    assert summary["mesh"] is not None

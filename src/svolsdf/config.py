@@ -138,6 +138,16 @@ class FieldConfig:
     init: Literal["mvs", "sphere"] = "mvs"
     """grid: initial surface. mvs: signed distance of the fused stage-1 MVS depth (fast preset,
     svolsdf mode; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2)."""
+    sphere_radius: float = _limited(0.3, min=0.01)
+    """grid started from a sphere (volsdf mode, or init = sphere): radius of VolSDF's initial
+    sphere |x| - r (METHOD.md 5.2), unit frame, centred at the origin, in a grid over the box of
+    the bounding sphere [-1, 1]^3 (the unit frame's region of interest): only the cameras and the
+    sphere, nothing from MVS. Smaller than VolSDF's 0.6 so that the surface grows outward to the
+    object instead of carving a sphere that hides it (docs/volsdf-baseline.md)."""
+    sphere_start_resolution: int = _limited(16, min=4)
+    """grid started from a sphere: SDF grid resolution at the start; it doubles at evenly spaced
+    steps until ``grid_resolution`` by 3/4 of the steps (coarse to fine: a coarse grid moves the
+    surface as a whole; a fine one from the start paints the photos on the sphere)."""
     init_unverified_weight: float = _limited(0.0, min=0)
     """grid, init = mvs: vote weight (times the MVS confidence) of the stage-1 depths that no
     other view confirms, in the initial surface (field/init.py); only inside the object masks,
@@ -175,9 +185,14 @@ class TrainConfig:
     keep it well below a cell size, or Adam's normalized steps roughen the surface). 3e-4 lets
     the surface move ~0.15 unit-frame units per 500 steps (tuned at 500 steps); 1e-4 held it
     within a few mm of the MVS initialisation (benchmarks/results/fast_preset.md, notes)."""
-    lr_sdf_sphere: float = _limited(1e-3, min=0)
+    lr_sdf_sphere: float = _limited(5e-3, min=0)
     """grid field: learning rate of the SDF grid when it starts from a sphere (volsdf mode,
     field.init = sphere): the surface has to travel, not just be refined."""
+    grid_eikonal_weight: float = _limited(0.1, min=0)
+    """grid field started from a sphere: weight of an eikonal term over every cell of the SDF
+    grid (finite differences, `GridSDFField.grid_eikonal_loss`), besides METHOD.md 4.5's term at
+    sampled points, which reaches few of the nodes a travelling surface passes. Not used when
+    the grid starts from the MVS surface."""
     grad_clip: float = _limited(1.0, min=0)
     """Global-norm gradient clipping (0 = off)."""
     eikonal_weight: float = _limited(0.1, min=0)

@@ -214,6 +214,34 @@ def set_threads(n: int = 0) -> int:
     return torch.get_num_threads()
 
 
+def _mesh_depths(vertices: torch.Tensor, cameras, scale: float = 0.5) -> torch.Tensor:
+    """(V, h, w) z-depth of a dense world mesh seen from each camera, at ``scale`` x the cameras'
+    size: a z-buffer of its vertices (the nearest vertex per pixel; 0 where none falls).
+
+    A marching-cubes mesh at the mesh resolution has several vertices per pixel at half the
+    working size, so the vertex z-buffer is its depth map without rasterizing triangles
+    (`svolsdf.evaluate.raster` took minutes on a million faces).
+
+    Args:
+        vertices: (N, 3) world points.
+        cameras: world `Cameras` of V views.
+    """
+    w = max(1, round(cameras.width * scale))
+    h = max(1, round(cameras.height * scale))
+    cams = cameras.resize(w, h).to(dtype=torch.float64)
+    out = []
+    for k in range(len(cams)):
+        uv, z = cams[k].project(vertices.double()[None])
+        uv, z = uv[0], z[0]
+        px = uv.round().long()
+        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        idx = px[ok, 1] * w + px[ok, 0]
+        buf = torch.full((h * w,), float("inf"), dtype=torch.float64)
+        buf.scatter_reduce_(0, idx, z[ok], reduce="amin")
+        out.append(torch.where(torch.isfinite(buf), buf, 0.0).reshape(h, w).float())
+    return torch.stack(out)
+
+
 # --------------------------------------------------------------------------- pipeline
 class Pipeline:
     """Runs a `Config` into an output folder.
@@ -647,11 +675,17 @@ class Pipeline:
         if f.kind == "grid":
             from svolsdf.field.grid import GridFieldConfig, GridSDFField
 
-            bounds = self.field_bounds()
-            ext = (bounds[1] - bounds[0]).max()
-            gcfg = GridFieldConfig(resolution=f.grid_start_resolution,
-                                   init_radius=float(0.35 * ext),
-                                   init_centre=tuple(((bounds[0] + bounds[1]) / 2).tolist()),
+            if self._grid_from_sphere():
+                # VolSDF's start (METHOD.md 5.2): a sphere at the origin in the box of the
+                # bounding sphere; nothing from MVS
+                bounds = torch.tensor([[-1.0] * 3, [1.0] * 3])
+                res, radius, centre = f.sphere_start_resolution, f.sphere_radius, (0.0,) * 3
+            else:
+                bounds = self.field_bounds()
+                ext = (bounds[1] - bounds[0]).max()
+                res, radius = f.grid_start_resolution, float(0.35 * ext)
+                centre = tuple(((bounds[0] + bounds[1]) / 2).tolist())
+            gcfg = GridFieldConfig(resolution=res, init_radius=radius, init_centre=centre,
                                    # METHOD.md 5.5: no sphere clamp under a background model
                                    sphere_clamp_scale=None if f.background else 20.0)
             model = GridSDFField(bounds, gcfg)
@@ -685,11 +719,25 @@ class Pipeline:
                                     skip_in=(), feature_dim=32, colour_hidden=32)
         model.background = NeRFPlusPlusBackground(bcfg)
 
+    def _grid_from_sphere(self) -> bool:
+        """The grid field starts from VolSDF's sphere, not from the stage-1 MVS surface."""
+        f = self.cfg.field
+        return f.kind == "grid" and not (self.cfg.train.mode == "svolsdf" and f.init == "mvs"
+                                         and self.cfg.train.ablation != "soft-consistency-only")
+
     def _grid_schedule(self) -> list[tuple[int, int]]:
         f = self.cfg.field
+        steps = self.cfg.train.steps
+        if f.kind == "grid" and self._grid_from_sphere():
+            # doublings from sphere_start_resolution, evenly spaced, the last at 3/4 of the steps
+            levels, r = [], f.sphere_start_resolution
+            while r < f.grid_resolution:
+                r = min(2 * r, f.grid_resolution)
+                levels.append(r)
+            n = len(levels)
+            return [(int(steps * 0.75 * (i + 1) / n), r) for i, r in enumerate(levels)]
         if f.kind != "grid" or f.grid_resolution <= f.grid_start_resolution:
             return []
-        steps = self.cfg.train.steps
         r0, r1 = f.grid_start_resolution, f.grid_resolution
         mid = int(round((r0 * r1) ** 0.5))
         return [(int(steps * 0.25), mid), (int(steps * 0.5), r1)]
@@ -1332,7 +1380,13 @@ class Pipeline:
         # after the largest component: culling splits the surface where no view looked, and
         # the parts it leaves are all observed (benchmarks/results/fast_preset.md, session 8)
         if o.mesh_cull_unseen:
-            depths = self._mesh_cull_depths(refined if o.finer_stage_optimization else None)
+            if self._wants_mesh_fit():
+                # the fitted surface moved away from the rendered depth: the views' depth of
+                # this mesh itself decides what they see
+                depths = _mesh_depths(vw, scene.cameras)
+            else:
+                depths = self._mesh_cull_depths(refined if o.finer_stage_optimization
+                                                else None)
             if depths is None:
                 log.warning("mesh: no rendered depth of the input views; faces hidden from "
                             "every view are kept")

@@ -33,9 +33,9 @@ __all__ = ["fit_sdf_to_points"]
 log = logging.getLogger(__name__)
 
 
-def fit_sdf_to_points(model, points: Tensor, steps: int = 300, lr: float = 1e-4,
-                      batch: int = 16384, trunc_cells: float = 3.0,
-                      eikonal_weight: float = 0.1, smooth_weight: float = 1e-4,
+def fit_sdf_to_points(model, points: Tensor, steps: int = 300, lr: float = 5e-4,
+                      batch: int = 32768, trunc_cells: float = 3.0,
+                      eikonal_weight: float = 0.1, smooth_weight: float = 0.0,
                       seed: int = 0) -> dict[str, float]:
     """Refine ``model.sdf_grid`` in place so that the zero level passes through ``points``.
 

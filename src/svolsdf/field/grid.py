@@ -298,6 +298,17 @@ class GridSDFField(SurfaceModel):
         # (the cell size stays a device tensor: float() here would stall a GPU every step)
         return laplacian_loss(self.sdf_grid, n_samples) / self.cell_size.mean() ** 4
 
+    def grid_eikonal_loss(self) -> Tensor:
+        """() mean over all cells of (|grad f| - 1)^2, grad f by forward differences of the SDF
+        grid (the eikonal constraint of METHOD.md 4.5 on every node, not only at samples)."""
+        g = self.sdf_grid[0]
+        cs = self.cell_size  # (x, y, z)
+        base = g[:-1, :-1, :-1]
+        gz = (g[1:, :-1, :-1] - base) / cs[2]
+        gy = (g[:-1, 1:, :-1] - base) / cs[1]
+        gx = (g[:-1, :-1, 1:] - base) / cs[0]
+        return ((torch.sqrt(gx.square() + gy.square() + gz.square() + 1e-12) - 1) ** 2).mean()
+
     def feature_tv_loss(self) -> Tensor:
         """() mean over levels of the total variation (squared differences) of each feature grid."""
         return torch.stack([total_variation_loss(g) for g in self.feature_grids]).mean()

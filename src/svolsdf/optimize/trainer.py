@@ -259,6 +259,10 @@ class Trainer:
                 # depth over the foreground and the T_bg-scaled background (METHOD.md 5.5)
                 terms["sparse"] = L.sparse_loss(out.depth_all, p_label, normalize=cfg.sparse_norm)
                 total = total + w_sp * terms["sparse"]
+        if cfg.grid_eikonal_weight > 0 and hasattr(model, "grid_eikonal_loss") \
+                and not getattr(model, "mvs_initialised", False):
+            terms["grid_eikonal"] = model.grid_eikonal_loss()
+            total = total + cfg.grid_eikonal_weight * terms["grid_eikonal"]
         if cfg.smooth_weight > 0 and hasattr(model, "smoothness_loss"):
             terms["smooth"] = model.smoothness_loss()
             total = total + cfg.smooth_weight * terms["smooth"]
