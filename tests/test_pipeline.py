@@ -37,6 +37,9 @@ def _tiny_cfg(scene, steps=300):
     cfg.field.grid_start_resolution = 32
     cfg.field.grid_resolution = 64
     cfg.output.mesh_resolution = 96
+    # the mesh from the field alone: the key tests below change fusion options, which the
+    # fitted mesh follows (test_mesh_fitted_to_the_points covers it)
+    cfg.output.mesh_fit_points = 0
     return cfg
 
 
@@ -575,3 +578,36 @@ def test_volsdf_mode_starts_from_a_sphere_with_nothing_from_mvs(tiny_scene, tmp_
     hist = (tmp_path / "v" / "field" / "losses.csv").read_text().splitlines()
     assert "grid_eikonal" in hist[0]
     assert summary["mesh"] is not None
+
+
+def test_sphere_start_settings_stay_out_of_an_mvs_started_fields_key(tiny_run):
+    out, _, p = tiny_run
+    before = p._keys()
+    cfg = p.cfg
+    saved = (cfg.field.sphere_radius, cfg.train.lr_sdf_sphere, cfg.train.grid_eikonal_weight)
+    try:
+        cfg.field.sphere_radius, cfg.train.lr_sdf_sphere = 0.45, 2e-2
+        cfg.train.grid_eikonal_weight = 0.0
+        assert p._keys()["field"] == before["field"]
+        cfg.train.mode = "volsdf"  # a sphere start: they decide its field
+        assert p._keys()["field"] != before["field"]
+    finally:
+        cfg.train.mode = "svolsdf"
+        cfg.field.sphere_radius, cfg.train.lr_sdf_sphere, cfg.train.grid_eikonal_weight = saved
+
+
+def test_mesh_fitted_to_the_points(tiny_run, tmp_path):
+    """output.mesh_fit_points (the fast preset's 300): only the mesh reruns; the fitted surface
+    lies nearer the fused points than the field's own zero level."""
+    from scipy.spatial import cKDTree
+
+    out, _, p = tiny_run
+    p2 = _rerun_on_copy(out, tmp_path / "fit", mesh_fit_points=150)
+    assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
+    assert (tmp_path / "fit" / "field" / "surface.pt").is_file()
+    pts = read_ply(out / "points.ply")["points"]
+    tree = cKDTree(pts)
+    before = np.median(tree.query(read_ply(out / "mesh.ply")["points"])[0])
+    after = np.median(tree.query(read_ply(tmp_path / "fit" / "mesh.ply")["points"])[0])
+    assert after < 0.9 * before, (before, after)
+    assert read_ply(tmp_path / "fit" / "mesh.ply")["colors"] is not None  # colours kept

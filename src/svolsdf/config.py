@@ -568,6 +568,10 @@ def _fast() -> Config:
     # stage 4.35x faster on the seed-0 scene (benchmarks/results/guide_speed.md), points
     # Chamfer unchanged within noise on five synthetic scenes (fast_preset.md, session-14 notes)
     c.output.guide_mask_dilation = 32
+    # the mesh is the surface refined to pass through the fused points (issue 28): mesh Chamfer
+    # 1.36 -> 1.19 mm and 1.48 -> 1.33 mm on two synthetic scenes (points 0.52-0.54 / 0.50),
+    # ~30-40 s (docs/volsdf-baseline.md)
+    c.output.mesh_fit_points = 300
     return c
 
 

@@ -344,6 +344,14 @@ class Pipeline:
         c["scene"].pop("view_selection", None)
         # every key chains from this one: a new release recomputes rather than mixing versions
         k_mvs1 = _hash(c["scene"], c["mvs"], self.views, __version__)
+        if not self._grid_from_sphere():
+            # the sphere start's settings (issue 28) do not act on a field started from MVS:
+            # they stay out of its key, and lr_sdf_sphere keeps the value it had in every key
+            # before then, so such run folders keep their finished stages
+            for k in ("sphere_radius", "sphere_start_resolution"):
+                c["field"].pop(k)
+            c["train"].pop("grid_eikonal_weight")
+            c["train"]["lr_sdf_sphere"] = 1e-3
         k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
         # guide_mask_dilation enters only when set, so runs that render every pixel keep the
         # keys they had before the option existed (their stages are reused)
