@@ -439,6 +439,12 @@ def test_views_auto_reaches_the_config_and_is_reported(monkeypatch, tmp_path, ca
         sc = seen["cfg"].scene
         assert sc.view_selection == "auto" and sc.num_views == n and not sc.views
         assert "views auto: picked [4, 3, 5] of 9 views" in capsys.readouterr().out
+    # auto also replaces the views a --config file lists
+    c = tmp_path / "c.yaml"
+    c.write_text("scene: {views: [0, 1, 2]}\n")
+    main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), "--config", str(c),
+          "--views", "auto"])
+    assert seen["cfg"].scene.views is None and seen["cfg"].scene.view_selection == "auto"
     code, out = _run(["reconstruct", str(tmp_path), "--views", "auto,x"], capsys)
     assert code == 2 and "auto [N]" in out.err
 

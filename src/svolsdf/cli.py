@@ -362,8 +362,7 @@ def reconstruct(
 
     auto = _parse_auto_views(views)
     cfg = build_config(scene, config, preset_name, {
-        # [] (not None) so that auto also replaces views a --config file lists
-        "scene.views": [] if auto else _parse_views(views),
+        "scene.views": None if auto else _parse_views(views),
         "scene.view_selection": "auto" if auto else None,
         "scene.num_views": auto or None, "scene.image_size": _parse_size(size),
         "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
@@ -373,6 +372,8 @@ def reconstruct(
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
     }, _RECONSTRUCT_OPTIONS)
+    if auto:  # auto also replaces the views a --config file lists
+        cfg.scene.views = None
     pipe = Pipeline(cfg, out, progress=not no_progress)
     if auto:
         pipe.load()
