@@ -611,3 +611,17 @@ def test_mesh_fitted_to_the_points(tiny_run, tmp_path):
     after = np.median(tree.query(read_ply(tmp_path / "fit" / "mesh.ply")["points"])[0])
     assert after < 0.9 * before, (before, after)
     assert read_ply(tmp_path / "fit" / "mesh.ply")["colors"] is not None  # colours kept
+
+
+def test_watertight_mesh_option(tiny_run, tmp_path):
+    """output.mesh_watertight: the closed zero level, no culling; only the mesh reruns."""
+    import trimesh
+
+    out, _, p = tiny_run
+    p2 = _rerun_on_copy(out, tmp_path / "wt", mesh_watertight=True)
+    assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
+    m = read_ply(tmp_path / "wt" / "mesh.ply")
+    mesh = trimesh.Trimesh(m["points"], m["faces"], process=True)
+    assert mesh.is_watertight and m["colors"] is not None
+    culled = read_ply(out / "mesh.ply")
+    assert not trimesh.Trimesh(culled["points"], culled["faces"], process=True).is_watertight

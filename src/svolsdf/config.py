@@ -249,6 +249,11 @@ class OutputConfig:
     and may hold cavities (benchmarks/results/fast_preset.md, session 8)."""
     mesh_cull_tol: float = _limited(0.01, min=0)
     """Mesh: relative depth slack of ``mesh_cull_unseen``."""
+    mesh_watertight: bool = False
+    """Mesh: keep the whole closed zero level (its largest connected part) instead of the parts
+    the input views judge: no frustum, mask or visibility culling, so the mesh has no holes
+    (for printing or simulation). Parts no view sees are the field's guess, so it scores worse
+    against ground truth than the culled mesh."""
     fusion_dist: float = _limited(1.0, min=0)
     """Fusion: reprojection distance threshold in pixels (METHOD.md 6.3)."""
     fusion_rel: float = _limited(0.01, min=0)

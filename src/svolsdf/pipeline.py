@@ -379,7 +379,9 @@ class Pipeline:
                        k_mvs23 if c["output"]["finer_stage_optimization"] else None,
                        c["output"]["use_masks"],
                        (k_guide, c["output"]["mesh_cull_tol"]) if c["output"]["mesh_cull_unseen"]
-                       else None)
+                       else None,
+                       # enters only when set: earlier run folders keep their mesh key
+                       *(["watertight"] if c["output"]["mesh_watertight"] else []))
         return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
                 "unguided": k_unguided,
                 "fusion": k_fusion, "mesh": k_mesh}
@@ -1344,16 +1346,12 @@ class Pipeline:
             return path
         t0 = time.perf_counter()
         from svolsdf.fusion.mesh import (
-            colors_from_fn,
             cull_by_frusta,
             cull_by_masks,
             cull_unseen,
             extract_mesh,
             largest_component,
-            model_colour_fn,
-            save_mesh,
             to_world,
-            vertex_normals,
         )
 
         model = self.model()
@@ -1370,6 +1368,18 @@ class Pipeline:
         def sdf_fn(x):
             return model.sdf(x.to(dev)).cpu()
 
+        if o.mesh_watertight:
+            # a surface that leaves the field's box is closed by a cap on the box's faces: the
+            # grid reaches two mesh cells beyond the box, where everything counts as outside
+            lo, hi = bounds[0].clone(), bounds[1].clone()
+            pad = 2 * float((hi - lo).max()) / o.mesh_resolution
+            field_sdf = sdf_fn
+
+            def sdf_fn(x):  # noqa: F811
+                out = ((x < lo) | (x > hi)).any(-1)
+                return torch.where(out, torch.full_like(x[:, 0], pad), field_sdf(x))
+
+            bounds = torch.stack([lo - pad, hi + pad])
         v, f = extract_mesh(sdf_fn, bounds, resolution=o.mesh_resolution, coarse_to_fine=True,
                             progress=self.progress)
         scene = self.load()
@@ -1377,6 +1387,9 @@ class Pipeline:
         # keep what the input views can judge: faces inside some view's frustum, and, with
         # masks, inside the dilated object mask of every view that sees them (the mesh culling
         # of the DTU evaluations, METHOD.md 8.3)
+        if o.mesh_watertight:
+            vw, f, idx = largest_component(vw, f, return_index=True)
+            return self._save_mesh(path, model, v[idx], vw, f, t0)
         vw, f, idx = cull_by_frusta(vw, f, scene.cameras)
         v = v[idx]
         if scene.masks is not None and o.use_masks:
@@ -1405,6 +1418,16 @@ class Pipeline:
                 else:
                     log.warning("mesh: no face is visible in the rendered depth; visibility "
                                 "culling skipped")
+        return self._save_mesh(path, model, v, vw, f, t0)
+
+    def _save_mesh(self, path: Path, model, v: torch.Tensor, vw: torch.Tensor, f: torch.Tensor,
+                   t0: float) -> Path:
+        """Colour the mesh from the field (unit-frame vertices ``v``), write it (world vertices
+        ``vw``, faces ``f``) and mark the mesh stage done."""
+        from svolsdf.fusion.mesh import colors_from_fn, model_colour_fn, save_mesh, vertex_normals
+
+        o = self.cfg.output
+        dev = self.device
         cols = None
         try:
             cols = colors_from_fn(v, vertex_normals(v, f), model_colour_fn(model), device=dev)
