@@ -143,7 +143,7 @@ class FieldConfig:
     sphere |x| - r (METHOD.md 5.2), unit frame, centred at the origin, in a grid over the box of
     the bounding sphere [-1, 1]^3 (the unit frame's region of interest): only the cameras and the
     sphere, nothing from MVS. Smaller than VolSDF's 0.6 so that the surface grows outward to the
-    object instead of carving a sphere that hides it (docs/volsdf-baseline.md)."""
+    object instead of carving a sphere that hides it (benchmarks/results/volsdf_baseline.md)."""
     sphere_start_resolution: int = _limited(16, min=4)
     """grid started from a sphere: SDF grid resolution at the start; it doubles at evenly spaced
     steps until ``grid_resolution`` by 3/4 of the steps (coarse to fine: a coarse grid moves the
@@ -575,7 +575,7 @@ def _fast() -> Config:
     c.output.guide_mask_dilation = 32
     # the mesh is the surface refined to pass through the fused points (issue 28): mesh Chamfer
     # 1.36 -> 1.19 mm and 1.48 -> 1.33 mm on two synthetic scenes (points 0.52-0.54 / 0.50),
-    # ~30-40 s (docs/volsdf-baseline.md)
+    # ~30-40 s (benchmarks/results/volsdf_baseline.md)
     c.output.mesh_fit_points = 300
     return c
 

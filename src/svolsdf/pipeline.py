@@ -214,34 +214,6 @@ def set_threads(n: int = 0) -> int:
     return torch.get_num_threads()
 
 
-def _mesh_depths(vertices: torch.Tensor, cameras, scale: float = 0.5) -> torch.Tensor:
-    """(V, h, w) z-depth of a dense world mesh seen from each camera, at ``scale`` x the cameras'
-    size: a z-buffer of its vertices (the nearest vertex per pixel; 0 where none falls).
-
-    A marching-cubes mesh at the mesh resolution has several vertices per pixel at half the
-    working size, so the vertex z-buffer is its depth map without rasterizing triangles
-    (`svolsdf.evaluate.raster` took minutes on a million faces).
-
-    Args:
-        vertices: (N, 3) world points.
-        cameras: world `Cameras` of V views.
-    """
-    w = max(1, round(cameras.width * scale))
-    h = max(1, round(cameras.height * scale))
-    cams = cameras.resize(w, h).to(dtype=torch.float64)
-    out = []
-    for k in range(len(cams)):
-        uv, z = cams[k].project(vertices.double()[None])
-        uv, z = uv[0], z[0]
-        px = uv.round().long()
-        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        idx = px[ok, 1] * w + px[ok, 0]
-        buf = torch.full((h * w,), float("inf"), dtype=torch.float64)
-        buf.scatter_reduce_(0, idx, z[ok], reduce="amin")
-        out.append(torch.where(torch.isfinite(buf), buf, 0.0).reshape(h, w).float())
-    return torch.stack(out)
-
-
 # --------------------------------------------------------------------------- pipeline
 class Pipeline:
     """Runs a `Config` into an output folder.
@@ -1351,6 +1323,7 @@ class Pipeline:
             cull_unseen,
             extract_mesh,
             largest_component,
+            mesh_vertex_depths,
             to_world,
         )
 
@@ -1404,7 +1377,7 @@ class Pipeline:
             if self._wants_mesh_fit():
                 # the fitted surface moved away from the rendered depth: the views' depth of
                 # this mesh itself decides what they see
-                depths = _mesh_depths(vw, scene.cameras)
+                depths = mesh_vertex_depths(vw, scene.cameras)
             else:
                 depths = self._mesh_cull_depths(refined if o.finer_stage_optimization
                                                 else None)

@@ -37,6 +37,7 @@ __all__ = [
     "cull_by_frusta",
     "cull_by_masks",
     "cull_unseen",
+    "mesh_vertex_depths",
     "extract_mesh",
     "largest_component",
     "model_colour_fn",
@@ -578,6 +579,33 @@ def cull_unseen(
         seen |= s & (dv > 0) & (z <= (1 + rel_tol) * dv)
     log.info("visibility culling keeps %d of %d faces", int(seen.sum()), len(faces))
     return submesh(vertices, faces, seen)
+
+
+def mesh_vertex_depths(vertices: torch.Tensor, cameras, scale: float = 0.5) -> torch.Tensor:
+    """(V, h, w) z-depth of a dense world mesh seen from each camera, at ``scale`` x the cameras'
+    size: a z-buffer of its vertices (the nearest vertex per pixel; 0 where none falls).
+
+    A marching-cubes mesh at the mesh resolution has several vertices per pixel at half the
+    working size, so the vertex z-buffer is its depth map without rasterizing triangles.
+
+    Args:
+        vertices: (N, 3) world points.
+        cameras: world `Cameras` of V views.
+    """
+    w = max(1, round(cameras.width * scale))
+    h = max(1, round(cameras.height * scale))
+    cams = cameras.resize(w, h).to(dtype=torch.float64)
+    out = []
+    for k in range(len(cams)):
+        uv, z = cams[k].project(vertices.double()[None])
+        uv, z = uv[0], z[0]
+        px = uv.round().long()
+        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        idx = px[ok, 1] * w + px[ok, 0]
+        buf = torch.full((h * w,), float("inf"), dtype=torch.float64)
+        buf.scatter_reduce_(0, idx, z[ok], reduce="amin")
+        out.append(torch.where(torch.isfinite(buf), buf, 0.0).reshape(h, w).float())
+    return torch.stack(out)
 
 
 # ---------------------------------------------------------------------------------------------
