@@ -625,3 +625,26 @@ def test_watertight_mesh_option(tiny_run, tmp_path):
     assert mesh.is_watertight and m["colors"] is not None
     culled = read_ply(out / "mesh.ply")
     assert not trimesh.Trimesh(culled["points"], culled["faces"], process=True).is_watertight
+
+
+def test_poisson_mesh_option(tiny_run, tmp_path):
+    """output.mesh_method = poisson: only the mesh reruns; the mesh lies on the fused points
+    (nearer them than the field's zero level) and keeps colours; output.mesh_watertight still
+    gives the field's closed zero level."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    out, _, p = tiny_run
+    p2 = _rerun_on_copy(out, tmp_path / "pz", mesh_method="poisson", poisson_depth=8)
+    assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
+    assert p2.timing["mesh"]["method"] == "poisson"
+    tree = cKDTree(read_ply(out / "points.ply")["points"])
+    field = np.median(tree.query(read_ply(out / "mesh.ply")["points"])[0])
+    m = read_ply(tmp_path / "pz" / "mesh.ply")
+    assert np.median(tree.query(m["points"])[0]) < 0.9 * field
+    assert m["colors"] is not None and len(m["faces"]) > 100
+    p3 = _rerun_on_copy(out, tmp_path / "pzw", mesh_method="poisson", poisson_depth=8,
+                        mesh_watertight=True)
+    w = read_ply(tmp_path / "pzw" / "mesh.ply")
+    assert "method" not in p3.timing["mesh"], p3.timing  # the field's closed zero level
+    assert trimesh.Trimesh(w["points"], w["faces"], process=True).is_watertight

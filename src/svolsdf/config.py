@@ -316,6 +316,18 @@ class OutputConfig:
     field; 0 = off, the paper: the mesh is the optimized field's zero level). The finer MVS
     stages place depth more precisely than the surface that guided them, so the fused points
     are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
+    mesh_method: Literal["field", "poisson"] = "field"
+    """Mesh source: field (the optimized field's zero level by marching cubes, the paper) |
+    poisson (the screened Poisson surface of OUT/points.ply, trimmed where the points are
+    sparse: `svolsdf.fusion.poisson`, COLMAP's mesher through pycolmap). The fused points come
+    from the finer MVS stages and are more accurate than the field; poisson brings the mesh to
+    them. Culling (frusta, masks, ``mesh_cull_unseen`` by the mesh's own depth) is the same;
+    vertex colours come from the points."""
+    poisson_depth: int = _limited(10, min=5, max=14)
+    """Mesh (poisson): octree depth; the finest cell is the points' box / 2^depth."""
+    poisson_trim: float = _limited(5.0, min=0, max=14)
+    """Mesh (poisson): remove the surface whose sample density, in octree levels, is below
+    this (0 = keep the closed surface)."""
     finer_stage_optimization: bool = False
     """Paper option (METHOD.md 9.2.13; the released code forbids it): after stage 2, optimize
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render

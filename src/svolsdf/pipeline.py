@@ -353,7 +353,10 @@ class Pipeline:
                        (k_guide, c["output"]["mesh_cull_tol"]) if c["output"]["mesh_cull_unseen"]
                        else None,
                        # enters only when set: earlier run folders keep their mesh key
-                       *(["watertight"] if c["output"]["mesh_watertight"] else []))
+                       *(["watertight"] if c["output"]["mesh_watertight"] else []),
+                       # ditto: the Poisson surface of the fused points
+                       *((["poisson", c["output"]["poisson_depth"], c["output"]["poisson_trim"],
+                           k_fusion]) if self._wants_poisson() else []))
         return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
                 "unguided": k_unguided,
                 "fusion": k_fusion, "mesh": k_mesh}
@@ -1286,7 +1289,8 @@ class Pipeline:
     def _wants_mesh_fit(self) -> bool:
         """`OutputConfig.mesh_fit_points` applies: set, svolsdf mode (its points come from the
         finer MVS stages), a grid field."""
-        return (self.cfg.output.mesh_fit_points > 0 and self.cfg.train.mode == "svolsdf"
+        return (self.cfg.output.mesh_fit_points > 0 and self.cfg.output.mesh_method == "field"
+                and self.cfg.train.mode == "svolsdf"
                 and self.cfg.train.ablation is None and self.cfg.field.kind == "grid")
 
     def _surface_fitted_to_points(self, model):
@@ -1331,6 +1335,8 @@ class Pipeline:
         refined = self.out / "field" / "stage2" / "model.pt"
         if o.finer_stage_optimization and refined.is_file():
             self._load_model(model, refined)  # the field after the finer-stage optimization
+        if self._wants_poisson():
+            return self._poisson_mesh(path, model, t0)
         if self._wants_mesh_fit():
             model = self._surface_fitted_to_points(model)
         model.eval()
@@ -1392,6 +1398,73 @@ class Pipeline:
                     log.warning("mesh: no face is visible in the rendered depth; visibility "
                                 "culling skipped")
         return self._save_mesh(path, model, v, vw, f, t0)
+
+    def _wants_poisson(self) -> bool:
+        """`OutputConfig.mesh_method` = "poisson" applies: set and no watertight mesh (a Poisson
+        surface opens where it meets its octree's box; the watertight mesh is the field's)."""
+        o = self.cfg.output
+        return o.mesh_method == "poisson" and not o.mesh_watertight
+
+    def _poisson_mesh(self, path: Path, model, t0: float) -> Path:
+        """`OutputConfig.mesh_method` = "poisson": the screened Poisson surface of
+        OUT/points.ply, normals oriented by the input cameras and, where they straddle a
+        point's tangent plane, by the field's gradient; culled like the field's mesh, with the
+        mesh's own depth deciding what the views see; vertex colours from the points."""
+        from svolsdf.fusion.mesh import (
+            cull_by_frusta,
+            cull_by_masks,
+            cull_unseen,
+            largest_component,
+            mesh_vertex_depths,
+            save_mesh,
+        )
+        from svolsdf.fusion.poisson import estimate_normals, orient_normals, poisson_surface
+        from svolsdf.io.ply import read_ply
+
+        o = self.cfg.output
+        scene = self.load()
+        d = read_ply(self.stage_fusion())
+        pts, cols = d["points"], d["colors"]
+        if len(pts) < 100:
+            raise InputError(f"{self.out / 'points.ply'}: {len(pts)} fused points, too few for "
+                             "a Poisson mesh (output.mesh_method = poisson); use "
+                             "output.mesh_method = field")
+        threads = max(1, torch.get_num_threads())
+        normals = estimate_normals(pts, workers=threads)
+        unit = scene.normalization.to_unit(torch.from_numpy(pts)).float()
+        grads = []
+        for x in unit.split(65536):  # the field's outward direction at each point
+            x = x.to(self.device).requires_grad_(True)
+            (g,) = torch.autograd.grad(model.sdf(x).sum(), x)
+            grads.append(g.detach().cpu())
+        normals = orient_normals(pts, normals, scene.cameras.centers.double().numpy(),
+                                 guide=torch.cat(grads).double().numpy())
+        v, f, c = poisson_surface(pts, normals, cols, depth=o.poisson_depth,
+                                  trim=o.poisson_trim, threads=threads)
+        vw, f = torch.from_numpy(v), torch.from_numpy(f)
+        c = None if c is None else torch.from_numpy(c)
+
+        def keep(idx):
+            return None if c is None else c[idx]
+
+        vw, f, idx = cull_by_frusta(vw, f, scene.cameras)
+        c = keep(idx)
+        if scene.masks is not None and o.use_masks:
+            dil = max(2, round(12 * scene.width / 1600))  # as the field's mesh
+            vw, f, idx = cull_by_masks(vw, f, scene.cameras, scene.masks, dilation=dil)
+            c = keep(idx)
+        vw, f, idx = largest_component(vw, f, return_index=True)
+        c = keep(idx)
+        if o.mesh_cull_unseen:
+            vw2, f2, idx = cull_unseen(vw, f, scene.cameras, mesh_vertex_depths(vw, scene.cameras),
+                                       o.mesh_cull_tol)
+            if len(f2):
+                vw, f, c = vw2, f2, keep(idx)
+        save_mesh(path, vw, f, c, fmt=o.mesh_format)
+        self._mark("mesh", self.keys["mesh"])
+        self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)), method="poisson",
+                   points=int(len(pts)))
+        return path
 
     def _save_mesh(self, path: Path, model, v: torch.Tensor, vw: torch.Tensor, f: torch.Tensor,
                    t0: float) -> Path:
