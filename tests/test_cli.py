@@ -478,3 +478,52 @@ def test_calibrate_errors_exit_2_with_one_line(tmp_path, capsys):
     code, out = _run(["calibrate", str(tmp_path), "-o", str(tmp_path / "S"), "--matcher", "x"],
                      capsys)
     assert code == 2 and "unknown matcher" in out.err
+
+
+def test_set_reaches_any_option_and_is_applied_last(monkeypatch, tmp_path, capsys):
+    # --set section.option=value (YAML values) after the flags; the pipeline is a recorder
+    import svolsdf.pipeline as pl
+
+    seen = {}
+
+    class Recorder:
+        def __init__(self, cfg, out, progress=True):
+            seen["cfg"] = cfg
+
+        def run(self):
+            return {"points": "p", "mesh": None, "timing": {}}
+
+    monkeypatch.setattr(pl, "Pipeline", Recorder)
+    main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), "--steps", "50",
+          "--set", "train.steps=70", "--set", "output.mesh_method=poisson",
+          "--set", "mvs.ndepths=[64, 16, 8]", "--set", "output.fusion_network_weights=null"])
+    c = seen["cfg"]
+    assert (c.train.steps, c.output.mesh_method, c.mvs.ndepths) == (70, "poisson", [64, 16, 8])
+    assert c.output.fusion_network_weights is None
+    for item, msg in (("train.stepz=3", "did you mean train.steps"),
+                      ("output.mesh_method=poison", "'field', 'poisson'"),
+                      ("steps", "expected section.option=value")):
+        with pytest.raises(SystemExit) as e:
+            main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), "--set", item])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and msg in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_config_prints_every_option_with_its_doc(tmp_path, capsys):
+    import yaml
+
+    from svolsdf.config import config_from_dict, option_docs, preset
+
+    for name in ("fast", "paper"):
+        main(["config", "--preset", name])
+        text = capsys.readouterr().out
+        assert config_from_dict(yaml.safe_load(text)) == preset(name)  # loads back
+        docs = option_docs()
+        assert all(docs.values()), [k for k, v in docs.items() if not v]  # every option
+        lines = text.splitlines()
+        for key in ("train.steps", "output.mesh_method"):  # the doc comment sits above the key
+            at = next(i for i, ln in enumerate(lines) if ln.startswith(f"  {key.split('.')[1]}:"))
+            above = " ".join(ln.strip("# ") for ln in lines[:at][-6:])
+            assert docs[key].split(".")[0][:40] in " ".join(above.split()), (key, above)
+    main(["config", "--set", "train.steps=12"])
+    assert "  steps: 12" in capsys.readouterr().out

@@ -135,9 +135,9 @@ def test_overrides_are_validated_and_name_their_option():
     cfg = preset("fast")
     with pytest.raises(InputError, match=r"^--steps \(train\.steps\) = -5: expected an integer"):
         apply_overrides(cfg, {"train.steps": -5}, labels={"train.steps": "--steps"})
-    with pytest.raises(InputError, match="unknown config key 'train.nope'"):
+    with pytest.raises(InputError, match="unknown option 'train.nope'"):
         apply_overrides(preset("fast"), {"train.nope": 1})
-    with pytest.raises(InputError, match="unknown config key 'nope.steps'"):
+    with pytest.raises(InputError, match="unknown option 'nope.steps'"):
         apply_overrides(preset("fast"), {"nope.steps": 1})
     # a field set in code is checked too, when the pipeline is built (before any stage)
     from svolsdf.pipeline import Pipeline

@@ -272,15 +272,17 @@ def _parse_size(text: str | None) -> list[int] | None:
 
 
 def build_config(scene: Path | None, config: Path | None, preset_name: str | None,
-                 overrides: dict, labels: dict[str, str] | None = None) -> object:
-    """Config from --config (or the preset), then the command-line overrides, validated
-    (`svolsdf.config.validate_config`) before anything runs.
+                 overrides: dict, labels: dict[str, str] | None = None,
+                 sets: list[str] | None = None) -> object:
+    """Config from --config (or the preset), then the command-line overrides, then ``--set``
+    items, validated (`svolsdf.config.validate_config`) before anything runs.
 
     Args:
         overrides: dotted config key -> value (None: not given).
         labels: dotted config key -> its option, for error messages.
+        sets: ``--set section.option=value`` items (`svolsdf.config.parse_set`).
     """
-    from svolsdf.config import apply_overrides, load_config, preset
+    from svolsdf.config import apply_overrides, load_config, parse_set, preset
 
     if config is not None:
         cfg = load_config(config)
@@ -291,9 +293,36 @@ def build_config(scene: Path | None, config: Path | None, preset_name: str | Non
         cfg = preset(preset_name or "fast")
     apply_overrides(cfg, {"scene.path": None if scene is None else str(scene), **overrides},
                     labels={"scene.path": "SCENE", **(labels or {})})
+    given = parse_set(sets)
+    if given:
+        apply_overrides(cfg, given, labels={k: f"--set {k}" for k in given}, skip_none=False)
     if not cfg.scene.path:
         raise InputError("no scene given (pass SCENE or a --config with scene.path)")
     return cfg
+
+
+@app.command("config")
+def config_cmd(
+    preset_name: Annotated[str, typer.Option(
+        "--preset", help="fast (default) or paper.")] = "fast",
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="Show this config.yaml (e.g. OUT/config.yaml) instead of a preset.")
+    ] = None,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="Change options first, as reconstruct --set.")] = None,
+) -> None:
+    """Print every option as YAML, each with its documentation as a comment.
+
+    Save it, edit it and pass it back with ``svolsdf reconstruct SCENE --config FILE``, or set
+    single options with ``--set section.option=value``.
+    """
+    from svolsdf.config import apply_overrides, config_yaml, load_config, parse_set, preset
+
+    cfg = load_config(config) if config is not None else preset(preset_name)
+    given = parse_set(set_)
+    if given:
+        apply_overrides(cfg, given, labels={k: f"--set {k}" for k in given}, skip_none=False)
+    typer.echo(config_yaml(cfg), nl=False)
 
 
 #: config key -> the `reconstruct` option that sets it (for error messages)
@@ -351,6 +380,10 @@ def reconstruct(
         "--fusion-network", help="Weights of a PatchmatchNet (TorchScript) to start from the "
                                  "field's depth and fuse as a further hypothesis "
                                  "(output.fusion_network).")] = None,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="Any option as section.option=value (YAML value), repeatable, applied "
+                      "last: --set train.steps=200 --set output.mesh_method=poisson; "
+                      "`svolsdf config` lists them all.")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
 ) -> None:
     """Reconstruct a scene: MVS, S-VolSDF optimization, guided MVS, fusion and mesh.
@@ -371,7 +404,7 @@ def reconstruct(
         "train.seed": seed, "field.background": background, "threads": threads,
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
-    }, _RECONSTRUCT_OPTIONS)
+    }, _RECONSTRUCT_OPTIONS, sets=set_)
     if auto:  # auto also replaces the views a --config file lists
         cfg.scene.views = None
     pipe = Pipeline(cfg, out, progress=not no_progress)

@@ -1,0 +1,51 @@
+"""Dataclass configs for a reconstruction run, the named presets, validation and YAML round trips.
+
+One `Config` describes a whole run. `svolsdf reconstruct` maps its options onto it (and
+``--set section.option=value`` reaches every option) and writes it as OUT/config.yaml, which can
+be passed back with ``--config`` to rerun. Presets (ARCHITECTURE.md "Presets"): ``paper``
+reproduces METHOD.md's constants; ``fast`` (the default) keeps the prior and the losses and changes
+the field, the sampling and the schedule (docs/presets.md says why).
+"""
+
+from svolsdf.config.io import (
+    apply_overrides,
+    config_from_dict,
+    config_yaml,
+    load_config,
+    option_docs,
+    parse_set,
+    save_config,
+)
+from svolsdf.config.presets import PRESETS, preset
+from svolsdf.config.schema import (
+    DTU_EXCLUDED_IDS,
+    DTU_TRAIN_IDS,
+    Config,
+    FieldConfig,
+    MVSConfig,
+    OutputConfig,
+    SceneConfig,
+    TrainConfig,
+)
+from svolsdf.config.validate import validate_config
+
+__all__ = [
+    "Config",
+    "SceneConfig",
+    "MVSConfig",
+    "FieldConfig",
+    "TrainConfig",
+    "OutputConfig",
+    "DTU_TRAIN_IDS",
+    "DTU_EXCLUDED_IDS",
+    "preset",
+    "PRESETS",
+    "load_config",
+    "save_config",
+    "config_from_dict",
+    "apply_overrides",
+    "parse_set",
+    "option_docs",
+    "config_yaml",
+    "validate_config",
+]

@@ -1,0 +1,221 @@
+"""Configs to and from YAML and the command line: load, save, dotted overrides (``--set``), and
+the commented YAML of `svolsdf config`."""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import os
+import textwrap
+from collections.abc import Mapping
+from dataclasses import asdict, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from svolsdf.config.presets import PRESETS, preset
+from svolsdf.config.schema import Config
+from svolsdf.config.validate import _short, validate_config
+from svolsdf.errors import InputError
+
+__all__ = ["load_config", "save_config", "config_from_dict", "apply_overrides", "parse_set",
+           "option_docs", "config_yaml"]
+
+
+def _from_dict(cls, data: dict, where: str, prefix: str = ""):
+    obj = cls()
+    names = {f.name: f for f in fields(cls)}
+    for k, v in data.items():
+        if k not in names:
+            raise InputError(f"{where}: unknown key {prefix + str(k)!r} (known in "
+                             f"{prefix.rstrip('.') or 'the top level'}: {', '.join(names)})")
+        cur = getattr(obj, k)
+        if dataclasses.is_dataclass(cur):
+            if not isinstance(v, dict):
+                raise InputError(f"{where}: {prefix}{k} = {_short(v)}: expected a mapping of "
+                                 f"{', '.join(f.name for f in fields(cur))}")
+            setattr(obj, k, _from_dict(type(cur), v, where, f"{prefix}{k}."))
+        else:
+            setattr(obj, k, v)
+    return obj
+
+
+def config_from_dict(data: dict, where: str = "config") -> Config:
+    """A validated `Config` from a nested dict: the keys it gives over its preset's values.
+
+    Raises:
+        InputError: an unknown key or a value `validate_config` rejects, named with ``where``.
+    """
+    name = data.get("preset", "fast")
+    if not isinstance(name, str) or name not in PRESETS:
+        raise InputError(f"{where}: preset = {_short(name)}: expected one of "
+                         f"{', '.join(repr(p) for p in PRESETS)}")
+    merged = _merge(asdict(preset(name)), data)
+    return validate_config(_from_dict(Config, merged, where), where)
+
+
+def _merge(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(path: str | Path) -> Config:
+    """Read a YAML config (as written by `save_config`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise InputError(f"{path}: not valid YAML ({e.__class__.__name__})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read the config file ({e})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a mapping at the top level")
+    return config_from_dict(data, where=str(path))
+
+
+def save_config(cfg: Config, path: str | Path) -> None:
+    """Write ``cfg`` as YAML atomically."""
+
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
+    os.replace(tmp, path)
+
+
+def _known_keys(cfg: Config) -> list[str]:
+    """Every dotted option key of ``cfg`` (``train.steps``, ``device``, ...)."""
+    out = []
+    for f in fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            out += [f"{f.name}.{g.name}" for g in fields(v)]
+        else:
+            out.append(f.name)
+    return out
+
+
+def _unknown_key(cfg: Config, key: str, label: str | None = None) -> InputError:
+    near = difflib.get_close_matches(key, _known_keys(cfg), n=3, cutoff=0.6)
+    hint = (f"; did you mean {' or '.join(near)}?" if near
+            else "; `svolsdf config` lists every option")
+    return InputError(f"{label + ': ' if label else ''}unknown option {key!r}{hint}")
+
+
+def apply_overrides(cfg: Config, overrides: dict[str, Any],
+                    labels: Mapping[str, str] | None = None, skip_none: bool = True) -> Config:
+    """Set dotted keys (``{"train.steps": 100}``), then validate.
+
+    Args:
+        labels: dotted key -> the option that gave it, for the messages of `validate_config`.
+        skip_none: None values mean "not given" and are skipped (command-line flags); False sets
+            them (``--set mvs.weights=null``).
+
+    Raises:
+        InputError: an unknown key (with the nearest known ones), or a value `validate_config`
+            rejects.
+    """
+    labels = labels or {}
+    for key, value in overrides.items():
+        if value is None and skip_none:
+            continue
+        obj = cfg
+        parts = key.split(".")
+        for p in parts[:-1]:
+            obj = getattr(obj, p, None)
+            if not dataclasses.is_dataclass(obj):
+                raise _unknown_key(cfg, key, labels.get(key))
+        if dataclasses.is_dataclass(getattr(obj, parts[-1], None)) or \
+                parts[-1] not in {f.name for f in fields(obj)}:
+            raise _unknown_key(cfg, key, labels.get(key))
+        setattr(obj, parts[-1], value)
+    given = {k: v for k, v in labels.items() if k in overrides
+             and (overrides[k] is not None or not skip_none)}
+    return validate_config(cfg, labels=given)
+
+
+def parse_set(items: list[str] | None) -> dict[str, Any]:
+    """``["train.steps=200", "output.mesh_method=poisson"]`` -> dotted key -> value.
+
+    Values are read as YAML (``200`` an int, ``null`` None, ``[25, 22, 28]`` a list, ``true`` a
+    bool, anything else a string); `apply_overrides` then checks keys and values.
+
+    Raises:
+        InputError: an item without ``=`` or with an empty key, naming it.
+    """
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, eq, text = str(item).partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise InputError(f"--set {item!r}: expected section.option=value, e.g. "
+                             "--set train.steps=200")
+        try:
+            value = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError:
+            value = text
+        out[key] = value
+    return out
+
+
+def option_docs() -> dict[str, str]:
+    """Dotted option key -> its docstring (the string under each field in
+    `svolsdf.config.schema`), one paragraph with single spaces."""
+    import ast
+    import inspect
+
+    from svolsdf.config import schema
+
+    tree = ast.parse(inspect.getsource(schema))
+    by_class: dict[str, dict[str, str]] = {}
+    for node in tree.body:
+        if not isinstance(node, ast.ClassDef):
+            continue
+        docs = by_class.setdefault(node.name, {})
+        for a, b in zip(node.body, node.body[1:], strict=False):
+            if isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name) and \
+                    isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant) and \
+                    isinstance(b.value.value, str):
+                docs[a.target.id] = " ".join(b.value.value.split())
+    out = {}
+    for f in fields(Config):
+        out[f.name] = by_class["Config"].get(f.name, "")
+        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(sub):
+            for g in fields(sub):
+                out[f"{f.name}.{g.name}"] = by_class.get(type(sub).__name__, {}).get(g.name, "")
+    return out
+
+
+def config_yaml(cfg: Config, width: int = 96) -> str:
+    """``cfg`` as YAML (as `save_config` writes it) with each option's docstring as a comment
+    above it; loading the text gives ``cfg`` back."""
+    docs = option_docs()
+    lines: list[str] = []
+
+    def comment(text: str, indent: str) -> None:
+        for ln in textwrap.wrap(text, width - len(indent) - 2) if text else []:
+            lines.append(f"{indent}# {ln}")
+
+    for key, value in asdict(cfg).items():
+        comment(docs.get(key, ""), "")
+        if isinstance(value, dict):
+            lines.append(f"{key}:")
+            for k, v in value.items():
+                comment(docs.get(f"{key}.{k}", ""), "  ")
+                lines.append("  " + _yaml_item(k, v))
+        else:
+            lines.append(_yaml_item(key, value))
+    return "\n".join(lines) + "\n"
+
+
+def _yaml_item(key: str, value: Any) -> str:
+    text = yaml.safe_dump({key: value}, default_flow_style=True, sort_keys=False, width=10**6)
+    return text.strip().removeprefix("{").removesuffix("}")

@@ -1,0 +1,46 @@
+"""Named presets: each states only what it changes from the dataclass defaults. Why each value
+was chosen, with the measurements: docs/presets.md."""
+
+from __future__ import annotations
+
+from svolsdf.config.schema import Config, FieldConfig, MVSConfig, OutputConfig, TrainConfig
+from svolsdf.errors import InputError
+
+__all__ = ["PRESETS", "preset"]
+
+
+def _paper() -> Config:
+    c = Config(preset="paper")
+    c.field = FieldConfig(kind="mlp")
+    c.train = TrainConfig(steps=100_000, sampler="error_bounded", lr=5e-4, checkpoint_every=5000)
+    c.mvs = MVSConfig(backbone="planesweep", width="paper")
+    c.output = OutputConfig(mesh_resolution=512)
+    return c
+
+
+def _fast() -> Config:
+    # minutes on two CPU cores for three 768x576 views; docs/presets.md gives each value's evidence
+    c = Config(preset="fast")
+    c.train.beta_start = 0.05  # beta annealed, not learned: a short run cannot wait for it
+    c.train.anneal_rgb = 50  # the paper's 200 warm-up steps would be 20 % of this run
+    c.field.init_unverified_weight = 0.05  # one-view stage-1 depth votes in the initial surface
+    c.output.fusion_surface = 5e-4  # the optimized surface counts as one consistent view
+    c.output.fusion_guided_dilation = 4  # field-guided depth fused within 4 px of the masks
+    c.output.fusion_unguided_dilation = 4
+    c.output.fusion_unguided = True  # the unguided stages 2-3 as a second depth hypothesis
+    c.output.guide_mask_dilation = 32  # the guide rendered only near the object masks
+    c.output.mesh_cull_unseen = True  # the mesh keeps the surface the input views see
+    c.output.mesh_fit_points = 300  # the mesh surface refined to pass through the fused points
+    return c
+
+
+PRESETS = {"fast": _fast, "paper": _paper}
+
+
+def preset(name: str) -> Config:
+    """A fresh `Config` of the named preset."""
+    if not isinstance(name, str) or name not in PRESETS:
+        raise InputError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
+    return PRESETS[name]()
+
+

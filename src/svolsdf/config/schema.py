@@ -1,0 +1,320 @@
+"""The run configuration: one dataclass per component, a docstring under every option.
+
+`Config` describes a whole run; `svolsdf config` prints it as YAML with these docstrings as
+comments, and ``--set section.option=value`` sets any option. Limits beside the types are checked
+by `svolsdf.config.validate.validate_config`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import Any, Literal
+
+__all__ = ["Config", "SceneConfig", "MVSConfig", "FieldConfig", "TrainConfig", "OutputConfig",
+           "DTU_TRAIN_IDS", "DTU_EXCLUDED_IDS"]
+
+
+def _limited(default: Any = dataclasses.MISSING, *, factory: Any = dataclasses.MISSING,
+             **limits: Any) -> Any:
+    """A dataclass field with limits that `validate_config` checks beside its type.
+
+    Limits: ``min`` / ``max`` (inclusive) and ``gt`` (exclusive) bound a number or every item of
+    a list; ``len`` / ``min_len`` the length of a list; ``unique`` forbids repeated items;
+    ``choices`` is a function returning the allowed strings (for registries that can grow, where
+    a ``Literal`` would be too narrow).
+    """
+    return dc_field(default=default, default_factory=factory, metadata={"limits": limits})
+
+
+def _backbone_names() -> list[str]:
+    from svolsdf.mvs.backbone import available_backbones
+
+    return available_backbones()
+
+
+#: DTU protocol input views (METHOD.md 1.4): the first num_view of this list.
+DTU_TRAIN_IDS = [25, 22, 28, 40, 44, 48, 0, 8, 13]
+#: DTU views never used for testing (METHOD.md 1.4).
+DTU_EXCLUDED_IDS = [3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 36, 37, 38, 39]
+
+
+@dataclass
+class SceneConfig:
+    path: str = ""
+    """Scene folder (any format `load_scene` reads)."""
+    views: list[int] | None = _limited(None, min_len=2, unique=True)
+    """Input view ids (at least two, each once); default: DTU's 25 22 28 on 49-view DTU scans,
+    else a central view and its two best source views."""
+    num_views: int = _limited(3, min=2)
+    """Number of input views when ``views`` is not given."""
+    view_selection: Literal["default", "auto"] = "default"
+    """How views are picked when ``views`` is not given: default (DTU's 25 22 28 on 49-view DTU
+    scans, else a central view and its best source views) or auto (``--views auto``: views with
+    good overlap and baselines on any calibrated scene, `svolsdf.pipeline.auto_views`)."""
+    image_size: list[int] | None = _limited(None, len=2, min=8)
+    """Working size [W, H] for the field; default: 768 wide (4:3 -> 768x576), never upsampled."""
+    lighting: int | Literal["max"] = _limited(3, min=0, max=6)
+    """DTU raw layout only: the lighting index 0..6 of the rectified images, or max."""
+
+
+@dataclass
+class MVSConfig:
+    backbone: str = _limited("planesweep", choices=_backbone_names)
+    """planesweep (training-free, default) | casmvsnet (needs --weights) | patchmatchnet."""
+    weights: str | None = None
+    """Weights file for learned backbones."""
+    ndepths: list[int] = _limited(factory=lambda: [192, 32, 8], len=3, min=2)
+    """Hypotheses per cascade stage (METHOD.md 0)."""
+    width: Literal["paper", "released"] = "paper"
+    """Finer-stage search width: paper (half the default CasMVSNet width) | released
+    (METHOD.md 2.5)."""
+    inverse_depth: bool = False
+    """Stage-1 planes uniform in inverse depth (unbounded scenes; METHOD.md 2.5, 9.1)."""
+    max_sources: int = _limited(4, min=0)
+    """Source views per reference view in MVS, the best by the scene's pair score (METHOD.md 1.4:
+    the released code feeds at most 5 views, the reference and 4 sources); 0 = every other input
+    view. Three inputs use both others either way; with more inputs the cap keeps the MVS time
+    linear in the number of views (`svolsdf.mvs.backbone.select_sources`)."""
+    scale: float | None = _limited(None, gt=0)
+    """The cascade runs at ``scale`` x the working size (stage 3 at scale x; images upsampled
+    bicubically, as the released code's x2_mvsres, METHOD.md 9.2.2), the field at the working
+    size. planesweep: any scale > 0; casmvsnet: 1 or 2 (its x2_mvsres); the patchmatchnet
+    adapter runs at the working size. None = the backbone's own default."""
+    native_images: bool = False
+    """A cascade larger than the working size reads its images from the files when they are
+    larger (`Scene.images_at`; a 1600x1200 photo gives stage 3 its own detail). false: the
+    working-size images upsampled, as the released code (METHOD.md 9.2.2) and the default."""
+    guide_network: bool = True
+    """Backbones that can start from a depth map (patchmatchnet): rerun the network from the
+    field's guide depth at the guided stage 2, so that the surface guides the network itself, as
+    it replaces CasMVSNet's stage-1 depth (`svolsdf.mvs.adapters`). false: the network runs once
+    per view and the guide only centres the hypotheses. Other backbones ignore it."""
+
+
+@dataclass
+class FieldConfig:
+    kind: Literal["grid", "mlp"] = "grid"
+    """grid (the fast preset's multi-resolution grid field) | mlp (the paper's VolSDF 8x256 MLP)."""
+    mlp_depth: int = _limited(8, min=1)
+    """mlp: hidden layers of the SDF MLP (METHOD.md 5.2)."""
+    mlp_width: int = _limited(256, min=1)
+    """mlp: hidden width of the SDF and colour MLPs."""
+    background: bool = False
+    """Add the NeRF++ inverted-sphere background model (unbounded scenes, METHOD.md 5.5): the
+    field's sphere clamp is off and rays end at the bounding sphere, beyond which the
+    background MLP (field/background.py) renders."""
+    grid_resolution: int = _limited(128, min=4)
+    """grid: final resolution of the dense SDF grid."""
+    grid_start_resolution: int = _limited(64, min=4)
+    """grid: resolution at the start (coarse to fine)."""
+    init: Literal["mvs", "sphere"] = "mvs"
+    """grid: initial surface. mvs: signed distance of the fused stage-1 MVS depth (fast preset,
+    svolsdf mode; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2)."""
+    sphere_radius: float = _limited(0.3, min=0.01)
+    """grid started from a sphere (volsdf mode, or init = sphere): radius of VolSDF's initial
+    sphere |x| - r (METHOD.md 5.2), unit frame, centred at the origin, in a grid over the box of
+    the bounding sphere [-1, 1]^3 (the unit frame's region of interest): only the cameras and the
+    sphere, nothing from MVS. Smaller than VolSDF's 0.6 so that the surface grows outward to the
+    object instead of carving a sphere that hides it."""
+    sphere_start_resolution: int = _limited(16, min=4)
+    """grid started from a sphere: SDF grid resolution at the start; it doubles at evenly spaced
+    steps until ``grid_resolution`` by 3/4 of the steps (coarse to fine: a coarse grid moves the
+    surface as a whole; a fine one from the start paints the photos on the sphere)."""
+    init_unverified_weight: float = _limited(0.0, min=0)
+    """grid, init = mvs: vote weight (times the MVS confidence) of the stage-1 depths that no
+    other view confirms, in the initial surface (field/init.py); only inside the object masks,
+    so scenes without masks keep the 0 rule. 0 = they do not vote: a region only one view sees
+    then starts at the hull the other views' free space leaves."""
+
+
+@dataclass
+class TrainConfig:
+    mode: Literal["svolsdf", "volsdf", "mvs-only"] = "svolsdf"
+    """svolsdf (MVS prior + losses) | volsdf (the same model without the prior) | mvs-only."""
+    ablation: Literal["soft-consistency-only", "mse", "no-prob-volume", "ce"] | None = None
+    """None | soft-consistency-only | mse | no-prob-volume | ce (paper ablations)."""
+    steps: int = _limited(1000, min=0)
+    """Optimization steps (each draws ``rays`` rays from one input view)."""
+    rays: int = _limited(512, min=1)
+    """Rays per step, from one random input view (METHOD.md 4.6)."""
+    object_ray_fraction: float = _limited(0.0, min=0, max=1)
+    """Share of each step's rays drawn inside the view's object mask (dilated by
+    ``object_ray_dilation`` px); the rest are uniform over the image, as released (0 = all
+    uniform). Scenes without masks ignore it. No preset sets it."""
+    object_ray_dilation: int = _limited(12, min=0)
+    """Dilation in pixels (working size) of the masks for ``object_ray_fraction``."""
+    lr: float = _limited(5e-4, min=0)
+    """Adam learning rate for networks (constant, METHOD.md 4.6)."""
+    lr_grid: float = _limited(1e-2, min=0)
+    """grid field: learning rate of the feature grids."""
+    lr_sdf: float = _limited(3e-4, min=0)
+    """grid field: learning rate of the SDF grid when it starts from the MVS surface (per node:
+    keep it well below a cell size, or Adam's normalized steps roughen the surface)."""
+    lr_sdf_sphere: float = _limited(5e-3, min=0)
+    """grid field: learning rate of the SDF grid when it starts from a sphere (volsdf mode,
+    field.init = sphere): the surface has to travel, not just be refined."""
+    grid_eikonal_weight: float = _limited(0.1, min=0)
+    """grid field started from a sphere: weight of an eikonal term over every cell of the SDF
+    grid (finite differences, `GridSDFField.grid_eikonal_loss`), besides METHOD.md 4.5's term at
+    sampled points, which reaches few of the nodes a travelling surface passes. Not used when
+    the grid starts from the MVS surface."""
+    grad_clip: float = _limited(1.0, min=0)
+    """Global-norm gradient clipping (0 = off)."""
+    eikonal_weight: float = _limited(0.1, min=0)
+    """Weight of the eikonal loss |grad f| = 1 at sampled points (METHOD.md 4.5)."""
+    rgb_weight: float = _limited(1.0, min=0)
+    """Weight of the L1 colour loss of rendered against input pixels (METHOD.md 4.1)."""
+    mvs_weight: float = _limited(1.0, min=0)
+    """Weight of the MVS prior: the GCE loss between the rendering weights and the probability
+    volume P' of the rays it supervises (METHOD.md 4.2)."""
+    sparse_weight: float = _limited(1.0, min=0)
+    """Weight of the sparsity loss on the rays P' does not supervise, during the warm-up
+    (METHOD.md 4.3)."""
+    smooth_weight: float = _limited(0.0, min=0)
+    """grid field: weight of the grid smoothness regularizer (not in the paper)."""
+    gce_q: float = _limited(0.5, min=0, max=1)
+    """GCE exponent q (METHOD.md 4.2); 0 gives cross-entropy."""
+    gce_form: Literal["paper", "released"] = "paper"
+    """paper: P'(1 - w^q)/q | released: -P' sg(w)^q log w (same gradient; METHOD.md 9.2.4)."""
+    sparse_norm: Literal["unsupervised", "all"] = "unsupervised"
+    """unsupervised: divide by |Q| (paper) | all: divide by all rays (released; METHOD.md 9.2.5)."""
+    sparse_decay: bool = False
+    """Released code's linear decay of the sparsity weight over the warm-up (METHOD.md 4.3)."""
+    anneal_rgb: int = _limited(200, min=0)
+    """Warm-up steps with the Gaussian-smoothed RGB target and the sparsity loss (METHOD.md 4.4)."""
+    warmup_mask_supervised: bool = False
+    """Released code: no RGB loss on MVS-supervised rays during the warm-up (METHOD.md 9.2.6)."""
+    sampler: Literal["mvs", "error_bounded"] = "mvs"
+    """mvs: samples where P' and the current surface are (fast) | error_bounded (METHOD.md 5.4)."""
+    samples_uniform: int = _limited(32, min=1)
+    """mvs sampler: stratified samples along the ray."""
+    samples_fine: int = _limited(48, min=0)
+    """mvs sampler: importance samples from P' and the current weights."""
+    beta_min: float = _limited(0.0, min=0)
+    """> 0: replaces the Laplace density's floor beta_min (METHOD.md 5.4: 1e-4); 0 keeps it."""
+    beta_start: float = _limited(0.0, min=0)
+    """> 0: beta is not learned but annealed log-linearly from beta_start to beta_end over the
+    steps (unit-frame units; fast preset: a short run cannot wait for the learned beta to
+    sharpen). 0: learnable beta (METHOD.md 5.4, the paper)."""
+    beta_end: float = _limited(0.0025, gt=0)
+    """Final beta of the anneal (unit frame; ~0.5 mm on DTU-scale scenes)."""
+    checkpoint_every: int = _limited(100, min=0)
+    """Save a checkpoint every N steps (resume after a kill); 0 = never."""
+    seed: int = _limited(0, min=0)
+    """Random seed."""
+
+
+@dataclass
+class OutputConfig:
+    mesh_resolution: int = _limited(256, min=8)
+    """Marching-cubes grid resolution in the unit frame."""
+    mesh_format: Literal["ply", "obj"] = "ply"
+    """ply | obj."""
+    mesh_cull_unseen: bool = False
+    """Mesh: also remove the faces no input view sees, i.e. whose centroid lies more than
+    ``mesh_cull_tol`` behind the field's rendered depth in every view that contains it
+    (`svolsdf.fusion.mesh.cull_unseen`). Off as released (mask culling only, METHOD.md 8.3):
+    the interior of a sparse-view reconstruction is unconstrained and may hold cavities."""
+    mesh_cull_tol: float = _limited(0.01, min=0)
+    """Mesh: relative depth slack of ``mesh_cull_unseen``."""
+    mesh_watertight: bool = False
+    """Mesh: keep the whole closed zero level (its largest connected part) instead of the parts
+    the input views judge: no frustum, mask or visibility culling, so the mesh has no holes
+    (for printing or simulation). Parts no view sees are the field's guess, so it scores worse
+    against ground truth than the culled mesh."""
+    fusion_dist: float = _limited(1.0, min=0)
+    """Fusion: reprojection distance threshold in pixels (METHOD.md 6.3)."""
+    fusion_rel: float = _limited(0.01, min=0)
+    """Fusion: relative depth difference threshold (METHOD.md 6.3)."""
+    fusion_views: int = _limited(1, min=0)
+    """Fusion: minimum number of consistent source views (METHOD.md 6.3)."""
+    fusion_conf: float = _limited(0.0, min=0, max=1)
+    """Fusion: photometric confidence threshold (0 = off, as released; METHOD.md 9.2.9)."""
+    fusion_surface: float = _limited(0.0, min=0)
+    """Fusion: a depth within this relative difference of the optimized surface's rendered depth
+    (the guide) counts as one consistent source (`FusionConfig.surface_rel_thresh`; 0 = off, as
+    released). Not used without a field (mvs-only)."""
+    fusion_guided_dilation: int | None = _limited(None, min=0)
+    """Fusion: object-mask dilation, in pixels, for the field-guided depth maps (svolsdf mode);
+    None = the released 12 px for every depth map (METHOD.md 6.3). The unguided set
+    (``fusion_unguided``) takes ``fusion_unguided_dilation``. Near the silhouette the guided
+    stages 2-3 inherit the field's errors (a surface fattened into the background), and because
+    those errors form one 3D surface the multi-view check passes them
+    (`FusionConfig.primary_mask_dilation`)."""
+    fusion_unguided_dilation: int | None = _limited(None, min=0)
+    """Fusion: object-mask dilation, in pixels, for the unguided set of ``fusion_unguided``;
+    None = the released 12 px (`FusionConfig.alt_mask_dilation`)."""
+    fusion_unguided: bool = False
+    """Fusion: also run MVS stages 2-3 centred on the stage-1 depth, as the backbone alone does,
+    and give every view that unguided depth as a second hypothesis: each hypothesis is a
+    reference in turn, and a source view is consistent when either of its hypotheses agrees
+    (`fuse_depth_maps` ``alt_depths``). Where the field is wrong, its guide centres stages 2-3
+    away from the surface and their narrow search cannot find it; the unguided pass still can.
+    An extension: neither the paper nor the released code has it (svolsdf mode only).
+    OUT/unguided/{depth,confidence}/<view>.npy."""
+    fusion_network: str | None = _limited(None, choices=_backbone_names)
+    """Fusion: a learned backbone that can start from a depth map (patchmatchnet, with
+    ``fusion_network_weights``), started from the field's guide depth in every input view; its
+    depth joins fusion as a further hypothesis of each view, like ``fusion_unguided``'s (svolsdf
+    mode only; OUT/network/{depth,confidence}/<view>.npy): a second matcher adds multi-view
+    evidence where the main backbone fails. None = off (the paper; no weights ship with this
+    package)."""
+    fusion_network_weights: str | None = None
+    """Weights file of ``fusion_network``."""
+    use_masks: bool = True
+    """Apply (dilated) object masks when the scene has them (METHOD.md 6.3)."""
+    guide_mask_dilation: int | None = _limited(None, min=0)
+    """Render the guide depth (METHOD.md 6.1) only inside the object masks dilated by this many
+    pixels; the other pixels count as rendered with no surface (weight 0, so
+    ``low_weight_rule`` applies). None = every pixel (released). Scenes without masks render
+    every pixel."""
+    low_weight_rule: Literal["max", "mvs"] = "max"
+    """Rendered-depth pixels with weight < 0.2: max (the map's maximum depth, released) |
+    mvs (keep the stage-1 MVS depth)."""
+    mesh_fit_points: int = _limited(0, min=0)
+    """Mesh: before marching cubes, refine the SDF grid for this many steps so that its zero
+    level passes through the fused points (`svolsdf.field.fit`; svolsdf mode with the grid
+    field; 0 = off, the paper: the mesh is the optimized field's zero level). The finer MVS
+    stages place depth more precisely than the surface that guided them, so the fused points
+    are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
+    mesh_method: Literal["field", "poisson"] = "field"
+    """Mesh source: field (the optimized field's zero level by marching cubes, the paper) |
+    poisson (the screened Poisson surface of OUT/points.ply, trimmed where the points are
+    sparse: `svolsdf.fusion.poisson`, COLMAP's mesher through pycolmap). The fused points come
+    from the finer MVS stages and are more accurate than the field; poisson brings the mesh to
+    them. Culling (frusta, masks, ``mesh_cull_unseen`` by the mesh's own depth) is the same;
+    vertex colours come from the points."""
+    poisson_depth: int = _limited(10, min=5, max=14)
+    """Mesh (poisson): octree depth; the finest cell is the points' box / 2^depth."""
+    poisson_trim: float = _limited(5.0, min=0, max=14)
+    """Mesh (poisson): remove the surface whose sample density, in octree levels, is below
+    this (0 = keep the closed surface)."""
+    finer_stage_optimization: bool = False
+    """Paper option (METHOD.md 9.2.13; the released code forbids it): after stage 2, optimize
+    the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
+    its depth again and centre stage 3 on it (svolsdf mode; Pipeline._finer_stage_cascade)."""
+
+
+@dataclass
+class Config:
+    preset: Literal["fast", "paper"] = "fast"
+    """fast (default; minutes on a CPU) | paper (METHOD.md constants; a GPU)."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """auto | cpu | cuda."""
+    threads: int = _limited(0, min=0)
+    """torch intra-op threads; 0 = the cores this process may run on (its CPU affinity), unless
+    OMP_NUM_THREADS is set, which then decides (`svolsdf.pipeline.set_threads`)."""
+    scene: SceneConfig = dc_field(default_factory=SceneConfig)
+    """The scene: its folder, the input views and the working size."""
+    mvs: MVSConfig = dc_field(default_factory=MVSConfig)
+    """The MVS cascade: backbone, hypotheses, sources, scale."""
+    field: FieldConfig = dc_field(default_factory=FieldConfig)
+    """The neural surface (SDF and colour) and its initialisation."""
+    train: TrainConfig = dc_field(default_factory=TrainConfig)
+    """The optimization: mode, losses, sampler, schedule."""
+    output: OutputConfig = dc_field(default_factory=OutputConfig)
+    """Fusion of the final depth into points.ply, and the mesh."""
+
+

@@ -1,0 +1,199 @@
+"""Validation of a `Config` against its annotations, limits and enumerations: one place, run
+when YAML is read, when options are applied and when a pipeline is built."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import os
+import types
+from collections.abc import Mapping
+from dataclasses import fields
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+
+from svolsdf.config.schema import Config
+from svolsdf.errors import InputError
+
+__all__ = ["validate_config"]
+
+class _Rejected(Exception):
+    """A value does not fit its field; ``args[0]`` says what would. ``near``: the value has the
+    right type but is out of range (a union then reports this member alone)."""
+
+    def __init__(self, wanted: str, near: bool = False):
+        super().__init__(wanted)
+        self.near = near
+
+
+def _range_text(lim: dict) -> str:
+    lo, hi, gt = lim.get("min"), lim.get("max"), lim.get("gt")
+    if lo is not None and hi is not None:
+        return f" in [{lo}, {hi}]"
+    if gt is not None:
+        return f" > {gt}"
+    if lo is not None:
+        return f" >= {lo}"
+    if hi is not None:
+        return f" <= {hi}"
+    return ""
+
+
+def _check_range(x: float, lim: dict, what: str) -> None:
+    lo, hi, gt = lim.get("min"), lim.get("max"), lim.get("gt")
+    if (lo is not None and x < lo) or (hi is not None and x > hi) or (gt is not None and x <= gt):
+        raise _Rejected(what + _range_text(lim), near=True)
+
+
+def _check_value(value: Any, tp: Any, lim: dict) -> Any:
+    """``value`` checked against the annotation ``tp`` and the field's limits, normalized (an int
+    where a float is wanted becomes a float, a tuple a list, a path a string).
+
+    Raises:
+        _Rejected: with the description of what is allowed.
+    """
+    origin, args = get_origin(tp), get_args(tp)
+    if origin is Union or origin is types.UnionType:
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        wanted = []
+        for a in options:
+            try:
+                return _check_value(value, a, lim)
+            except _Rejected as e:
+                if e.near:
+                    raise
+                wanted.append(str(e))
+        if type(None) in args:
+            wanted.append("null")
+        raise _Rejected(" or ".join(wanted))
+    if origin is Literal:
+        if isinstance(value, str) and value in args:
+            return value
+        raise _Rejected(("one of " if len(args) > 1 else "") + ", ".join(repr(a) for a in args))
+    if tp is bool:
+        # YAML's quoted 'no' is a (truthy) string: only real booleans are accepted
+        if isinstance(value, bool):
+            return value
+        raise _Rejected("true or false")
+    if tp is int:
+        what = "an integer" + _range_text(lim)
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise _Rejected(what)
+        value = int(value)  # numpy integers too
+        _check_range(value, lim, "an integer")
+        return value
+    if tp is float:
+        what = "a number" + _range_text(lim)
+        if isinstance(value, str):
+            # YAML 1.1 (PyYAML) reads 1e-3 as a string: a plain number in a string is accepted
+            try:
+                value = float(value)
+            except ValueError:
+                raise _Rejected(what) from None
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise _Rejected(what)
+        value = float(value)
+        if not math.isfinite(value):
+            raise _Rejected("a finite number" + _range_text(lim))
+        _check_range(value, lim, "a number")
+        return value
+    if tp is str:
+        if isinstance(value, os.PathLike):
+            value = os.fspath(value)
+        choices = lim.get("choices")
+        if choices is not None:
+            allowed = list(choices())
+            if value not in allowed:
+                raise _Rejected("one of " + ", ".join(repr(a) for a in allowed))
+        if not isinstance(value, str):
+            raise _Rejected("a string")
+        return value
+    if origin in (list, tuple):
+        item_tp = args[0] if args else Any
+        n, n_min = lim.get("len"), lim.get("min_len")
+        item_lim = {k: v for k, v in lim.items() if k in ("min", "max", "gt")}
+        item_what = {int: "integers", float: "numbers", str: "strings"}.get(item_tp, "items")
+        what = (f"a list of {n} " if n is not None else
+                f"a list of at least {n_min} " if n_min is not None else "a list of ") + \
+            item_what + _range_text(item_lim)
+        if lim.get("unique"):
+            what += ", each once"
+        if not isinstance(value, (list, tuple)):
+            raise _Rejected(what)
+        if (n is not None and len(value) != n) or (n_min is not None and len(value) < n_min):
+            raise _Rejected(what, near=True)
+        try:
+            out = [_check_value(v, item_tp, item_lim) for v in value]
+        except _Rejected as e:
+            raise _Rejected(what, near=e.near) from None
+        if lim.get("unique"):
+            seen = set()
+            for v in out:
+                if v in seen:
+                    raise _Rejected(f"{what} ({v} is repeated)", near=True)
+                seen.add(v)
+        return out
+    if tp is Any:
+        return value
+    raise TypeError(f"validate_config: no rule for the annotation {tp!r}")  # a new field's
+
+
+def _short(value: Any) -> str:
+    r = repr(value)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _validate_dataclass(obj: Any, prefix: str, where: str | None,
+                        labels: Mapping[str, str]) -> None:
+    hints = get_type_hints(type(obj))
+    for f in fields(obj):
+        key = prefix + f.name
+        value = getattr(obj, f.name)
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            if not isinstance(value, tp):
+                raise InputError(f"{where + ': ' if where else ''}{key}: expected a mapping of "
+                                 f"{', '.join(g.name for g in fields(tp))}")
+            _validate_dataclass(value, key + ".", where, labels)
+            continue
+        try:
+            setattr(obj, f.name, _check_value(value, tp, f.metadata.get("limits", {})))
+        except _Rejected as e:
+            name = f"{labels[key]} ({key})" if key in labels else key
+            raise InputError(f"{where + ': ' if where else ''}{name} = {_short(value)}: "
+                             f"expected {e}") from None
+
+
+def validate_config(cfg: Config, where: str | None = None,
+                    labels: Mapping[str, str] | None = None) -> Config:
+    """Check every field of ``cfg`` against its type annotation and limits, in place.
+
+    The one check of a run's configuration, made when it is built (from YAML, from command-line
+    options or in code) and before any stage runs: types (a string where a number is wanted, a
+    quoted 'no' where a boolean is), enumerations (``Literal``), ranges and list lengths
+    (`_limited`), and the combinations of options that cannot run. Ints given for floats
+    become floats, tuples lists.
+
+    Args:
+        cfg: the configuration; normalized in place and returned.
+        where: what the values came from (a file name), to begin the message with.
+        labels: dotted key -> the option that set it (``{"train.steps": "--steps"}``).
+
+    Raises:
+        InputError: naming the dotted key (and its option), the value and what is allowed.
+    """
+    if not isinstance(cfg, Config):
+        raise InputError(f"{where or 'config'}: expected a Config, got {type(cfg).__name__}")
+    labels = labels or {}
+    _validate_dataclass(cfg, "", where, labels)
+    head = f"{where}: " if where else ""
+    if cfg.output.finer_stage_optimization and (cfg.train.mode != "svolsdf"
+                                                or cfg.train.ablation is not None):
+        raise InputError(f"{head}output.finer_stage_optimization needs train.mode svolsdf "
+                         "without train.ablation (it optimizes the field against the stage-2 "
+                         "volumes)")
+    return cfg
+
+
