@@ -235,7 +235,7 @@ def benchmark(
     """
     from svolsdf.evaluate.benchmark import BenchmarkConfig, run_benchmark
     from svolsdf.evaluate.executors import ExecutorConfig
-    from svolsdf.scene.synthetic import parse_size
+    from svolsdf.scene.size import parse_size
 
     sets = [_parse_views(t) for t in views.split(";")] if views is not None else [None]
     cfg = BenchmarkConfig(
@@ -259,16 +259,10 @@ def benchmark(
 
 # --------------------------------------------------------------------------- reconstruct / demo
 def _parse_size(text: str | None) -> list[int] | None:
-    """'768x576' -> [768, 576]."""
-    if text is None:
-        return None
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"--size: '{text}' is not WxH (e.g. 768x576)") from None
-    if w < 8 or h < 8:
-        raise InputError(f"--size: {w}x{h} is too small")
-    return [w, h]
+    """'768x576' -> [768, 576]; None stays None (`svolsdf.scene.size.parse_size`)."""
+    from svolsdf.scene.size import parse_size
+
+    return None if text is None else list(parse_size(text))
 
 
 def build_config(scene: Path | None, config: Path | None, preset_name: str | None,
@@ -561,7 +555,7 @@ def mvs(
         "--weights", help="Weights of casmvsnet (required) or patchmatchnet (default: "
                           "../shared/weights/patchmatchnet).")] = None,
     size: Annotated[str | None, typer.Option(
-        "--size", help="Working size WxH (default: the images' size, at most 768 wide).")
+        "--size", help="Working size WxH (default: as reconstruct, at most 768 wide).")
     ] = None,
     depth_range: Annotated[str | None, typer.Option(
         "--depth-range", help="NEAR,FAR z-depth in world units for every view (default: the "
@@ -576,7 +570,7 @@ def mvs(
     OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json.
     """
     from svolsdf.mvs.run import MVSJobConfig, run_mvs
-    from svolsdf.scene.synthetic import parse_size
+    from svolsdf.scene.size import parse_size
 
     rng = None
     if depth_range is not None:
@@ -613,7 +607,8 @@ def synth(
                                "cameras_sphere.npz, image/).")] = None,
 ) -> None:
     """Render a synthetic scene with exact ground truth (IDR layout, gt_depth/, gt_points.ply)."""
-    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene, parse_size
+    from svolsdf.scene.size import parse_size
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
     w, h = parse_size(size)
     cfg = SynthConfig(seed=seed, views=views, width=w, height=h, object=object_kind,

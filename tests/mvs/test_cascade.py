@@ -22,8 +22,9 @@ from svolsdf.mvs.cascade import (
 )
 from svolsdf.mvs.hypotheses import base_interval
 from svolsdf.mvs.planesweep import PlaneSweepBackbone
-from svolsdf.mvs.run import MVSJobConfig, run_mvs, working_size
+from svolsdf.mvs.run import MVSJobConfig, run_mvs
 from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.scene.size import working_size
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
 RANGE = (2.5, 6.0)
@@ -166,9 +167,11 @@ def test_run_mvs_outputs(tiny_scene, tmp_path):
 
 
 def test_run_mvs_size_and_bad_input(tiny_scene, tmp_path):
-    assert working_size((1600, 1200), None) == (768, 576)
-    assert working_size((640, 480), None) == (640, 480)
-    assert working_size((1600, 1200), (96, 72)) == (96, 72)
+    assert working_size(1600, 1200) == (768, 576)
+    assert working_size(640, 480) == (640, 480)
+    assert working_size(1600, 1200, (96, 72)) == (96, 72)
+    # one rule for every command: 700x500 works at 696x496 in mvs and reconstruct alike
+    assert working_size(700, 500) == (696, 496)
     s = run_mvs(MVSJobConfig(scene=tiny_scene, out=tmp_path / "o", views=[2, 0], size=(32, 24),
                              depth_range=(300.0, 900.0), fuse=False))
     assert s["size"] == [32, 24] and s["views"] == [2, 0] and "fusion" not in s

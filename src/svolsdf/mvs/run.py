@@ -33,13 +33,12 @@ import torch
 
 from svolsdf.errors import InputError
 from svolsdf.scene.scene import Scene
+from svolsdf.scene.size import working_size
 
 __all__ = ["MVSJobConfig", "run_mvs", "working_size", "mvs_depth_range"]
 
 log = logging.getLogger(__name__)
 
-#: the paper's working size (METHOD.md 1.3)
-DEFAULT_MAX_WIDTH = 768
 
 
 @dataclass
@@ -57,24 +56,14 @@ class MVSJobConfig:
     weights: Path | None = None
     """Weights file for casmvsnet / patchmatchnet (patchmatchnet defaults to ../shared)."""
     size: tuple[int, int] | None = None
-    """Working (W, H); None: the images' size, shrunk to 768 pixels wide if wider (METHOD.md
-    1.3)."""
+    """Working (W, H); None: `svolsdf.scene.size.working_size`, the rule of svolsdf reconstruct
+    (at most 768 wide, sides multiples of 8; METHOD.md 1.3)."""
     depth_range: tuple[float, float] | None = None
     """(near, far) z-depth in world units for every view; None: the scene's ranges."""
     fuse: bool = True
     """Write the fused MVS-only point cloud points.ply."""
     device: str = "cpu"
     """Torch device of the backbone, the scene tensors and the fusion."""
-
-
-def working_size(native: tuple[int, int], size: tuple[int, int] | None) -> tuple[int, int]:
-    """(W, H) to run at: ``size``, or ``native`` shrunk to 768 wide keeping its aspect."""
-    if size is not None:
-        return int(size[0]), int(size[1])
-    W, H = native
-    if W <= DEFAULT_MAX_WIDTH:
-        return W, H
-    return DEFAULT_MAX_WIDTH, max(8, round(H * DEFAULT_MAX_WIDTH / W))
 
 
 def mvs_depth_range(scene: Scene, depth_range: tuple[float, float] | None = None
@@ -118,8 +107,8 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     if len(probe) < 2:
         raise InputError(f"{cfg.scene}: MVS needs at least 2 views, got {len(probe)} "
                          f"({probe.view_ids})")
-    W, H = working_size(tuple(probe.extras.get("native_size", (probe.width, probe.height))),
-                        cfg.size)
+    W, H = working_size(*probe.extras.get("native_size", (probe.width, probe.height)),
+                        size=cfg.size)
     # weights errors before loading
     backbone = get_backbone(cfg.backbone, weights=cfg.weights, device=cfg.device)
     ensure_writable_folder(out)  # before the cascade's minutes
