@@ -19,27 +19,26 @@ not run finished jobs again, and an interrupted one resumes its pipeline's finis
 
 Results go to ``OUT/benchmark.md`` and ``OUT/benchmark.csv`` (rows: scenes, then the mean; per
 mode: accuracy, completeness, overall Chamfer, PSNR when any run has it, time), a bar chart of
-them to ``OUT/benchmark.png``, and every run's numbers to ``OUT/benchmark.json``. The files are
-rewritten after each job, so an interrupted benchmark keeps the finished rows. A job that fails
-is recorded (``status``, the error) and the benchmark goes on.
+them to ``OUT/benchmark.png`` (`svolsdf.evaluate.benchmark_tables`, re-exported here), and every
+run's numbers to ``OUT/benchmark.json``. The files are rewritten after each job, so an
+interrupted benchmark keeps the finished rows. A job that fails is recorded (``status``, the
+error) and the benchmark goes on.
 
 Time is the sum of the pipeline's stage times from the run's ``timing.json`` (so a resumed run
 still reports the compute its stages took), or the job's elapsed time without one.
 """
 from __future__ import annotations
 
-import csv
 import hashlib
-import io
 import json
 import logging
-import math
 import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from svolsdf.errors import InputError
+from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
 from svolsdf.evaluate.executors import ExecutorConfig
 
 __all__ = [
@@ -124,186 +123,6 @@ def _labels(scenes: list[Path]) -> list[str]:
             label, k = f"{name}-{k}", k + 1
         out.append(label)
     return out
-
-
-# --------------------------------------------------------------------------- tables
-def _fmt(x, digits: int) -> str:
-    return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
-
-
-def _mean(values: list) -> float | None:
-    vs = [float(v) for v in values if v is not None and math.isfinite(float(v))]
-    return sum(vs) / len(vs) if vs else None
-
-
-def _grid(rows: list[dict], modes: list[str] | None) -> tuple[list[str], list[str], dict]:
-    """Scenes (first-seen order), modes and {(scene, mode): row}."""
-    scenes: list[str] = []
-    seen_modes: list[str] = []
-    cell = {}
-    for r in rows:
-        if r["scene"] not in scenes:
-            scenes.append(r["scene"])
-        if r["mode"] not in seen_modes:
-            seen_modes.append(r["mode"])
-        cell[(r["scene"], r["mode"])] = r
-    return scenes, list(modes) if modes else seen_modes, cell
-
-
-def _columns(rows: list[dict]) -> list[tuple[str, str, int]]:
-    """(key, header, digits) per mode; PSNR only when some run has it."""
-    cols = [("accuracy", "Acc.", 2), ("completeness", "Comp.", 2), ("overall", "Chamfer", 2)]
-    if any(r.get("psnr") is not None for r in rows):
-        cols.append(("psnr", "PSNR", 2))
-    cols.append(("time_s", "time (s)", 0))
-    return cols
-
-
-def _table(rows: list[dict], modes: list[str] | None):
-    scenes, modes, cell = _grid(rows, modes)
-    cols = _columns(rows)
-    body = []
-    for s in scenes:
-        body.append((s, [[cell.get((s, m), {}).get(k) for k, _, _ in cols] for m in modes]))
-    means, partial = [], []
-    for j in range(len(modes)):
-        vals, part = [], []
-        for c in range(len(cols)):
-            col = [b[1][j][c] for b in body]
-            vals.append(_mean(col))
-            n = sum(v is not None and math.isfinite(float(v)) for v in col)
-            part.append(0 < n < len(col))
-        means.append(vals)
-        partial.append(part)
-    return scenes, modes, cols, body, means, partial
-
-
-def benchmark_markdown(rows: list[dict], modes: list[str] | None = None,
-                       title: str = "Benchmark", notes: list[str] | None = None) -> str:
-    """A Markdown table like the paper's Table 1 from per-run metrics dicts.
-
-    Args:
-        rows: one dict per run with ``scene``, ``mode`` and any of `METRIC_KEYS` (None or
-            missing: not computed), optionally ``status`` (anything but "ok" is listed below
-            the table) and ``protocol`` (how the Chamfer was computed).
-        modes: column order (default: modes in order of appearance).
-        title: the heading.
-        notes: extra lines under the table.
-
-    Returns:
-        The Markdown text: a table with one row per scene and a mean row (mean over the scenes
-        that have the value; marked * when some do not), per mode the accuracy, completeness and
-        overall Chamfer, PSNR when any run has it, and time; the lowest Chamfer of each row in
-        bold.
-    """
-    if not rows:
-        raise InputError("benchmark table: no runs to tabulate")
-    scenes, modes, cols, body, means, partial = _table(rows, modes)
-    head = ["scene"] + [f"{m} {h}" for m in modes for _, h, _ in cols]
-    out = [f"# {title}", "", "| " + " | ".join(head) + " |",
-           "|---|" + "---:|" * (len(head) - 1)]
-    ci = [k for k, _, _ in cols].index("overall")
-
-    def line(label, per_mode, marks=None):
-        best = [v[ci] for v in per_mode if v[ci] is not None and math.isfinite(v[ci])]
-        best = min(best) if len(best) > 1 else None
-        cells = []
-        for j, vals in enumerate(per_mode):
-            for c, (_, _, digits) in enumerate(cols):
-                t = _fmt(vals[c], digits)
-                if marks and marks[j][c] and t != "-":
-                    t += "*"
-                if c == ci and best is not None and vals[c] == best:
-                    t = f"**{t}**"
-                cells.append(t)
-        return "| " + " | ".join([label] + cells) + " |"
-
-    for s, per_mode in body:
-        out.append(line(s, per_mode))
-    out.append(line("**mean**", means, partial))
-    out.append("")
-    protocols = sorted({r.get("protocol") for r in rows if r.get("protocol")})
-    out.append("Chamfer: accuracy (prediction -> ground truth), completeness (ground truth -> "
-               "prediction) and their mean, of the fused point cloud, in the scene's world units "
-               f"(DTU: mm); protocol: {', '.join(protocols) if protocols else 'none'}. "
-               + ("PSNR on held-out views. " if "psnr" in [k for k, _, _ in cols] else "")
-               + "Time: the pipeline's stage times. "
-               "'-': not computed; '*': mean over fewer scenes than the table has.")
-    failed = [r for r in rows if r.get("status", "ok") != "ok"]
-    if failed:
-        out += ["", "Runs without results:", ""]
-        out += [f"- {r['scene']} / {r['mode']}: {r['status']}" for r in failed]
-    if notes:
-        out += [""] + list(notes)
-    return "\n".join(out) + "\n"
-
-
-def benchmark_csv(rows: list[dict], modes: list[str] | None = None) -> str:
-    """The same table as `benchmark_markdown` as CSV: a ``scene`` column, then
-    ``<mode>_<metric>`` columns, one line per scene and a last line ``mean``; empty cells for
-    values not computed; full precision."""
-    if not rows:
-        raise InputError("benchmark table: no runs to tabulate")
-    scenes, modes, cols, body, means, _ = _table(rows, modes)
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["scene"] + [f"{m}_{k}" for m in modes for k, _, _ in cols])
-    for label, per_mode in [*body, ("mean", means)]:
-        w.writerow([label] + ["" if v is None or not math.isfinite(v) else repr(float(v))
-                              for vals in per_mode for v in vals])
-    return buf.getvalue()
-
-
-def benchmark_plot(rows: list[dict], path: Path, modes: list[str] | None = None) -> Path:
-    """A bar chart of the table: overall Chamfer per scene and mode (and PSNR when any run has
-    it), the mean last; written to ``path`` (PNG).
-
-    Args:
-        rows: as `benchmark_markdown`'s.
-        path: the image file to write.
-        modes: bar order (default: modes in order of appearance).
-
-    Returns:
-        ``path``.
-    """
-    if not rows:
-        raise InputError("benchmark plot: no runs to plot")
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    scenes, modes, cols, body, means, _ = _table(rows, modes)
-    keys = [k for k, _, _ in cols]
-    panels = [("overall", "Chamfer (lower is better)")]
-    if "psnr" in keys:
-        panels.append(("psnr", "PSNR (dB, higher is better)"))
-    labels = scenes + ["mean"]
-    per = [b[1] for b in body] + [means]
-    fig, axes = plt.subplots(len(panels), 1, squeeze=False,
-                             figsize=(max(4.0, 0.9 * len(labels) * max(1, len(modes)) + 1.5),
-                                      2.8 * len(panels)))
-    width = 0.8 / max(1, len(modes))
-    for ax, (key, title) in zip(axes[:, 0], panels, strict=True):
-        c = keys.index(key)
-        for j, m in enumerate(modes):
-            vals = [v[j][c] for v in per]
-            # not computed: no bar (NaN), not a zero that would read as a perfect score
-            ys = [float(v) if v is not None else math.nan for v in vals]
-            xs = [i + (j - (len(modes) - 1) / 2) * width for i in range(len(labels))]
-            ax.bar(xs, ys, width, label=m)
-        ax.set_xticks(range(len(labels)), labels, rotation=30 if len(labels) > 6 else 0,
-                      ha="right" if len(labels) > 6 else "center")
-        ax.set_title(title, fontsize=10)
-        ax.grid(axis="y", alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
 
 
 # --------------------------------------------------------------------------- driver

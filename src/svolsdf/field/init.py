@@ -60,7 +60,7 @@ def consistent_depths(volumes: list[ProbabilityVolume], masks: Tensor | None = N
     Returns:
         depths: V tensors (H, W), 0 where rejected; weights: V tensors (H, W) confidence.
     """
-    from svolsdf.fusion.filter import check_geometric_consistency, dilate_mask
+    from svolsdf.geometry import check_geometric_consistency, dilate_mask
 
     depths, weights = [], []
     for i, v in enumerate(volumes):

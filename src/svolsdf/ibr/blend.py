@@ -5,7 +5,7 @@ source views with their images and rendered depths:
 
 1. Geometric consistency of the target depth against each source depth (METHOD.md 7 step 1, the
    METHOD.md 6.3 procedure at 2 px / 1 %), through
-   `svolsdf.fusion.filter.check_geometric_consistency`.
+   `svolsdf.geometry.reproject.check_geometric_consistency`.
 2. Warped colour c_j: each source image sampled where the target pixels project (step 2).
 3. View-direction cosine cos_j = <d_t, d_j> between the unit rays from the target and from
    source j to the target pixel's 3D point (step 3).
@@ -47,7 +47,7 @@ import torch.nn.functional as F
 from kornia.geometry.transform import pyrdown, pyrup
 from torch import Tensor
 
-from svolsdf.fusion.filter import check_geometric_consistency
+from svolsdf.geometry.reproject import check_geometric_consistency
 from svolsdf.scene.cameras import Cameras
 
 __all__ = [

@@ -1,0 +1,44 @@
+"""Dependencies point down the package table (ARCHITECTURE.md): the stages below fusion do not
+import it, and the shared geometry helpers import only the scene."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "svolsdf"
+
+# The `svolsdf mvs` command (backbone alone, then fusion) lives in mvs/ until commands/ exists
+# (docs/architecture-deltas.md, "Package layout, as built").
+KNOWN_UP_IMPORTS = {"mvs/run.py"}
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module name ``path`` imports, at any depth (lazy imports count too)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def _modules(package: str):
+    return sorted((SRC / package).rglob("*.py"))
+
+
+@pytest.mark.parametrize("package", ["geometry", "mvs", "prior", "field", "render", "ibr"])
+def test_stages_below_fusion_do_not_import_it(package):
+    bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules(package)
+           if p.relative_to(SRC).as_posix() not in KNOWN_UP_IMPORTS
+           for m in _imports(p) if m == "svolsdf.fusion" or m.startswith("svolsdf.fusion.")]
+    assert not bad, "import svolsdf.geometry instead: " + "; ".join(bad)
+
+
+def test_geometry_imports_only_the_scene():
+    bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules("geometry") for m in _imports(p)
+           if m.startswith("svolsdf.") and not m.startswith(("svolsdf.scene", "svolsdf.geometry"))]
+    assert not bad, "; ".join(bad)
