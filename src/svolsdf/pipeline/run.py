@@ -191,6 +191,10 @@ class Run:
         """The stage-1 volumes of the input views (None: not computed or not loaded)."""
         return self._volumes1
 
+    @volumes1.setter
+    def volumes1(self, volumes: list[ProbabilityVolume] | None) -> None:
+        self._volumes1 = volumes
+
     def regressed_volumes1(self) -> list[ProbabilityVolume] | None:
         """The stage-1 volumes with depth = sum_k P_k d_k, the regression of METHOD.md 2.4
         (`svolsdf.mvs.backbone.with_expected_depth`), computed once."""
@@ -222,6 +226,10 @@ class Run:
             raise InputError(f"{self.out}: no field loaded (Run.open(..., field=True))")
         return self._model
 
+    def set_model(self, model) -> None:
+        """Use ``model`` as the run's field (e.g. one trained outside the stages)."""
+        self._model = model
+
     def unit_near_far(self) -> torch.Tensor:
         """(V, 2) unit-frame z-depth range of the input views, padded by 10 %."""
         from svolsdf.pipeline.builders import unit_near_far
@@ -246,3 +254,12 @@ class Run:
         return render_field_views(self.model(), build_sampler(self.cfg, None, training=False),
                                   cameras_unit, near_far, chunk=chunk, keys=keys,
                                   pixels=pixels, device=self.device)
+
+    def guide_pixels(self) -> torch.Tensor | None:
+        """(V, H, W) bool: the pixels whose guide depth is rendered
+        (`svolsdf.render.views.guide_pixels` of ``output.guide_mask_dilation``), or None."""
+        from svolsdf.render.views import guide_pixels
+
+        scene = self.load()
+        masks = scene.masks if self.cfg.output.use_masks else None
+        return guide_pixels(masks, self.cfg.output.guide_mask_dilation)

@@ -150,6 +150,11 @@ class RunDir:
         """{view: folder/<view><suffix>}."""
         return {v: folder / f"{v}{suffix}" for v in views}
 
+    @staticmethod
+    def save_npy(path: Path, arr: np.ndarray) -> None:
+        """Write ``arr`` to ``path`` (.npy) atomically (`save_npy`)."""
+        save_npy(path, arr)
+
     def is_run(self) -> bool:
         """A finished reconstruct wrote config.yaml and views.json here."""
         return self.config.is_file() and self.views_file.is_file()

@@ -338,15 +338,6 @@ class Pipeline(Run):
         return guide_depths(r["depth"], r["opacity"], self.views, scene.normalization.scale,
                             self.cfg.output.low_weight_rule, volumes)
 
-    def guide_pixels(self) -> torch.Tensor | None:
-        """(V, H, W) bool: the pixels whose guide depth is rendered
-        (`svolsdf.render.views.guide_pixels` of ``output.guide_mask_dilation``), or None."""
-        from svolsdf.render.views import guide_pixels
-
-        scene = self.load()
-        masks = scene.masks if self.cfg.output.use_masks else None
-        return guide_pixels(masks, self.cfg.output.guide_mask_dilation)
-
     # ------------------------------------------------------------------ stages 2-3
     def stage_mvs23(self) -> dict[int, torch.Tensor]:
         """Final per-view depth: MVS stage 3 (guided by the field when there is one); for the
