@@ -162,6 +162,7 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     from svolsdf.config import preset
     from svolsdf.optimize.trainer import Trainer
     from svolsdf.pipeline import Pipeline
+    from svolsdf.pipeline.builders import build_sampler
     from svolsdf.prior.consistency import MVSPrior
 
     if out.exists():
@@ -173,14 +174,14 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     p = Pipeline(cfg, out, progress=False)
     p.out.mkdir(parents=True, exist_ok=True)
     p.load()
-    p.keys = p._keys()
+    p.keys = p.stage_keys()
     (p.out / "views.json").write_text(json.dumps({"inputs": list(p.views)}))
     p.stage_mvs1()
     model = p.build_model()
-    prior = MVSPrior(p._volumes1, p.load().normalization)
-    tr = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=p.make_sampler(prior))
+    prior = MVSPrior(p.volumes1, p.load().normalization)
+    tr = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=build_sampler(p.cfg, prior))
     # the mesh extraction's cost, measured on the untrained model, is left out of the budget
-    p._model = model
+    p.set_model(model)
     mesh_s, _ = _try_mesh(p)
     (p.out / "mesh.ply").unlink(missing_ok=True)
     field_budget = budget_s - (time.perf_counter() - t_start - mesh_s) - mesh_s
@@ -195,7 +196,7 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     field_s = time.perf_counter() - t0
     rate = steps / max(field_s, 1e-9)
     model.eval()
-    p._model = model
+    p.set_model(model)
     mesh_s, mesh_error = _try_mesh(p)
     wall = time.perf_counter() - t_start - mesh_s  # the first (calibration) extraction not counted
     scene_ = p.load()

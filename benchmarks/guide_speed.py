@@ -57,7 +57,7 @@ def main() -> None:
     for d in args.dilations:
         r = None if d == "none" else int(d)
         p.cfg = replace(base, output=replace(base.output, guide_mask_dilation=r))
-        variants[d] = p._guide_pixels()
+        variants[d] = p.guide_pixels()
     p.cfg = base
     times = {d: [] for d in variants}
     with torch.no_grad():

@@ -43,6 +43,7 @@ from svolsdf.config import load_config
 from svolsdf.field.init import init_grid_from_mvs
 from svolsdf.optimize.trainer import Trainer
 from svolsdf.pipeline import Pipeline
+from svolsdf.pipeline.builders import build_sampler, grid_schedule
 from svolsdf.prior.consistency import _MIN_Z, _Z_LIMIT, MVSPrior, _depth_coord, _project
 
 REPO = Path(__file__).resolve().parents[1]
@@ -96,11 +97,11 @@ def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
     cfg.train.steps = warm_steps  # the grid reaches its full resolution at half the steps
     p = Pipeline(cfg, run, progress=False)
     scene = p.load()
-    p.keys = p._keys()
-    p._volumes1 = p.stage_mvs1()
+    p.keys = p.stage_keys()
+    p.volumes1 = p.stage_mvs1()
     torch.manual_seed(0)
     model = p.build_model()
-    prior = MVSPrior(p._volumes1, scene.normalization, device=p.device)
+    prior = MVSPrior(p.volumes1, scene.normalization, device=p.device)
     init_grid_from_mvs(model, p.regressed_volumes1(), scene.normalization,
                        scene.masks if cfg.output.use_masks else None,
                        unverified_weight=cfg.field.init_unverified_weight)
@@ -108,8 +109,8 @@ def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
         model._features = types.MethodType(features_grid_sample, model)
     if "prior" in previous:
         prior.view_lookup = types.MethodType(view_lookup_one_batch, prior)
-    t = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=p.make_sampler(prior),
-                out_dir=None, device=p.device, grid_schedule=p._grid_schedule())
+    t = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=build_sampler(p.cfg, prior),
+                out_dir=None, device=p.device, grid_schedule=grid_schedule(p.cfg))
     if "clip" in previous:
         t._safe_clip = types.MethodType(safe_clip_previous, t)
     t.fit(progress=False)  # warm-up: grid growth done, optimizer state built

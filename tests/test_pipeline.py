@@ -17,6 +17,7 @@ from svolsdf.errors import InputError
 from svolsdf.evaluate.synthetic import observed_gt_points, synthetic_chamfer
 from svolsdf.io.ply import read_ply
 from svolsdf.pipeline import Pipeline, peak_rss_gb
+from svolsdf.pipeline.builders import backbone_kwargs, grid_schedule
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
 
@@ -161,15 +162,15 @@ def test_backbone_defaults_and_weights_enter_the_stage_keys(tiny_run, monkeypatc
     from svolsdf.mvs.backbone import backbone_signature
 
     _, _, p = tiny_run
-    before = p._keys()
-    assert p._keys() == before
+    before = p.stage_keys()
+    assert p.stage_keys() == before
 
     @dataclasses.dataclass
     class NewDefaults(planesweep.PlaneSweepConfig):
         sgm_p2: float = 9.0
 
     monkeypatch.setattr(planesweep.PlaneSweepBackbone, "config_class", NewDefaults)
-    after = p._keys()
+    after = p.stage_keys()
     assert all(after[k] != before[k] for k in before), (before, after)
     sig = backbone_signature("planesweep", sgm_p2=1.0)
     assert sig["config"]["sgm_p2"] == 1.0
@@ -191,18 +192,18 @@ def test_guide_network_enters_only_the_guided_stages_key(tiny_run, tmp_path):
 
     _, _, p = tiny_run
     base = p.cfg  # the fixture is shared: put its config back
-    before = p._keys()
+    before = p.stage_keys()
     try:
         p.cfg = replace(base, mvs=replace(base.mvs, guide_network=False))
-        assert p._keys() == before  # the plane sweep cannot start from a depth
+        assert p.stage_keys() == before  # the plane sweep cannot start from a depth
         w = tmp_path / "w.pt"
         w.write_bytes(b"1")
         pm = {}
         for g in (True, False):
             p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet",
                                               weights=str(w), guide_network=g))
-            assert p._backbone_kwargs()["guide_init"] is g
-            pm[g] = p._keys()
+            assert backbone_kwargs(p.cfg)["guide_init"] is g
+            pm[g] = p.stage_keys()
     finally:
         p.cfg = base
     changed = {k for k in pm[True] if pm[True][k] != pm[False][k]}
@@ -216,22 +217,22 @@ def test_mvs_scale_reaches_the_backbone_and_its_keys(tiny_run, tmp_path):
 
     _, _, p = tiny_run
     base = p.cfg
-    before = p._keys()
+    before = p.stage_keys()
     try:
         p.cfg = replace(base, mvs=replace(base.mvs, scale=1.5))
-        assert p._backbone_kwargs()["scale"] == 1.5
+        assert backbone_kwargs(p.cfg)["scale"] == 1.5
         assert p.backbone().cfg.scale == 1.5
-        after = p._keys()
+        after = p.stage_keys()
         assert all(after[k] != before[k] for k in before)
         for s, x2 in ((1.0, False), (2.0, True)):
             p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", scale=s))
-            assert p._backbone_kwargs()["x2_mvsres"] is x2
+            assert backbone_kwargs(p.cfg)["x2_mvsres"] is x2
         p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", scale=1.5))
         with pytest.raises(InputError, match="1 or 2"):
-            p._backbone_kwargs()
+            backbone_kwargs(p.cfg)
         p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet", scale=2.0))
         with pytest.raises(InputError, match="mvs.scale"):
-            p._backbone_kwargs()
+            backbone_kwargs(p.cfg)
     finally:
         p.cfg = base
 
@@ -247,15 +248,15 @@ def test_mvs_native_images_reaches_the_backbone_and_its_keys(tiny_run, monkeypat
     _, _, p = tiny_run
     base = p.cfg
     assert base.mvs.native_images is False
-    before = p._keys()
+    before = p.stage_keys()
     try:
         p.cfg = replace(base, mvs=replace(base.mvs, native_images=True))
         assert p.backbone().cfg.native_images is True
-        assert all(v != before[k] for k, v in p._keys().items())
+        assert all(v != before[k] for k, v in p.stage_keys().items())
         p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", native_images=True))
-        assert p._backbone_kwargs()["native_images"] is True
+        assert backbone_kwargs(p.cfg)["native_images"] is True
         p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet", native_images=True))
-        assert "native_images" not in p._backbone_kwargs()
+        assert "native_images" not in backbone_kwargs(p.cfg)
         p.cfg = base
         sig = bb.backbone_signature
 
@@ -265,7 +266,7 @@ def test_mvs_native_images_reaches_the_backbone_and_its_keys(tiny_run, monkeypat
             return out
 
         monkeypatch.setattr(bb, "backbone_signature", without)
-        assert p._keys() == before
+        assert p.stage_keys() == before
     finally:
         p.cfg = base
 
@@ -285,7 +286,7 @@ def test_fusion_unguided_dilation_enters_only_the_fusion_key(tiny_run):
     try:
         for d in (None, 4, 8):
             p.cfg = replace(base, output=replace(base.output, fusion_unguided_dilation=d))
-            keys[d] = p._keys()
+            keys[d] = p.stage_keys()
     finally:
         p.cfg = base
     for a, b in ((None, 4), (4, 8)):
@@ -320,7 +321,7 @@ def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
     p = Pipeline(cfg, out, progress=False)
     p.run()
     assert set(p.timing) - {"total"} == {"fusion"}, p.timing
-    k0, k1 = p0._keys(), p._keys()
+    k0, k1 = p0.stage_keys(), p.stage_keys()
     assert {k for k in k0 if k0[k] != k1[k]} == {"fusion"}
     per_set = json.loads((out / "timing.json").read_text())["fusion"]["points_per_set"]
     assert per_set["network"] > 0 and set(per_set) == {"guided", "unguided", "network"}
@@ -419,7 +420,7 @@ def test_field_stage_uses_the_regressed_stage1_depth(tmp_path):
     cfg.scene.path = str(tmp_path)
     p = Pipeline(cfg, tmp_path / "o")
     assert p.regressed_volumes1() is None
-    p._volumes1 = [vol]
+    p.volumes1 = [vol]
     reg = p.regressed_volumes1()
     torch.testing.assert_close(reg[0].depth, torch.full((3, 4), 1.4))
     assert vol.depth.eq(1).all()  # the stored volume is left as it is
@@ -513,11 +514,11 @@ def test_guide_is_rendered_only_near_the_masks(tiny_run):
 
     out, _, p = tiny_run
     scene = p.load()
-    assert p._guide_pixels() is None or p.cfg.output.guide_mask_dilation is not None
+    assert p.guide_pixels() is None or p.cfg.output.guide_mask_dilation is not None
     cfg = p.cfg
     try:
         p.cfg = replace(cfg, output=replace(cfg.output, guide_mask_dilation=3))
-        pix = p._guide_pixels()
+        pix = p.guide_pixels()
         m = scene.masks[:, 0] > 0.5
         assert pix.shape == m.shape and pix.dtype == torch.bool
         for i in range(len(m)):
@@ -534,11 +535,11 @@ def test_guide_is_rendered_only_near_the_masks(tiny_run):
         scene.masks = masks.clone()
         scene.masks[0] = 0
         try:
-            assert p._guide_pixels()[0].all()
+            assert p.guide_pixels()[0].all()
         finally:
             scene.masks = masks
         p.cfg = replace(cfg, output=replace(cfg.output, guide_mask_dilation=None))
-        assert p._guide_pixels() is None
+        assert p.guide_pixels() is None
     finally:
         p.cfg = cfg
 
@@ -572,9 +573,9 @@ def test_volsdf_mode_starts_from_a_sphere_with_nothing_from_mvs(tiny_scene, tmp_
                                                   .tolist(), abs=0.02)
     assert not getattr(model, "mvs_initialised", False)
     # doublings to the final resolution, the last at 3/4 of the steps
-    assert p._grid_schedule() == [(15, 32), (30, 64)]
+    assert grid_schedule(p.cfg) == [(15, 32), (30, 64)]
     summary = p.run()
-    assert p._volumes1 is None and not (tmp_path / "v" / "mvs1").exists()
+    assert p.volumes1 is None and not (tmp_path / "v" / "mvs1").exists()
     hist = (tmp_path / "v" / "field" / "losses.csv").read_text().splitlines()
     assert "grid_eikonal" in hist[0]
     assert summary["mesh"] is not None
@@ -582,15 +583,15 @@ def test_volsdf_mode_starts_from_a_sphere_with_nothing_from_mvs(tiny_scene, tmp_
 
 def test_sphere_start_settings_stay_out_of_an_mvs_started_fields_key(tiny_run):
     out, _, p = tiny_run
-    before = p._keys()
+    before = p.stage_keys()
     cfg = p.cfg
     saved = (cfg.field.sphere_radius, cfg.train.lr_sdf_sphere, cfg.train.grid_eikonal_weight)
     try:
         cfg.field.sphere_radius, cfg.train.lr_sdf_sphere = 0.45, 2e-2
         cfg.train.grid_eikonal_weight = 0.0
-        assert p._keys()["field"] == before["field"]
+        assert p.stage_keys()["field"] == before["field"]
         cfg.train.mode = "volsdf"  # a sphere start: they decide its field
-        assert p._keys()["field"] != before["field"]
+        assert p.stage_keys()["field"] != before["field"]
     finally:
         cfg.train.mode = "svolsdf"
         cfg.field.sphere_radius, cfg.train.lr_sdf_sphere, cfg.train.grid_eikonal_weight = saved

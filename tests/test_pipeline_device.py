@@ -42,7 +42,7 @@ def test_every_stage_receives_the_resolved_device(scene, tmp_path, monkeypatch):
     import svolsdf.fusion.mesh as mesh_mod
     import svolsdf.mvs.backbone as backbone_mod
     import svolsdf.optimize.trainer as trainer_mod
-    import svolsdf.pipeline as pipeline_mod
+    import svolsdf.pipeline.run as run_mod
     import svolsdf.prior.consistency as prior_mod
     import svolsdf.render.rays as rays_mod
     from svolsdf.scene.cameras import Cameras
@@ -52,7 +52,7 @@ def test_every_stage_receives_the_resolved_device(scene, tmp_path, monkeypatch):
     def record(name, value):
         seen.setdefault(name, []).append(value)
 
-    monkeypatch.setattr(pipeline_mod, "resolve_device", lambda name: MARK)
+    monkeypatch.setattr(run_mod, "resolve_device", lambda name: MARK)
 
     get_backbone = backbone_mod.get_backbone
 

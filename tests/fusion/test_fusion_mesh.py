@@ -9,12 +9,10 @@ import pytest
 import torch
 from fusion_synth import look_at_camera, sphere_depth
 
+from svolsdf.fusion.cull import cull_by_frusta, cull_by_masks, cull_unseen
 from svolsdf.fusion.mesh import (
     colors_from_fn,
     colors_from_images,
-    cull_by_frusta,
-    cull_by_masks,
-    cull_unseen,
     extract_mesh,
     largest_component,
     model_colour_fn,

@@ -1,5 +1,5 @@
 """Mesh extraction from an SDF and mesh cleaning: marching cubes, world transform, largest
-component, vertex colours, culling by masks or view frusta, writing.
+component, vertex colours, writing (culling by the input views: `svolsdf.fusion.cull`).
 
 METHOD.md 8.3, "Mesh export": marching cubes at resolution 512 of the SDF in the unit frame,
 mapped to world coordinates by the normalization (``scale_mat``), keeping the largest component.
@@ -26,7 +26,6 @@ from skimage import measure
 from torch import Tensor
 from tqdm import tqdm
 
-from svolsdf.fusion.filter import dilate_mask
 from svolsdf.io.ply import write_mesh_ply, write_obj
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Normalization
@@ -34,10 +33,6 @@ from svolsdf.scene.scene import Normalization
 __all__ = [
     "colors_from_fn",
     "colors_from_images",
-    "cull_by_frusta",
-    "cull_by_masks",
-    "cull_unseen",
-    "mesh_vertex_depths",
     "extract_mesh",
     "largest_component",
     "model_colour_fn",
@@ -450,162 +445,6 @@ def colors_from_images(
     log.info("image colours: %.1f%% of vertices seen by at least one view",
              100.0 * float((cnt > 0).double().mean()) if len(cnt) else 0.0)
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8)
-
-
-# ---------------------------------------------------------------------------------------------
-# culling
-
-
-def _centroids(vertices: Tensor, faces: Tensor) -> Tensor:
-    return vertices.double()[faces].mean(dim=1)
-
-
-def _pixel_at(cam: Cameras, points: Tensor, image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Nearest-pixel value of ``image`` (H, W) at the projections of ``points`` (N, 3) into
-    the one-view ``cam`` (resized to the image): (in_image (N,) bool, value (N,), z (N,))."""
-    cam = cam.resize(image.shape[1], image.shape[0])
-    uv, z = cam.project(points)
-    uv, z = uv[0], z[0]
-    ij = uv.round().long()
-    ij[:, 0] = ij[:, 0].clamp(0, cam.width - 1)
-    ij[:, 1] = ij[:, 1].clamp(0, cam.height - 1)
-    return _in_image(uv, z, cam.width, cam.height), image[ij[:, 1], ij[:, 0]], z
-
-
-def cull_by_frusta(
-    vertices: Tensor, faces: Tensor, cameras: Cameras, near: float = 0.0
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Remove faces whose centroid lies inside no view's frustum.
-
-    Args:
-        vertices: (V, 3) world points; faces: (F, 3).
-        cameras: `Cameras` (any number of views) in the same world frame.
-        near: least z-depth in front of a camera.
-
-    Returns:
-        vertices (V', 3), faces (F', 3), vertex_index (V',) as `submesh`.
-    """
-    vertices, faces = _check_mesh(vertices, faces)
-    c = _centroids(vertices, faces)
-    cams = cameras.to(dtype=torch.float64)
-    uv, z = cams.project(c)
-    inside = (_in_image(uv, z, cams.width, cams.height) & (z > near)).any(dim=0)
-    log.info("frustum culling keeps %d of %d faces", int(inside.sum()), len(faces))
-    return submesh(vertices, faces, inside)
-
-
-def cull_by_masks(
-    vertices: Tensor,
-    faces: Tensor,
-    cameras: Cameras,
-    masks: Tensor,
-    dilation: int = 12,
-    mode: str = "any",
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Remove faces whose centroid projects outside the (dilated) object mask.
-
-    Only views whose frustum contains the centroid judge a face; faces seen by no view are kept
-    (use `cull_by_frusta` to remove those).
-
-    Args:
-        vertices: (V, 3) world points; faces: (F, 3).
-        cameras: `Cameras` with V views.
-        masks: (V, 1, Hm, Wm) or (V, Hm, Wm) object masks (any resolution; 1 = object).
-        dilation: disk radius in mask pixels (METHOD.md 6.3 uses 12).
-        mode: "any" removes a face outside the mask in any view that sees it (strict);
-            "all" removes it only if it is outside in every view that sees it.
-
-    Returns:
-        vertices (V', 3), faces (F', 3), vertex_index (V',) as `submesh`.
-    """
-    if mode not in ("any", "all"):
-        raise ValueError(f"mode must be 'any' or 'all', got {mode!r}")
-    vertices, faces = _check_mesh(vertices, faces)
-    if masks.ndim == 4:
-        masks = masks[:, 0]
-    if masks.ndim != 3 or masks.shape[0] != len(cameras):
-        raise ValueError(f"masks must be ({len(cameras)}, H, W), got {tuple(masks.shape)}")
-    c = _centroids(vertices, faces)
-    cams = cameras.to(dtype=torch.float64)
-    seen = torch.zeros(len(cams), len(faces), dtype=torch.bool)
-    outside = torch.zeros_like(seen)
-    for v in range(len(cams)):
-        s, inside, _ = _pixel_at(cams[v], c, dilate_mask(masks[v], dilation))
-        seen[v] = s
-        outside[v] = s & ~inside
-    if mode == "any":
-        remove = outside.any(dim=0)
-    else:
-        remove = seen.any(dim=0) & (outside | ~seen).all(dim=0)
-    log.info("mask culling (%s) removes %d of %d faces", mode, int(remove.sum()), len(faces))
-    return submesh(vertices, faces, ~remove)
-
-
-def cull_unseen(
-    vertices: Tensor,
-    faces: Tensor,
-    cameras: Cameras,
-    depths: Tensor,
-    rel_tol: float = 0.01,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Remove faces that no view sees: the centroid lies behind the view's surface depth.
-
-    A face is kept when, in at least one view whose image contains its centroid, the
-    centroid's z-depth is at most ``(1 + rel_tol)`` times that view's depth at the projected
-    pixel (nearest pixel; a view without depth there, <= 0, does not see it). The depths are
-    the field's rendered depths of the input views (OUT/field/render_depth), so what remains is
-    the surface the views observe; parts hidden from every view, such as cavities inside the
-    object that nothing constrains, go. A mask-free twin of the DTU evaluations' culling
-    (METHOD.md 8.3) for surfaces occluded rather than outside the masks.
-
-    Args:
-        vertices: (V, 3) world points; faces: (F, 3).
-        cameras: `Cameras` with N views.
-        depths: (N, H, W) z-depth maps of those views (any resolution).
-        rel_tol: relative depth slack (the rendered depth is an expectation, not the exact
-            first hit).
-
-    Returns:
-        vertices (V', 3), faces (F', 3), vertex_index (V',) as `submesh`.
-    """
-    vertices, faces = _check_mesh(vertices, faces)
-    if depths.ndim != 3 or depths.shape[0] != len(cameras):
-        raise ValueError(f"depths must be ({len(cameras)}, H, W), got {tuple(depths.shape)}")
-    c = _centroids(vertices, faces)
-    cams = cameras.to(dtype=torch.float64)
-    seen = torch.zeros(len(faces), dtype=torch.bool)
-    for v in range(len(cams)):
-        s, dv, z = _pixel_at(cams[v], c, depths[v].double())
-        seen |= s & (dv > 0) & (z <= (1 + rel_tol) * dv)
-    log.info("visibility culling keeps %d of %d faces", int(seen.sum()), len(faces))
-    return submesh(vertices, faces, seen)
-
-
-def mesh_vertex_depths(vertices: torch.Tensor, cameras, scale: float = 0.5) -> torch.Tensor:
-    """(V, h, w) z-depth of a dense world mesh seen from each camera, at ``scale`` x the cameras'
-    size: a z-buffer of its vertices (the nearest vertex per pixel; 0 where none falls).
-
-    A marching-cubes mesh at the mesh resolution has several vertices per pixel at half the
-    working size, so the vertex z-buffer is its depth map without rasterizing triangles.
-
-    Args:
-        vertices: (N, 3) world points.
-        cameras: world `Cameras` of V views.
-    """
-    w = max(1, round(cameras.width * scale))
-    h = max(1, round(cameras.height * scale))
-    cams = cameras.resize(w, h).to(dtype=torch.float64)
-    out = []
-    for k in range(len(cams)):
-        uv, z = cams[k].project(vertices.double()[None])
-        uv, z = uv[0], z[0]
-        px = uv.round().long()
-        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        idx = px[ok, 1] * w + px[ok, 0]
-        buf = torch.full((h * w,), float("inf"), dtype=torch.float64)
-        buf.scatter_reduce_(0, idx, z[ok], reduce="amin")
-        out.append(torch.where(torch.isfinite(buf), buf, 0.0).reshape(h, w).float())
-    return torch.stack(out)
 
 
 # ---------------------------------------------------------------------------------------------

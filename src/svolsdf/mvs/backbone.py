@@ -51,6 +51,7 @@ __all__ = [
     "stage_size",
     "stage_cameras",
     "expected_depth",
+    "with_expected_depth",
     "mode_depth",
     "photometric_confidence",
     "volume_from_prob",
@@ -240,6 +241,22 @@ def expected_depth(prob: Tensor, depths: Tensor) -> Tensor:
         (..., H, W) expected depth.
     """
     return (prob * depths).sum(-3)
+
+
+def with_expected_depth(volumes: list[ProbabilityVolume]) -> list[ProbabilityVolume]:
+    """Copies of ``volumes`` whose depth (H, W) is the regression sum_k P_k d_k (METHOD.md 2.4),
+    whatever estimate the backbone stored.
+
+    The field stage (box, SDF initialisation, the ablations' MVS depth) uses this depth: the
+    plane sweep stores the main-mode depth (`PlaneSweepConfig.depth_radius`), which centres its
+    own next stage better, while the smoother full expectation initialises the SDF grid better
+    (synthetic benchmark scene, points Chamfer 2.12 vs 2.34 mm; benchmarks/results/
+    fast_preset.md).
+    """
+    from dataclasses import replace
+
+    return [replace(v, depth=expected_depth(v.prob.float(), v.depths.float()).to(v.depth.dtype))
+            for v in volumes]
 
 
 def mode_depth(prob: Tensor, depths: Tensor, radius: int = 2) -> Tensor:

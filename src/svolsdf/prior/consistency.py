@@ -16,7 +16,7 @@ from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Normalization
 
-__all__ = ["PriorView", "MVSPrior", "p_prime", "lookup_reference"]
+__all__ = ["PriorView", "MVSPrior", "consistency_depth", "p_prime", "lookup_reference"]
 
 #: validity thresholds of METHOD.md 3 (steps 4 and 7)
 _MIN_Z = 1e-5
@@ -295,3 +295,37 @@ def lookup_reference(prior: MVSPrior, points: Tensor, ref_view: Tensor
             if not valid[r, s]:
                 p_ref[r, s] = 0.0
     return p_ref.float(), p_src.float(), valid
+
+
+def consistency_depth(volumes: list[ProbabilityVolume], norm: Normalization
+                      ) -> dict[int, Tensor]:
+    """The expected depth under the consistency-weighted stage-1 volume P_ref * sum P_src
+    (METHOD.md 3, 9.2.3) at each input view's hypotheses: the guide depth of the ablation
+    "soft-consistency-only".
+
+    Args:
+        volumes: the stage-1 volumes of the input views (hypotheses (D, H, W)).
+        norm: the scene's normalization (world <-> unit frame).
+
+    Returns:
+        {view id: (H, W) world z-depth}; a pixel without consistent weight keeps the volume's
+        depth.
+    """
+    prior = MVSPrior(volumes, norm)
+    out = {}
+    for i, vol in enumerate(volumes):
+        D, H, W = vol.depths.shape
+        cam = vol.cameras.to(dtype=torch.float64)
+        uv = cam.pixel_grid(dtype=torch.float64).reshape(1, -1, 2)
+        num = torch.zeros(H * W)
+        den = torch.zeros(H * W)
+        for k in range(D):
+            X = cam.unproject(uv, vol.depths[k].double().reshape(1, -1))[0]
+            pts = norm.to_unit(X).float()[:, None]
+            p_ref, p_src, _ = prior.lookup(pts, torch.full((H * W,), i, dtype=torch.long))
+            w = (p_ref * p_src)[:, 0]
+            num += w * vol.depths[k].reshape(-1)
+            den += w
+        d = torch.where(den > 1e-6, num / den.clamp_min(1e-12), vol.depth.reshape(-1))
+        out[vol.view_id] = d.reshape(H, W).float()
+    return out

@@ -2,7 +2,7 @@
 
 ``svolsdf render OUT`` renders, for each target camera,
 
-- the field's volume-rendered colour, z-depth and normals (``Pipeline.render_views``, the
+- the field's volume-rendered colour, z-depth and normals (``Run.render_views``, the
   eval-mode sampler) -> ``OUT/renders/<id>.png``, ``OUT/renders/depth/<id>.png`` (colour-coded
   preview) and ``<id>.npy`` (world z-depth, 0 where the opacity is below 0.5),
   ``OUT/renders/normals/<id>.png`` (camera-frame normals, OpenCV axes, (n + 1) / 2 times the
@@ -60,71 +60,26 @@ OPACITY_SURFACE = 0.5
 
 # --------------------------------------------------------------------------- the run
 def open_run(out: str | Path, progress: bool = False):
-    """The `Pipeline` of a finished run with its trained field loaded; never runs a stage.
+    """The `svolsdf.pipeline.Run` of a finished run with its trained field loaded
+    (`svolsdf.pipeline.Run.open`); never runs a stage.
 
     Args:
         out: a run folder written by ``svolsdf reconstruct`` (config.yaml, views.json,
             field/model.pt; field/stage2/model.pt instead when the finer-stage optimization
             made one).
-        progress: progress bars in the pipeline.
+        progress: progress bars.
 
     Returns:
-        `svolsdf.pipeline.Pipeline` with ``load()`` done, ``keys`` set and the model loaded
-        (``p.model()`` returns it).
+        `svolsdf.pipeline.Run` with its scene loaded, ``keys`` set and the field loaded
+        (``run.model()`` returns it).
 
     Raises:
         InputError: OUT is not a run folder, its mode has no field, or field/model.pt is missing
             (the message names the folder).
     """
-    from svolsdf.config import load_config
-    from svolsdf.pipeline import Pipeline
+    from svolsdf.pipeline.run import Run
 
-    out = Path(out)
-    if not out.is_dir():
-        raise InputError(f"{out}: no such run folder (give the OUT folder of svolsdf reconstruct)")
-    cfg_path = out / "config.yaml"
-    if not cfg_path.is_file() or not (out / "views.json").is_file():
-        raise InputError(f"{out}: not a run folder (no config.yaml / views.json); run "
-                         f"svolsdf reconstruct SCENE -o {out} first")
-    p = Pipeline(load_config(cfg_path), out, progress=progress)
-    if not p._has_field():
-        raise InputError(f"{out}: the run (mode {p.cfg.train.mode!r}, ablation "
-                         f"{p.cfg.train.ablation!r}) has no neural field to render")
-    model_path = out / "field" / "model.pt"
-    if not model_path.is_file():
-        raise InputError(f"{out}: the field is not finished ({model_path} is missing); let "
-                         f"svolsdf reconstruct finish first")
-    p.load()
-    p.keys = p._keys()
-    # the grid field's box comes from stage-1 MVS when run() had it: load it the same way
-    mode, abl = p.cfg.train.mode, p.cfg.train.ablation
-    stage1 = [out / "mvs" / "stage1" / f"{v}.npz" for v in p.views]
-    if (mode in ("svolsdf", "mvs-only") or abl) and all(f.is_file() for f in stage1):
-        from svolsdf.mvs.volume import ProbabilityVolume
-
-        try:
-            p._volumes1 = [ProbabilityVolume.load(f) for f in stage1]
-        except Exception as e:  # a truncated or corrupt .npz
-            raise InputError(f"{out}: a stage-1 volume in {stage1[0].parent} is unreadable "
-                             f"({' '.join(str(e).split())[:200]}); rerun svolsdf reconstruct "
-                             f"-o {out}: it computes it again") from None
-    if not p._done("field"):
-        # a config or package change alters the stage hash; rendering never retrains
-        log.warning("%s: the stored field was trained under another config hash (edited config "
-                    "or newer package); rendering the stored field/model.pt as it is", out)
-    refined = out / "field" / "stage2" / "model.pt"
-    if p.cfg.output.finer_stage_optimization and refined.is_file():
-        model_path = refined  # the field after the finer-stage optimization (as the mesh uses)
-    model = p.build_model()
-    try:
-        p._load_model(model, model_path)
-    except InputError as e:  # truncated or corrupt: only a rerun can make it again
-        raise InputError(f"{e}; rerun svolsdf reconstruct -o {out}: it trains the field "
-                         "again") from None
-    except RuntimeError as e:
-        raise InputError(f"{model_path}: does not match the field of {cfg_path} ({e})") from None
-    p._model = model.to(p.device)
-    return p
+    return Run.open(out, progress=progress)
 
 
 # --------------------------------------------------------------------------- pieces
@@ -263,7 +218,6 @@ def render_outputs(
     """
     from svolsdf.ibr import IBRConfig, ibr_render, orbit_cameras
     from svolsdf.io.images import write_depth_preview, write_image
-    from svolsdf.pipeline import _save_npy
     from svolsdf.scene.loaders import load_scene
 
     out = Path(out)
@@ -354,7 +308,7 @@ def render_outputs(
         surf = opa >= OPACITY_SURFACE
         depth = torch.where(surf, r["depth"][0] * s, torch.zeros_like(opa))  # world z-depth
         files.append(write_image(rdir / f"{name}.png", rgb))
-        _save_npy(rdir / "depth" / f"{name}.npy", depth.numpy().astype(np.float32))
+        p.dir.save_npy(rdir / "depth" / f"{name}.npy", depth.numpy().astype(np.float32))
         write_depth_preview(rdir / "depth" / f"{name}.png", depth, mask=surf)
         write_image(rdir / "normals" / f"{name}.png",
                     camera_normals(r["normals"][0], opa, cams_w.w2c[k]))

@@ -1,0 +1,148 @@
+"""A reconstruction's mesh: the zero level of the field (marching cubes, METHOD.md 8.3) or the
+screened Poisson surface of the fused points, each culled to what the input views can judge
+(`svolsdf.fusion.cull.cull_to_views`).
+
+Meshes are (vertices (V, 3) float32, faces (F, 3) int64) torch tensors on the CPU; ``vw`` names
+world vertices (the cameras' units), ``v`` the same vertices in the field's unit frame.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from svolsdf.scene.scene import Scene
+
+__all__ = ["field_mesh", "field_mesh_colours", "poisson_mesh"]
+
+log = logging.getLogger(__name__)
+
+
+def field_mesh(
+    model,
+    bounds: Tensor,
+    scene: Scene,
+    resolution: int,
+    watertight: bool = False,
+    use_masks: bool = True,
+    unseen: bool = False,
+    depths: Callable[[], Tensor | None] | str | None = "mesh",
+    rel_tol: float = 0.01,
+    device=None,
+    progress: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Marching cubes of ``model``'s SDF in ``bounds``, culled by the input views of ``scene``.
+
+    With ``watertight`` the closed zero level: a surface that leaves the field's box is capped
+    on the box's faces, and only the largest component is kept (no culling).
+
+    Args:
+        model: a `SurfaceModel` (``sdf(x)`` on (N, 3) unit-frame points -> (N,)).
+        bounds: (2, 3) unit-frame box to mesh.
+        scene: the input views (world cameras, masks at the cameras' size, normalization).
+        resolution: marching-cubes cells along the box's longest side.
+        use_masks: cull by the scene's masks when it has them.
+        unseen, rel_tol: `cull_to_views`'s visibility culling.
+        depths: what the views see for ``unseen``: a callable returning (N, H, W) z-depth maps
+            or None, or "mesh" (`cull_to_views`).
+        device: where the SDF is evaluated.
+
+    Returns:
+        v (V, 3) unit-frame vertices, vw (V, 3) world vertices, faces (F, 3).
+    """
+    from svolsdf.fusion.cull import cull_to_views
+    from svolsdf.fusion.mesh import extract_mesh, largest_component, to_world
+
+    def sdf_fn(x):
+        return model.sdf(x.to(device)).cpu()
+
+    if watertight:
+        # a surface that leaves the field's box is closed by a cap on the box's faces: the
+        # grid reaches two mesh cells beyond the box, where everything counts as outside
+        lo, hi = bounds[0].clone(), bounds[1].clone()
+        pad = 2 * float((hi - lo).max()) / resolution
+        field_sdf = sdf_fn
+
+        def sdf_fn(x):  # noqa: F811
+            out = ((x < lo) | (x > hi)).any(-1)
+            return torch.where(out, torch.full_like(x[:, 0], pad), field_sdf(x))
+
+        bounds = torch.stack([lo - pad, hi + pad])
+    v, f = extract_mesh(sdf_fn, bounds, resolution=resolution, coarse_to_fine=True,
+                        progress=progress)
+    vw = to_world(v, scene.normalization)
+    if watertight:
+        vw, f, idx = largest_component(vw, f, return_index=True)
+        return v[idx], vw, f
+    masks = scene.masks if use_masks else None
+    if unseen and callable(depths):
+        depths = depths()
+    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths=depths,
+                               rel_tol=rel_tol)
+    return v[idx], vw, f
+
+
+def field_mesh_colours(model, v: Tensor, faces: Tensor, device=None) -> Tensor | None:
+    """(V, 3) vertex colours of a field's mesh from its colour network (unit-frame vertices
+    ``v``, faces (F, 3)); None, with a warning, when that fails (colours are a convenience)."""
+    from svolsdf.fusion.mesh import colors_from_fn, model_colour_fn, vertex_normals
+
+    try:
+        return colors_from_fn(v, vertex_normals(v, faces), model_colour_fn(model), device=device)
+    except Exception as e:  # colours are a convenience
+        log.warning("mesh colours failed: %s", e)
+        return None
+
+
+def poisson_mesh(
+    points: np.ndarray,
+    colours: np.ndarray | None,
+    model,
+    scene: Scene,
+    depth: int,
+    trim: float,
+    use_masks: bool = True,
+    unseen: bool = False,
+    rel_tol: float = 0.01,
+    device=None,
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The screened Poisson surface of fused points, normals oriented by the input cameras and,
+    where they straddle a point's tangent plane, by the field's gradient; culled like the
+    field's mesh, with the mesh's own depth deciding what the views see; vertex colours from
+    the points.
+
+    Args:
+        points: (N, 3) world points; colours: (N, 3) uint8 or None.
+        model: the field (``sdf`` on unit-frame points), for the normals' orientation.
+        scene: the input views (world cameras, masks, normalization).
+        depth, trim: `svolsdf.fusion.poisson.poisson_surface`'s octree depth and trim.
+        use_masks, unseen, rel_tol: as `field_mesh`.
+        device: where the field's gradient is evaluated.
+
+    Returns:
+        vw (V, 3) world vertices, faces (F, 3), colours (V, 3) or None.
+    """
+    from svolsdf.fusion.cull import cull_to_views
+    from svolsdf.fusion.poisson import estimate_normals, orient_normals, poisson_surface
+
+    threads = max(1, torch.get_num_threads())
+    normals = estimate_normals(points, workers=threads)
+    unit = scene.normalization.to_unit(torch.from_numpy(points)).float()
+    grads = []
+    for x in unit.split(65536):  # the field's outward direction at each point
+        x = x.to(device).requires_grad_(True)
+        (g,) = torch.autograd.grad(model.sdf(x).sum(), x)
+        grads.append(g.detach().cpu())
+    normals = orient_normals(points, normals, scene.cameras.centers.double().numpy(),
+                             guide=torch.cat(grads).double().numpy())
+    v, f, c = poisson_surface(points, normals, colours, depth=depth, trim=trim, threads=threads)
+    vw, f = torch.from_numpy(v), torch.from_numpy(f)
+    c = None if c is None else torch.from_numpy(c)
+    masks = scene.masks if use_masks else None
+    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
+                               rel_tol=rel_tol)
+    return vw, f, (None if c is None else c[idx])

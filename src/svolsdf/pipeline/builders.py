@@ -1,0 +1,199 @@
+"""From a `Config` to the components a run uses: the MVS backbone (and the fusion network), the
+field (`SurfaceModel`), its coarse-to-fine schedule, the ray sampler, the training data.
+
+Used by the stages, by the stage keys (the backbone's full config) and by commands that open a
+finished run (`svolsdf.pipeline.run.Run`). Imports of the components stay inside the builders:
+only the built objects' modules are loaded, and tests may replace a component's class in its
+own module.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from svolsdf.config import Config
+from svolsdf.errors import InputError
+from svolsdf.pipeline.options import grid_from_sphere
+from svolsdf.scene.scene import Scene
+
+__all__ = ["attach_background", "backbone_kwargs", "build_backbone", "build_model",
+           "build_network_backbone", "build_sampler", "build_train_data", "grid_schedule",
+           "unit_near_far"]
+
+
+def backbone_kwargs(cfg: Config) -> dict:
+    """The configured MVS backbone's options (`svolsdf.mvs.backbone.get_backbone`'s ``**cfg``)
+    from `MVSConfig`; only those the backbone's config class has.
+
+    Raises:
+        InputError: ``mvs.scale`` the backbone cannot run at.
+    """
+    m = cfg.mvs
+    nd = tuple(int(x) for x in m.ndepths)
+    common = {"inverse_depth": m.inverse_depth, "max_sources": m.max_sources}
+    if m.backbone == "planesweep":
+        return {"num_depths": nd, "width": m.width, "native_images": m.native_images,
+                **common, **({"scale": float(m.scale)} if m.scale is not None else {})}
+    # casmvsnet and the depth + confidence adapters share these names
+    from svolsdf.mvs.backbone import backbone_config_class
+
+    kw = {"ndepths": nd, "width_mode": m.width, **common}
+    if m.scale is not None:
+        if not hasattr(backbone_config_class(m.backbone), "x2_mvsres"):
+            raise InputError(f"mvs.scale: the {m.backbone} backbone runs at the working "
+                             f"size; leave mvs.scale unset (got {m.scale})")
+        if float(m.scale) not in (1.0, 2.0):
+            raise InputError(f"mvs.scale: {m.backbone} runs at 1 or 2 x the working size "
+                             f"(x2_mvsres), got {m.scale}")
+        kw["x2_mvsres"] = float(m.scale) == 2.0
+    if hasattr(backbone_config_class(m.backbone), "native_images"):
+        kw["native_images"] = m.native_images
+    if hasattr(backbone_config_class(m.backbone), "guide_init"):  # the adapters' option
+        kw["guide_init"] = m.guide_network
+    return kw
+
+
+def build_backbone(cfg: Config, device=None):
+    """The configured `MVSBackbone` (its weights loaded) on ``device``."""
+    from svolsdf.mvs.backbone import get_backbone
+
+    m = cfg.mvs
+    return get_backbone(m.backbone, weights=m.weights, device=device, **backbone_kwargs(cfg))
+
+
+def build_network_backbone(cfg: Config, device=None):
+    """The `OutputConfig.fusion_network` backbone, its weights loaded and checked.
+
+    Raises:
+        InputError: the backbone cannot start from a depth map.
+    """
+    from svolsdf.mvs.backbone import get_backbone
+
+    o = cfg.output
+    bb = get_backbone(o.fusion_network, weights=o.fusion_network_weights,
+                      max_sources=cfg.mvs.max_sources, device=device)
+    if not getattr(bb, "can_start_from_depth", False):
+        raise InputError(f"output.fusion_network: the {o.fusion_network!r} backbone "
+                         "cannot start from a depth map (patchmatchnet can)")
+    return bb
+
+
+def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
+    """The configured `SurfaceModel` (grid field for fast, VolSDF MLP for paper).
+
+    Args:
+        bounds: returns the (2, 3) unit-frame box of a grid field started from MVS
+            (`svolsdf.field.bounds.field_bounds`); not called otherwise.
+    """
+    f = cfg.field
+    if f.kind == "grid":
+        from svolsdf.field.grid import GridFieldConfig, GridSDFField
+
+        if grid_from_sphere(cfg):
+            # VolSDF's start (METHOD.md 5.2): a sphere at the origin in the box of the
+            # bounding sphere; nothing from MVS
+            box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+            res, radius, centre = f.sphere_start_resolution, f.sphere_radius, (0.0,) * 3
+        else:
+            box = bounds()
+            ext = (box[1] - box[0]).max()
+            res, radius = f.grid_start_resolution, float(0.35 * ext)
+            centre = tuple(((box[0] + box[1]) / 2).tolist())
+        gcfg = GridFieldConfig(resolution=res, init_radius=radius, init_centre=centre,
+                               # METHOD.md 5.5: no sphere clamp under a background model
+                               sphere_clamp_scale=None if f.background else 20.0)
+        model = GridSDFField(box, gcfg)
+    elif f.kind == "mlp":
+        from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig
+
+        model = VolSDFField(VolSDFFieldConfig(n_layers=f.mlp_depth, d_hidden=f.mlp_width,
+                                              render_hidden=f.mlp_width,
+                                              sphere_clamp=not f.background))
+    else:
+        raise InputError(f"unknown field kind {f.kind!r} (grid or mlp)")
+    if f.background:
+        attach_background(model, f.kind)
+    if cfg.train.beta_min > 0 and hasattr(model, "laplace"):
+        model.laplace.beta_min = float(cfg.train.beta_min)  # METHOD.md 5.4's floor
+    return model
+
+
+def attach_background(model, kind: str) -> None:
+    """``model.background``: the NeRF++ inverted-sphere background (METHOD.md 5.5).
+
+    A submodule of the field, so it moves with ``model.to(device)``, is saved in its
+    state_dict (keys ``background.net.*``, ``background.colour_net.*``), trained by the
+    Trainer at the network rate ``train.lr`` and passed to every ``render_rays`` call. The
+    paper's network sizes with the MLP field; a smaller MLP with the fast grid field
+    (``kind`` "grid").
+    """
+    from svolsdf.field.background import BackgroundConfig, NeRFPlusPlusBackground
+
+    bcfg = BackgroundConfig(radius=float(model.radius))
+    if kind == "grid":
+        bcfg = BackgroundConfig(radius=float(model.radius), n_layers=4, d_hidden=64,
+                                skip_in=(), feature_dim=32, colour_hidden=32)
+    model.background = NeRFPlusPlusBackground(bcfg)
+
+
+def grid_schedule(cfg: Config) -> list[tuple[int, int]]:
+    """The grid field's coarse-to-fine schedule: [(step, resolution)] ([] for the MLP)."""
+    f = cfg.field
+    steps = cfg.train.steps
+    if f.kind == "grid" and grid_from_sphere(cfg):
+        # doublings from sphere_start_resolution, evenly spaced, the last at 3/4 of the steps
+        levels, r = [], f.sphere_start_resolution
+        while r < f.grid_resolution:
+            r = min(2 * r, f.grid_resolution)
+            levels.append(r)
+        n = len(levels)
+        return [(int(steps * 0.75 * (i + 1) / n), r) for i, r in enumerate(levels)]
+    if f.kind != "grid" or f.grid_resolution <= f.grid_start_resolution:
+        return []
+    r0, r1 = f.grid_start_resolution, f.grid_resolution
+    mid = int(round((r0 * r1) ** 0.5))
+    return [(int(steps * 0.25), mid), (int(steps * 0.5), r1)]
+
+
+def build_sampler(cfg: Config, prior=None, training: bool = True):
+    """The configured ray sampler: VolSDF's error-bounded one, or the MVS-guided one (with
+    ``prior`` in training; a lighter one without a prior for rendering)."""
+    from svolsdf.render.guided import GuidedSamplerConfig, MVSGuidedSampler
+    from svolsdf.render.samplers import ErrorBoundSampler
+
+    t = cfg.train
+    if t.sampler == "error_bounded":
+        return ErrorBoundSampler()
+    if t.sampler == "mvs":
+        if training:
+            gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
+        else:
+            # rendering: a converged field needs fewer probes
+            # (benchmarks/results/render_speed.md)
+            gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
+        return MVSGuidedSampler(prior if training else None, gc)
+    raise InputError(f"unknown sampler {t.sampler!r} (mvs or error_bounded)")
+
+
+def unit_near_far(scene: Scene) -> torch.Tensor:
+    """(V, 2) unit-frame z-depth range of the input views, padded by 10% (rays are clipped
+    to it in training, guide rendering and novel views)."""
+    nf = (scene.depth_range / scene.normalization.scale).float()
+    return torch.stack([nf[:, 0] * 0.9, nf[:, 1] * 1.1], -1)
+
+
+def build_train_data(cfg: Config, scene: Scene, mvs_depth: torch.Tensor | None = None):
+    """The field stage's `TrainData`: images (V, 3, H, W), unit-frame cameras, near/far,
+    ``mvs_depth`` (V, H, W) unit-frame depth of the ablations, and with
+    ``train.object_ray_fraction`` the object masks dilated by ``train.object_ray_dilation``."""
+    from svolsdf.optimize.trainer import TrainData
+
+    focus = None
+    if cfg.train.object_ray_fraction > 0 and scene.masks is not None and cfg.output.use_masks:
+        from svolsdf.fusion.filter import dilate_mask
+
+        r = cfg.train.object_ray_dilation
+        focus = torch.stack([dilate_mask(m[0], r) for m in scene.masks])
+    return TrainData(scene.images, scene.cameras_unit, unit_near_far(scene), mvs_depth, focus)

@@ -1,0 +1,59 @@
+"""The paper's optional optimization at the finer MVS stages (METHOD.md 9.2.13)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from svolsdf.pipeline.rundir import save_npy, save_torch
+
+__all__ = ["finer_stage_cascade"]
+
+log = logging.getLogger("svolsdf.pipeline")
+
+
+def finer_stage_cascade(p, guide: dict[int, torch.Tensor]) -> dict:
+    """The paper's optional optimization at the finer stages (METHOD.md 9.2.13; the released
+    code forbids it): stage 2 runs centred on the rendered depth, the field is optimized
+    further against the soft-consistency prior of the stage-2 volumes, its depth is rendered
+    again, and stage 3 runs centred on that depth.
+
+    Args:
+        p: the `svolsdf.pipeline.Pipeline` (its field, backbone, scene and folder).
+        guide: {view: (H, W) world z-depth} the field's rendered depth.
+
+    Returns:
+        {2: stage-2 volumes, 3: stage-3 volumes}.
+    """
+    from dataclasses import replace
+
+    from svolsdf.mvs.cascade import run_cascade
+    from svolsdf.optimize.trainer import Trainer
+    from svolsdf.pipeline.builders import build_sampler
+    from svolsdf.prior.consistency import MVSPrior
+
+    bb = p.backbone()
+    scene = p.load()
+    res2 = run_cascade(bb, scene, guide_depth=guide, stages=(2,))
+    model = p.model()
+    t = p.cfg.train
+    # continue at the end of the stage-1 schedule: fixed final beta, no warm-up
+    t2 = replace(t, steps=max(1, t.steps // 5), anneal_rgb=0,
+                 beta_start=t.beta_end if t.beta_start > 0 else 0.0)
+    prior2 = MVSPrior(res2[2], scene.normalization, device=p.device)
+    trainer = Trainer(model, p.train_data(), t2, prior=prior2,
+                      sampler=build_sampler(p.cfg, prior2),
+                      out_dir=p.dir.field_dir / "stage2", device=p.device)
+    trainer.fit(progress=p.progress)
+    log.info("finer-stage optimization: %d more steps against the stage-2 volumes", t2.steps)
+    save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
+                                     "grid_resolution": getattr(model, "resolution", None)})
+    guide2 = p._rendered_guide()
+    for v, d in guide2.items():  # the refined surface, for fusion (output.fusion_surface)
+        save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",
+                 d.numpy().astype(np.float32))
+    res3 = run_cascade(bb, scene, guide_depth=guide2, stages=(3,),
+                       prev={v.view_id: v for v in res2[2]})
+    return {2: res2[2], 3: res3[3]}

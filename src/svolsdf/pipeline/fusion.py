@@ -1,0 +1,112 @@
+"""The fusion stage's inputs: which depth sets of a run are fused, with which confidences,
+masks and surface (`svolsdf.fusion.filter.fuse_depth_maps` does the fusion)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from svolsdf.pipeline import options
+from svolsdf.pipeline.rundir import save_npy
+
+__all__ = ["fuse", "network_depths"]
+
+log = logging.getLogger("svolsdf.pipeline")
+
+
+def network_depths(p, guide: dict[int, torch.Tensor]
+                   ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
+    """`OutputConfig.fusion_network`'s depth and confidence of every input view (H, W), the
+    network started from ``guide`` (world z-depth); also written to
+    OUT/network/{depth,confidence}/<view>.npy.
+
+    Args:
+        p: the `svolsdf.pipeline.Pipeline`.
+    """
+    from svolsdf.io.images import write_depth_preview
+
+    bb = p._network_backbone()
+    scene = p.load()
+    depth, conf = {}, {}
+    for v in p.views:
+        depth[v], conf[v] = bb.prediction(scene, v, guide=guide[v])
+        for sub, m in (("depth", depth[v]), ("confidence", conf[v])):
+            save_npy(p.dir.network_dir / sub / f"{v}.npy", m.numpy().astype(np.float32))
+        write_depth_preview(p.dir.network_dir / "depth" / f"{v}.png", depth[v])
+    return depth, conf
+
+
+def fuse(p, path: Path) -> tuple[int, dict]:
+    """Fuse the run's depth sets into ``path`` (PLY points with colours).
+
+    Args:
+        p: the `svolsdf.pipeline.Pipeline` whose earlier stages are finished.
+
+    Returns:
+        (number of points, timing extras: ``points_per_set`` with several depth sets).
+    """
+    from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
+    from svolsdf.io.ply import write_points_ply
+
+    scene = p.load()
+    cfg, out, views = p.cfg, p.out, p.views
+    o = cfg.output
+    fcfg = FusionConfig(dist_thresh=o.fusion_dist, rel_thresh=o.fusion_rel,
+                        min_consistent=o.fusion_views, conf_thresh=o.fusion_conf,
+                        use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
+    if cfg.train.mode == "svolsdf":  # OUT/depth is the field-guided depth
+        fcfg.primary_mask_dilation = o.fusion_guided_dilation
+        fcfg.alt_mask_dilation = o.fusion_unguided_dilation
+    # the refined surface after the finer-stage optimization
+    sdir = p.dir.render_depth_dir(refined=bool(cfg.output.finer_stage_optimization))
+    # the rendered guide is the surface (the soft-consistency ablation's guide is not)
+    use_surface = (o.fusion_surface > 0 and cfg.train.ablation != "soft-consistency-only"
+                   and all((sdir / f"{v}.npy").is_file() for v in views))
+    cams = {v: scene.cameras[[i]] for i, v in enumerate(views)}
+    images = {v: scene.images[i] for i, v in enumerate(views)}
+    masks = None
+    if scene.masks is not None and o.use_masks:
+        masks = {v: scene.masks[i, 0] for i, v in enumerate(views)}
+
+    def load(d: Path, sub: str) -> dict[int, torch.Tensor] | None:
+        files = {v: d / sub / f"{v}.npy" for v in views}
+        if not all(f.is_file() for f in files.values()):
+            return None
+        return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+
+    depths = load(out, "depth")
+    confs = load(out, "confidence") if cfg.train.mode != "volsdf" else None
+    alt = alt_confs = None
+    if options.wants_unguided(cfg):  # the unguided stages 2-3 as each view's second hypothesis
+        alt, alt_confs = load(p.dir.unguided_dir, "depth"), \
+            load(p.dir.unguided_dir, "confidence")
+        if confs is None:
+            alt_confs = None
+    surface = None
+    if use_surface:  # fuse_depth_maps resizes it to each hypothesis' size
+        surface = {v: torch.from_numpy(np.load(sdir / f"{v}.npy")).float() for v in views}
+    net = net_confs = None
+    if options.wants_network(cfg):  # the learned network, started from the guide
+        t1 = time.perf_counter()
+        d, c = network_depths(p, p.stage_guide())
+        net, net_confs = {"network": d}, ({"network": c} if confs is not None else None)
+        log.info("fusion network %s: %d view(s) in %.1f s", o.fusion_network, len(views),
+                 time.perf_counter() - t1)
+    fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface,
+                            alt_depths=alt, alt_confidences=alt_confs,
+                            extra_depths=net, extra_confidences=net_confs, device=p.device)
+    extra = {}
+    if alt is not None or net is not None:
+        sets = {"guided": "", **({"unguided": ":alt"} if alt is not None else {}),
+                **({"network": ":network"} if net is not None else {})}
+        extra["points_per_set"] = {
+            name: sum(fused.stats[f"{v}{sfx}" if sfx else v]["points"] for v in views)
+            for name, sfx in sets.items()}
+    pts = fused.points.numpy()
+    cols = None if fused.colors is None else fused.colors.numpy()
+    write_points_ply(path, pts, cols)
+    return int(len(pts)), extra

@@ -1,0 +1,285 @@
+"""The run folder as one object: every path of a run, the stage state (OUT/stages.json), the
+folder lock, OUT/log, OUT/timing.json, and atomic saves.
+
+Layout (ARCHITECTURE.md "Data flow"; `svolsdf.pipeline` writes it):
+
+- ``config.yaml``, ``views.json`` (inputs, test views, working size, scene), ``stages.json``
+  (stage -> key of the config it finished under), ``timing.json``, ``log``, ``.svolsdf.lock``;
+- ``mvs/stage{1,2,3}/<id>.npz``, ``depth/<id>.npy`` (+ .png), ``confidence/<id>.npy``;
+- ``field/model.pt`` (+ checkpoints), ``field/render_depth/<id>.npy``, ``field/render_rgb/``,
+  ``normals/``, ``field/stage2/`` (the finer-stage optimization), ``field/surface.pt``;
+- ``unguided/{depth,confidence}/<id>.npy``, ``network/{depth,confidence}/<id>.npy``;
+- ``points.ply``, ``mesh.ply`` (or ``mesh.obj``).
+
+Every file is written to a temporary name and renamed, so a killed run never leaves a half
+file under the final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from svolsdf.errors import InputError
+
+__all__ = ["RunDir", "save_json", "save_npy", "save_torch"]
+
+log = logging.getLogger(__name__)
+
+
+def save_npy(path: Path, arr: np.ndarray) -> None:
+    """Write ``arr`` to ``path`` (.npy) atomically, creating its folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npy")
+    np.save(tmp, arr)
+    os.replace(tmp, path)
+
+
+def save_json(path: Path, obj, indent: int = 1) -> None:
+    """Write ``obj`` as JSON to ``path`` atomically (through ``path`` with suffix .tmp)."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(obj, indent=indent))
+    os.replace(tmp, path)
+
+
+def save_torch(path: Path, obj) -> None:
+    """``torch.save`` ``obj`` to ``path`` atomically (through ``path`` with suffix .tmp)."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def one_line(e: BaseException) -> str:
+    """An exception's message on one line, at most 200 characters."""
+    text = " ".join(str(e).split()) or e.__class__.__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+class RunDir:
+    """The output folder of one run (see the module docstring for its layout).
+
+    Args:
+        root: the folder (need not exist yet).
+    """
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        self._warned_state = False
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.root)!r})"
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def config(self) -> Path:
+        return self.root / "config.yaml"
+
+    @property
+    def views_file(self) -> Path:
+        return self.root / "views.json"
+
+    @property
+    def stages_file(self) -> Path:
+        return self.root / "stages.json"
+
+    @property
+    def timing_file(self) -> Path:
+        return self.root / "timing.json"
+
+    @property
+    def log_file(self) -> Path:
+        return self.root / "log"
+
+    @property
+    def points(self) -> Path:
+        return self.root / "points.ply"
+
+    def mesh(self, fmt: str = "ply") -> Path:
+        """OUT/mesh.ply, or OUT/mesh.obj for ``fmt`` "obj"."""
+        return self.root / ("mesh.obj" if fmt == "obj" else "mesh.ply")
+
+    @property
+    def field_dir(self) -> Path:
+        return self.root / "field"
+
+    @property
+    def model(self) -> Path:
+        """The fitted field (OUT/field/model.pt)."""
+        return self.field_dir / "model.pt"
+
+    @property
+    def refined_model(self) -> Path:
+        """The field after the finer-stage optimization (OUT/field/stage2/model.pt)."""
+        return self.field_dir / "stage2" / "model.pt"
+
+    @property
+    def surface_model(self) -> Path:
+        """The field refined through the fused points (OUT/field/surface.pt)."""
+        return self.field_dir / "surface.pt"
+
+    def render_depth_dir(self, refined: bool = False) -> Path:
+        """The field's rendered depth of the input views (the refined field's with
+        ``refined``)."""
+        return self.field_dir / ("stage2/render_depth" if refined else "render_depth")
+
+    def stage1_file(self, view: int) -> Path:
+        return self.root / "mvs" / "stage1" / f"{view}.npz"
+
+    @property
+    def depth_dir(self) -> Path:
+        return self.root / "depth"
+
+    @property
+    def unguided_dir(self) -> Path:
+        return self.root / "unguided"
+
+    @property
+    def network_dir(self) -> Path:
+        return self.root / "network"
+
+    def view_files(self, folder: Path, views: Sequence[int], suffix: str = ".npy"
+                   ) -> dict[int, Path]:
+        """{view: folder/<view><suffix>}."""
+        return {v: folder / f"{v}{suffix}" for v in views}
+
+    @staticmethod
+    def save_npy(path: Path, arr: np.ndarray) -> None:
+        """Write ``arr`` to ``path`` (.npy) atomically (`save_npy`)."""
+        save_npy(path, arr)
+
+    def is_run(self) -> bool:
+        """A finished reconstruct wrote config.yaml and views.json here."""
+        return self.config.is_file() and self.views_file.is_file()
+
+    # ------------------------------------------------------------------ views.json
+    def read_views(self) -> dict:
+        """OUT/views.json: {"inputs": [ids], "test": [ids], "size": [W, H], "scene": path}."""
+        return json.loads(self.views_file.read_text())
+
+    def write_views(self, inputs: list[int], test: list[int], size: tuple[int, int],
+                    scene: str) -> None:
+        tmp = self.root / "views.json.tmp"
+        tmp.write_text(json.dumps({"inputs": inputs, "test": test, "size": list(size),
+                                   "scene": scene}, indent=1))
+        os.replace(tmp, self.views_file)
+
+    # ------------------------------------------------------------------ stage state
+    def state(self) -> dict:
+        """OUT/stages.json: {stage: key}; {} (with one warning) when it is unreadable."""
+        p = self.stages_file
+        if not p.is_file():
+            return {}
+        try:
+            st = json.loads(p.read_text())
+            if isinstance(st, dict):
+                return st
+        except (ValueError, UnicodeDecodeError):
+            pass
+        if not self._warned_state:  # mark replaces it
+            log.warning("%s is unreadable; no stage counts as finished", p)
+            self._warned_state = True
+        return {}
+
+    def mark(self, stage: str, key: str) -> None:
+        """Record ``stage`` as finished under ``key``."""
+        st = self.state()
+        st[stage] = key
+        save_json(self.stages_file, st)
+
+    def unmark(self, stages: Sequence[str]) -> None:
+        """Forget ``stages`` (their files no longer follow from earlier ones)."""
+        save_json(self.stages_file, {k: v for k, v in self.state().items() if k not in stages})
+
+    def done(self, stage: str, key: str) -> bool:
+        """``stage`` finished under ``key``."""
+        return self.state().get(stage) == key
+
+    # ------------------------------------------------------------------ timing
+    def write_timing(self, timing: dict) -> None:
+        """Merge ``timing`` ({stage: {...}}) into OUT/timing.json (rewritten when unreadable)."""
+        prev = {}
+        tp = self.timing_file
+        if tp.is_file():
+            try:
+                prev = json.loads(tp.read_text())
+            except (ValueError, UnicodeDecodeError):
+                prev = None
+            if not isinstance(prev, dict):
+                log.warning("%s is unreadable; rewriting it", tp)
+                prev = {}
+        prev.update(timing)
+        save_json(tp, prev)
+
+    # ------------------------------------------------------------------ lock
+    @contextlib.contextmanager
+    def lock(self):
+        """Hold an exclusive lock on OUT/.svolsdf.lock for a run.
+
+        Two runs writing one output folder would mix their stages. The lock is an advisory
+        ``flock`` that the operating system drops when the process ends, so a killed run never
+        leaves a stale lock behind. Where ``fcntl`` does not exist (Windows) runs are not
+        locked.
+
+        Raises:
+            InputError: another process holds the folder; the message names the folder and its
+                pid.
+        """
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX
+            yield
+            return
+        out = self.root
+        path = out / ".svolsdf.lock"
+        f = open(path, "a+")  # noqa: SIM115 - held for the whole run
+        try:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                f.seek(0)
+                pid = f.read().strip() or "?"
+                raise InputError(f"{out}: another svolsdf run (pid {pid}) is writing this "
+                                 "folder; wait for it or choose another output folder") from None
+            f.seek(0)
+            f.truncate()
+            f.write(str(os.getpid()))
+            f.flush()
+            yield
+        finally:
+            f.close()
+
+    # ------------------------------------------------------------------ log
+    def attach_log(self) -> logging.Handler | None:
+        """Append the package's messages to OUT/log; returns the handler to remove afterwards
+        (None when one already writes there)."""
+        root = logging.getLogger("svolsdf")
+        if root.level == logging.NOTSET or root.level > logging.INFO:
+            root.setLevel(logging.INFO)
+        path = str(self.log_file.resolve())
+        if any(isinstance(h, logging.FileHandler) and h.baseFilename == path
+               for h in root.handlers):
+            return None
+        h = logging.FileHandler(path)
+        h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        root.addHandler(h)
+        return h
+
+    def log_to_file(self, logger: logging.Logger, level: int, msg: str,
+                    exc_info: bool = False) -> None:
+        """Write ``msg`` to OUT/log alone, as ``logger``'s record (the console gets it from the
+        command line)."""
+        path = str(self.log_file.resolve())
+        for h in logging.getLogger("svolsdf").handlers:
+            if isinstance(h, logging.FileHandler) and h.baseFilename == path:
+                rec = logger.makeRecord(logger.name, level, __file__, 0, msg, (),
+                                        sys.exc_info() if exc_info else None)
+                with contextlib.suppress(Exception):
+                    h.handle(rec)

@@ -1,0 +1,521 @@
+"""The reconstruction pipeline: every stage in order, each result kept on disk, with resume.
+
+Stages (ARCHITECTURE.md "Data flow"; METHOD.md 0 and 6):
+
+1. ``mvs1``: stage-1 probability volumes of the input views (OUT/mvs/stage1/<id>.npz).
+2. ``field``: the S-VolSDF optimization (OUT/field/model.pt; checkpoints in OUT/field/).
+3. ``guide``: rendered z-depth of the input views, which replaces the stage-1 depth
+   (METHOD.md 6.1; OUT/field/render_depth/<id>.npy).
+4. ``mvs23``: stages 2 and 3 centred on that depth (OUT/mvs/stage{2,3}, OUT/depth/<id>.npy).
+5. ``unguided`` (``output.fusion_unguided``, the fast preset's; not in the paper): stages 2 and 3
+   centred on the stage-1 depth, as the backbone alone runs them (OUT/unguided/depth/<id>.npy);
+   fusion takes them as every view's second depth hypothesis.
+6. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, METHOD.md 6.3).
+7. ``mesh``: marching cubes of the SDF (OUT/mesh.ply).
+
+A stage is skipped on a rerun when its marker in OUT/stages.json carries the same config hash
+(`svolsdf.pipeline.keys`); a changed config reruns that stage and everything after it. The
+optimization resumes from its last checkpoint after a kill. All files are written atomically
+(`svolsdf.pipeline.rundir`). The algorithms live in their components; this module orders them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from svolsdf.config import Config, save_config, validate_config
+from svolsdf.errors import InputError, RunInterrupted
+from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.pipeline import builders, options
+from svolsdf.pipeline.keys import STAGES
+from svolsdf.pipeline.machine import peak_rss_gb, set_threads
+from svolsdf.pipeline.run import Run, load_model
+from svolsdf.pipeline.rundir import one_line, save_npy, save_torch
+
+__all__ = ["Pipeline"]
+
+# the run's messages in OUT/log keep the logger name they always had
+log = logging.getLogger("svolsdf.pipeline")
+
+
+def _load_maps(files: dict[int, Path]) -> dict[int, torch.Tensor]:
+    """{view: (H, W) map} from .npy files."""
+    return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+
+
+class Pipeline(Run):
+    """Runs a `Config` into an output folder.
+
+    Args:
+        cfg: the run's configuration (``cfg.scene.path`` must be set).
+        out: the output folder (created; must not be a file).
+        progress: show progress bars.
+    """
+
+    def __init__(self, cfg: Config, out: str | Path, progress: bool = True):
+        cfg = validate_config(cfg)  # a bad value fails here, before any stage
+        out = Path(out)
+        if out.exists() and not out.is_dir():
+            raise InputError(f"{out}: output path exists and is not a folder")
+        if not cfg.scene.path:
+            raise InputError("no scene given (scene.path is empty)")
+        super().__init__(cfg, out, progress=progress)
+        self.timing: dict[str, dict] = {}
+        self._net: tuple | None = None  # (its config, the fusion network's backbone)
+        self._stage = "setup"  # the stage run() is in, for the message of an interrupt
+        self._trainer = None  # the field stage's Trainer while it runs (its step, ditto)
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _reuse(self, stage: str, read, discard: Path | None = None):
+        """``read()`` the files of a finished (or, for the field, started) ``stage``; None when
+        one is unreadable: a warning says so, ``discard`` is deleted, and the stage and the later
+        ones run again."""
+        try:
+            return read()
+        except Exception as e:  # a truncated or corrupt file: numpy, zip or pickle errors
+            what = f"{discard} is" if discard is not None else "a file of the stage is"
+            log.warning("%s: %s unreadable (%s); discarding it and running the stage %s again",
+                        self.out, what, one_line(e), stage)
+            if discard is not None:
+                discard.unlink(missing_ok=True)
+            self.dir.unmark(STAGES[STAGES.index(stage):])
+            return None
+
+    def _mark(self, stage: str) -> None:
+        self.dir.mark(stage, self.keys[stage])
+
+    def _done(self, stage: str) -> bool:
+        return self.dir.done(stage, self.keys[stage])
+
+    def _time(self, stage: str, t0: float, **extra) -> None:
+        self.timing[stage] = {"seconds": round(time.perf_counter() - t0, 3),
+                              "peak_memory_gb": round(peak_rss_gb(), 3), **extra}
+        self.dir.write_timing(self.timing)
+
+    def model(self):
+        """The fitted field (runs the field stage when it has not run in this process)."""
+        if self._model is None:
+            self.stage_field()
+        return self._model
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> dict:
+        """Run (or resume) every stage; returns a summary dict.
+
+        Raises:
+            InputError: bad input (also written to OUT/log).
+            RunInterrupted: Ctrl-C; its message, also in OUT/log, names the stage that stopped
+                and says that a rerun resumes.
+        """
+        from svolsdf.io.folders import ensure_writable_folder
+
+        t_all = time.perf_counter()
+        self._check_options()
+        ensure_writable_folder(self.out)
+        with self.dir.lock():
+            handler = self.dir.attach_log()
+            try:
+                return self._run(t_all)
+            except KeyboardInterrupt:
+                msg = self._interrupt_message()
+                self.dir.log_to_file(log, logging.WARNING, msg)
+                raise RunInterrupted(msg) from None
+            except InputError as e:  # the command line prints it; OUT/log keeps it too
+                self.dir.log_to_file(log, logging.ERROR, f"error: {e}")
+                raise
+            except Exception as e:
+                self.dir.log_to_file(log, logging.ERROR, f"failed in stage {self._stage}: "
+                                     f"{one_line(e)}", exc_info=True)
+                raise
+            finally:
+                if handler is not None:  # this run's OUT/log only gets this run's messages
+                    logging.getLogger("svolsdf").removeHandler(handler)
+                    handler.close()
+
+    def _check_options(self) -> None:
+        """Fail on a missing scene folder or on backbone options (weights, scale) that cannot
+        run before the output folder is touched."""
+        path = Path(self.cfg.scene.path)
+        if not path.exists():
+            raise InputError(f"{path}: scene folder does not exist")
+        if not path.is_dir():
+            raise InputError(f"{path} is not a folder; pass the scene folder")
+        if options.runs_mvs1(self.cfg):
+            self.backbone()  # built once and dropped: its weights load again in stage 1
+        if options.wants_network(self.cfg):
+            self._network_backbone()  # kept: the fusion stage reuses it
+
+    def _interrupt_message(self) -> str:
+        msg = f"interrupted: stage {self._stage} stopped"
+        t, resumes = self._trainer, ""
+        if self._stage == "field" and t is not None:
+            msg += f" at step {t.step} of {self.cfg.train.steps}"
+            if self.cfg.train.checkpoint_every > 0:
+                resumes = "; the optimization continues from its last checkpoint"
+        return (f"{msg}; rerun the same command to resume (finished stages in {self.out} are "
+                f"kept{resumes})")
+
+    def _run(self, t_all: float) -> dict:
+        scene = self.load()
+        self.keys = self.stage_keys()
+        save_config(self.cfg, self.dir.config)
+        self.dir.write_views(self.views, self.test_view_ids, (scene.width, scene.height),
+                             str(self.cfg.scene.path))
+        threads = set_threads(self.cfg.threads)
+        log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s, %d torch thread(s)",
+                 scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,
+                 self.cfg.preset, threads)
+        # the mode's value and the options it allows: validate_config. Stage keys chain their
+        # inputs: a changed config reruns that stage and the later ones
+        stages = []
+        if options.runs_mvs1(self.cfg):
+            stages.append(("mvs1", self.stage_mvs1))
+        if self.has_field():
+            stages.append(("field", self.stage_field))
+        stages += [("guide", self.stage_guide), ("mvs23", self.stage_mvs23),
+                   ("unguided", self.stage_unguided), ("fusion", self.stage_fusion)]
+        if self.has_field():
+            stages.append(("mesh", self.stage_mesh))
+        for name, stage in stages:
+            self._stage = name
+            stage()
+        self._stage = "finish"
+        self._time("total", t_all)
+        return {"out": str(self.out), "points": str(self.dir.points),
+                "mesh": str(self.dir.mesh()) if self.has_field() else None,
+                "timing": self.timing}
+
+    # ------------------------------------------------------------------ stage 1
+    def backbone(self):
+        """The configured MVS backbone (`svolsdf.pipeline.builders.build_backbone`)."""
+        return builders.build_backbone(self.cfg, self.device)
+
+    def stage_mvs1(self) -> list[ProbabilityVolume]:
+        files = [self.dir.stage1_file(v) for v in self.views]
+        if self._done("mvs1") and all(f.is_file() for f in files):
+            vols = self._reuse("mvs1", lambda: [ProbabilityVolume.load(f) for f in files])
+            if vols is not None:
+                self._volumes1 = vols
+                return vols
+        t0 = time.perf_counter()
+        from svolsdf.mvs.cascade import run_cascade
+
+        res = run_cascade(self.backbone(), self.load(), stages=(1,))
+        files[0].parent.mkdir(parents=True, exist_ok=True)
+        for v in res[1]:
+            v.save(self.dir.stage1_file(v.view_id))
+        self._volumes1 = [v.to("cpu") for v in res[1]]  # as when read back from the files
+        self._mark("mvs1")
+        self._time("mvs1", t0)
+        return self._volumes1
+
+    # ------------------------------------------------------------------ field
+    def train_data(self):
+        """The field stage's `TrainData` (`svolsdf.pipeline.builders.build_train_data`)."""
+        scene = self.load()
+        mvs_depth = None
+        if self.cfg.train.ablation in ("mse", "no-prob-volume"):
+            mvs_depth = self._filtered_stage1_depth() / scene.normalization.scale
+        return builders.build_train_data(self.cfg, scene, mvs_depth)
+
+    def _filtered_stage1_depth(self) -> torch.Tensor:
+        """(V, H, W) stage-1 MVS depth (world), geometrically filtered, 0 where rejected, at the
+        working size (for the "mse" and "no-prob-volume" ablations)."""
+        from svolsdf.field.init import consistent_depths
+
+        scene = self.load()
+        depths, _ = consistent_depths(self.regressed_volumes1())  # >= 1 consistent source (6.3)
+        return torch.stack([F.interpolate(d[None, None], size=(scene.height, scene.width),
+                                          mode="nearest")[0, 0] for d in depths])
+
+    def stage_field(self):
+        """The S-VolSDF optimization (OUT/field/model.pt), resumed from OUT/field/checkpoint.pt
+        after an interrupt; an unreadable model or checkpoint is discarded (with a warning) and
+        the stage runs again."""
+        final = self.dir.model
+        torch.manual_seed(self.cfg.train.seed)  # the box (quantiles of a random subset) too
+        model = self.build_model()
+        if self._done("field") and final.is_file():
+            if self._reuse("field", lambda: load_model(model, final) or True, final):
+                self._model = model.to(self.device)
+                return self._model
+            torch.manual_seed(self.cfg.train.seed)  # a fresh model: the load may have filled
+            model = self.build_model()  # part of it
+        t0 = time.perf_counter()
+        tcfg = self.cfg.train
+        trainer = self._field_trainer(model)
+        if self.dir.state().get("field_partial") == self.keys["field"]:
+            ckpt = trainer.checkpoint_path()
+            if not self._reuse("field", lambda: trainer.load_checkpoint() or True, ckpt):
+                torch.manual_seed(tcfg.seed)  # start again, exactly as a fresh run
+                model = self.build_model()
+                trainer = self._field_trainer(model)
+        else:
+            self.dir.mark("field_partial", self.keys["field"])
+        self._trainer = trainer  # its step, for the message of an interrupt
+        trainer.fit(progress=self.progress)
+        self._trainer = None
+        final.parent.mkdir(parents=True, exist_ok=True)
+        save_torch(final, {"model_state_dict": model.state_dict(),
+                           "grid_resolution": getattr(model, "resolution", None),
+                           "bounds": getattr(model, "bounds", None)})
+        self._model = model
+        self._mark("field")
+        hist = trainer.history
+        self._time("field", t0, steps=tcfg.steps,
+                   steps_per_s=round(hist[-1]["steps_per_s"], 3) if hist else None)
+        return model
+
+    def _field_trainer(self, model):
+        """The `Trainer` of the field stage for a freshly built ``model`` (its grid initialised
+        from the stage-1 MVS depth where configured)."""
+        from svolsdf.optimize.trainer import Trainer
+        from svolsdf.prior.consistency import MVSPrior
+
+        tcfg = self.cfg.train
+        torch.manual_seed(tcfg.seed)
+        prior = None
+        if tcfg.mode == "svolsdf" and self._volumes1 is not None:
+            prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
+            if self.cfg.field.kind == "grid" and self.cfg.field.init == "mvs":
+                from svolsdf.field.init import init_grid_from_mvs
+
+                scene = self.load()
+                init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
+                                   scene.masks if self.cfg.output.use_masks else None,
+                                   unverified_weight=self.cfg.field.init_unverified_weight)
+        return Trainer(model, self.train_data(), tcfg, prior=prior,
+                       sampler=builders.build_sampler(self.cfg, prior),
+                       out_dir=self.dir.field_dir, device=self.device,
+                       grid_schedule=builders.grid_schedule(self.cfg))
+
+    # ------------------------------------------------------------------ guide depth
+    def stage_guide(self) -> dict[int, torch.Tensor] | None:
+        """World z-depth maps that replace the stage-1 depth (METHOD.md 6.1), or None."""
+        if self.cfg.train.mode == "mvs-only":
+            return None
+        files = self.dir.view_files(self.dir.render_depth_dir(), self.views)
+        if self._done("guide") and all(f.is_file() for f in files.values()):
+            maps = self._reuse("guide", lambda: _load_maps(files))
+            if maps is not None:
+                return maps
+        t0 = time.perf_counter()
+        if self.cfg.train.ablation == "soft-consistency-only":
+            from svolsdf.prior.consistency import consistency_depth
+
+            guide = consistency_depth(self._volumes1, self.load().normalization)
+        else:
+            guide = self._rendered_guide(previews=True)
+        for v, d in guide.items():
+            save_npy(files[v], d.numpy().astype(np.float32))
+        self._mark("guide")
+        psnr = getattr(self, "field_psnr", None)
+        self._time("guide", t0, **({"field_psnr": psnr} if psnr is not None else {}))
+        return guide
+
+    def _rendered_guide(self, previews: bool = False) -> dict[int, torch.Tensor]:
+        """The field's rendered z-depth (world) of each input view, with METHOD.md 6.1's rule
+        for pixels of accumulated weight < 0.2 (`svolsdf.render.views.guide_depths`)."""
+        from svolsdf.pipeline.previews import field_psnr, write_previews
+        from svolsdf.render.views import guide_depths
+
+        scene = self.load()
+        pixels = self.guide_pixels()
+        r = self.render_views(scene.cameras_unit, self.unit_near_far().to(self.device),
+                              pixels=pixels)
+        if previews:
+            self.field_psnr = field_psnr(scene, self.views, r["rgb"], pixels,
+                                         self.cfg.output.use_masks)
+            for i, v in enumerate(self.views):
+                write_previews(self.dir, v, r, i)
+        volumes = self.regressed_volumes1() if self._volumes1 is not None else None
+        return guide_depths(r["depth"], r["opacity"], self.views, scene.normalization.scale,
+                            self.cfg.output.low_weight_rule, volumes)
+
+    # ------------------------------------------------------------------ stages 2-3
+    def stage_mvs23(self) -> dict[int, torch.Tensor]:
+        """Final per-view depth: MVS stage 3 (guided by the field when there is one); for the
+        ``volsdf`` mode, the field's rendered depth itself."""
+        ddir = self.dir.depth_dir
+        files = self.dir.view_files(ddir, self.views)
+        if self._done("mvs23") and all(f.is_file() for f in files.values()):
+            maps = self._reuse("mvs23", lambda: _load_maps(files))
+            if maps is not None:
+                return maps
+        t0 = time.perf_counter()
+        from svolsdf.io.images import write_depth_preview
+
+        guide = self.stage_guide()
+        if self.cfg.train.mode == "volsdf":
+            depths = guide
+            for v, d in depths.items():
+                save_npy(files[v], d.numpy().astype(np.float32))
+                write_depth_preview(ddir / f"{v}.png", d)
+        else:
+            from svolsdf.mvs.cascade import run_and_save_cascade, save_cascade
+
+            def picture(d, p):
+                write_depth_preview(p, torch.from_numpy(d))
+
+            prev = {v.view_id: v for v in self._volumes1} if guide is None else None
+            stages = (2, 3)
+            if guide is None and self._volumes1 is None:
+                stages = (1, 2, 3)
+            earlier = {1: self._volumes1} if self._volumes1 is not None else None
+            if self.cfg.output.finer_stage_optimization and guide is not None:
+                from svolsdf.pipeline.finer import finer_stage_cascade
+
+                res = finer_stage_cascade(self, guide)
+                save_cascade({**res, **(earlier or {})}, self.out, picture=picture)
+                depths = {v.view_id: v.depth.float() for v in res[max(res)]}
+            else:  # one view at a time: only its finer volumes are in memory
+                depths = run_and_save_cascade(self.backbone(), self.load(), self.out,
+                                              stages=stages, guide_depth=guide, prev=prev,
+                                              earlier=earlier, picture=picture)
+        self._mark("mvs23")
+        self._time("mvs23", t0)
+        return depths
+
+    def _network_backbone(self):
+        """The `OutputConfig.fusion_network` backbone (its weights loaded and checked once per
+        config; `run` asks for it first, the fusion stage reuses it)."""
+        o = self.cfg.output
+        key = (o.fusion_network, o.fusion_network_weights, self.cfg.mvs.max_sources)
+        if self._net is None or self._net[0] != key:
+            self._net = (key, builders.build_network_backbone(self.cfg, self.device))
+        return self._net[1]
+
+    def stage_unguided(self) -> dict[int, torch.Tensor] | None:
+        """MVS stages 2-3 centred on the stage-1 depth, the backbone alone's cascade
+        (`OutputConfig.fusion_unguided`): OUT/unguided/{depth,confidence}/<view>.npy, confidence
+        the product over stages 1-3 (METHOD.md 6.2). None when the option does not apply."""
+        if not options.wants_unguided(self.cfg):
+            return None
+        udir = self.dir.unguided_dir
+        files = self.dir.view_files(udir / "depth", self.views)
+        if self._done("unguided") and all(f.is_file() for f in files.values()):
+            maps = self._reuse("unguided", lambda: _load_maps(files))
+            if maps is not None:
+                return maps
+        t0 = time.perf_counter()
+        from svolsdf.mvs.cascade import run_and_save_cascade
+
+        vols1 = self._volumes1 if self._volumes1 is not None else self.stage_mvs1()
+        # depth, confidence over stages 1-3, one view at a time
+        depths = run_and_save_cascade(self.backbone(), self.load(), udir, stages=(2, 3),
+                                      prev={v.view_id: v for v in vols1}, earlier={1: vols1},
+                                      volumes=False)
+        self._mark("unguided")
+        self._time("unguided", t0)
+        return depths
+
+    # ------------------------------------------------------------------ fusion, mesh
+    def stage_fusion(self) -> Path:
+        """Geometric-consistency filtering and fusion of the depth sets (OUT/points.ply)."""
+        path = self.dir.points
+        if self._done("fusion") and path.is_file():
+            return path
+        t0 = time.perf_counter()
+        from svolsdf.pipeline.fusion import fuse
+
+        n, extra = fuse(self, path)
+        self._mark("fusion")
+        self._time("fusion", t0, points=n, **extra)
+        log.info("fused %d points -> %s %s", n, path, extra.get("points_per_set", ""))
+        return path
+
+    def _mesh_cull_depths(self, refined: bool) -> torch.Tensor | None:
+        """(V, H, W) rendered depth of the input views (the refined field's with
+        ``refined``), for `cull_unseen`; None when it is missing or is not the surface (the
+        soft-consistency ablation's guide)."""
+        if self.cfg.train.ablation == "soft-consistency-only":
+            return None
+        sdir = self.dir.render_depth_dir(refined and self.dir.refined_model.is_file())
+        files = [sdir / f"{v}.npy" for v in self.views]
+        if not all(f.is_file() for f in files):
+            return None
+        maps = [torch.from_numpy(np.load(f)).float() for f in files]
+        if len({tuple(m.shape) for m in maps}) != 1:
+            return None
+        return torch.stack(maps)
+
+    def _surface_fitted_to_points(self, model):
+        """A copy of ``model`` whose SDF grid is refined to pass through OUT/points.ply
+        (`OutputConfig.mesh_fit_points`); saved as OUT/field/surface.pt."""
+        import copy
+
+        from svolsdf.field.fit import fit_sdf_to_points
+        from svolsdf.io.ply import read_ply
+
+        scene = self.load()
+        pts = read_ply(self.stage_fusion())["points"]
+        unit = scene.normalization.to_unit(torch.from_numpy(pts).double()).float()
+        fitted = copy.deepcopy(model)
+        fit_sdf_to_points(fitted, unit.to(self.device), steps=self.cfg.output.mesh_fit_points,
+                          seed=self.cfg.train.seed)
+        save_torch(self.dir.surface_model, {"model_state_dict": fitted.state_dict(),
+                                            "grid_resolution": getattr(fitted, "resolution",
+                                                                       None),
+                                            "bounds": getattr(fitted, "bounds", None)})
+        return fitted
+
+    def stage_mesh(self) -> Path:
+        """The mesh (OUT/mesh.ply or .obj): the field's zero level
+        (`svolsdf.fusion.meshing.field_mesh`) or the Poisson surface of the fused points
+        (`svolsdf.fusion.meshing.poisson_mesh`), culled by the input views."""
+        o = self.cfg.output
+        path = self.dir.mesh(o.mesh_format)
+        if self._done("mesh") and path.is_file():
+            return path
+        t0 = time.perf_counter()
+        from svolsdf.fusion.mesh import save_mesh
+        from svolsdf.fusion.meshing import field_mesh, field_mesh_colours, poisson_mesh
+
+        model = self.model()
+        if o.finer_stage_optimization and self.dir.refined_model.is_file():
+            # the field after the finer-stage optimization
+            load_model(model, self.dir.refined_model)
+        scene = self.load()
+        use_masks = scene.masks is not None and o.use_masks
+        if options.wants_poisson(self.cfg):
+            from svolsdf.io.ply import read_ply
+
+            d = read_ply(self.stage_fusion())
+            pts = d["points"]
+            if len(pts) < 100:
+                raise InputError(f"{self.dir.points}: {len(pts)} fused points, too few for a "
+                                 "Poisson mesh (output.mesh_method = poisson); use "
+                                 "output.mesh_method = field")
+            vw, f, cols = poisson_mesh(pts, d["colors"], model, scene, o.poisson_depth,
+                                       o.poisson_trim, use_masks=use_masks,
+                                       unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol,
+                                       device=self.device)
+            save_mesh(path, vw, f, cols, fmt=o.mesh_format)
+            self._mark("mesh")
+            self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)), method="poisson",
+                       points=int(len(pts)))
+            return path
+        fit = options.wants_mesh_fit(self.cfg)
+        if fit:
+            model = self._surface_fitted_to_points(model)
+        model.eval()
+        b = getattr(model, "bounds", None)
+        bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else self.field_bounds()
+        # the fitted surface moved away from the rendered depth: the views' depth of the mesh
+        # itself decides what they see
+        depths = "mesh" if fit else (lambda: self._mesh_cull_depths(o.finer_stage_optimization))
+        v, vw, f = field_mesh(model, bounds, scene, o.mesh_resolution,
+                              watertight=o.mesh_watertight, use_masks=use_masks,
+                              unseen=o.mesh_cull_unseen, depths=depths, rel_tol=o.mesh_cull_tol,
+                              device=self.device, progress=self.progress)
+        cols = field_mesh_colours(model, v, f, device=self.device)
+        save_mesh(path, vw, f, cols, fmt=o.mesh_format)
+        self._mark("mesh")
+        self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)))
+        return path

@@ -1,0 +1,66 @@
+"""Which views of a scene a run uses: the working size, the input views (DTU's protocol, a
+central view and its best sources, or ``--views auto``) and the held-out test views."""
+
+from __future__ import annotations
+
+import torch
+
+from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS
+from svolsdf.scene.scene import Scene
+
+__all__ = ["auto_views", "default_views", "test_views", "working_size"]
+
+
+def working_size(width: int, height: int, max_width: int = 768) -> tuple[int, int]:
+    """Default working size: ``max_width`` wide (never upsampled), height a multiple of 8."""
+    if width <= max_width:
+        return width - width % 8, height - height % 8
+    s = max_width / width
+    return max_width, max(8, int(round(height * s / 8)) * 8)
+
+
+def _is_dtu49(scene: Scene) -> bool:
+    return bool(scene.extras.get("dtu")) and set(range(49)) <= set(scene.view_ids)
+
+
+def default_views(scene: Scene, n: int = 3) -> list[int]:
+    """Input views: DTU's protocol (METHOD.md 1.4) on DTU scans, else a central view and its
+    n - 1 best source views (by the scene's pairs)."""
+    if _is_dtu49(scene):
+        return DTU_TRAIN_IDS[:n]
+    cams = scene.cameras
+    dirs = cams.view_dirs
+    mean = dirs.mean(0)
+    centre = int(torch.argmax(dirs @ mean))
+    ref = scene.view_ids[centre]
+    return [ref] + scene.source_views(ref)[: n - 1]
+
+
+def auto_views(scene: Scene, n: int = 3) -> list[int]:
+    """``--views auto``: n views with good overlap and baselines on any calibrated scene
+    (`svolsdf.scene.pairs.select_views`), from the views' shared sparse points (COLMAP scenes)
+    or points sampled in the object sphere, seen from the object centre."""
+    from svolsdf.scene.loaders import read_source
+    from svolsdf.scene.pairs import (
+        covisibility,
+        sample_sphere_points,
+        select_views,
+        visible_in_views,
+    )
+
+    src = read_source(scene.path, lighting=scene.extras.get("lighting", 3))
+    cams = scene.cameras
+    if src.points is not None and src.visibility is not None and len(src.points) > 0 and \
+            list(src.view_ids) == list(scene.view_ids):
+        vis = src.visibility
+    else:
+        vis = visible_in_views(cams, sample_sphere_points(scene.normalization, 4096))
+    pos = select_views(covisibility(vis), cams.centers, scene.normalization.center.reshape(3), n)
+    return [scene.view_ids[i] for i in pos]
+
+
+def test_views(scene: Scene, inputs: list[int]) -> list[int]:
+    """Held-out views: DTU's 15-view exclusion protocol on DTU scans, else every other view."""
+    if _is_dtu49(scene):
+        return [v for v in range(49) if v not in DTU_TRAIN_IDS and v not in DTU_EXCLUDED_IDS]
+    return [v for v in scene.view_ids if v not in inputs]
