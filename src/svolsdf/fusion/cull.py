@@ -12,8 +12,8 @@ import logging
 import torch
 from torch import Tensor
 
-from svolsdf.fusion.filter import dilate_mask
 from svolsdf.fusion.mesh import _check_mesh, _in_image, largest_component, submesh
+from svolsdf.geometry import dilate_mask
 from svolsdf.scene.cameras import Cameras
 
 __all__ = [

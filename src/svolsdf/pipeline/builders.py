@@ -192,7 +192,7 @@ def build_train_data(cfg: Config, scene: Scene, mvs_depth: torch.Tensor | None =
 
     focus = None
     if cfg.train.object_ray_fraction > 0 and scene.masks is not None and cfg.output.use_masks:
-        from svolsdf.fusion.filter import dilate_mask
+        from svolsdf.geometry import dilate_mask
 
         r = cfg.train.object_ray_dilation
         focus = torch.stack([dilate_mask(m[0], r) for m in scene.masks])

@@ -7,16 +7,9 @@ import torch
 
 from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS
 from svolsdf.scene.scene import Scene
+from svolsdf.scene.size import working_size  # re-exported: the one rule
 
 __all__ = ["auto_views", "default_views", "test_views", "working_size"]
-
-
-def working_size(width: int, height: int, max_width: int = 768) -> tuple[int, int]:
-    """Default working size: ``max_width`` wide (never upsampled), height a multiple of 8."""
-    if width <= max_width:
-        return width - width % 8, height - height % 8
-    s = max_width / width
-    return max_width, max(8, int(round(height * s / 8)) * 8)
 
 
 def _is_dtu49(scene: Scene) -> bool:

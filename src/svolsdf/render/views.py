@@ -90,7 +90,7 @@ def guide_pixels(masks: torch.Tensor | None, dilation: int | None) -> torch.Tens
     """
     if dilation is None or masks is None:
         return None
-    from svolsdf.fusion.filter import dilate_mask
+    from svolsdf.geometry import dilate_mask
 
     m = masks[:, 0] > 0.5  # (V, H, W) at the working size, as the cameras
     # a view whose mask is empty is rendered whole (its guide then follows the rule alone)

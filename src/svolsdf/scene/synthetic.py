@@ -64,6 +64,7 @@ from svolsdf.errors import InputError
 from svolsdf.io.folders import ensure_writable_folder
 from svolsdf.io.ply import atomic_path, write_mesh_ply, write_points_ply
 from svolsdf.scene.cameras import Cameras, decompose_projection
+from svolsdf.scene.size import parse_size  # re-exported: the one size parser
 from svolsdf.scene.synthetic_render import _World, render_view
 from svolsdf.scene.synthetic_shapes import OBJECT_KINDS, SynthObject, _sdf_grad, make_object
 
@@ -147,22 +148,6 @@ class SynthConfig:
             raise InputError(f"image size must be at least 8x8, got {self.width}x{self.height}")
         if self.supersample < 1:
             raise InputError(f"supersample must be >= 1, got {self.supersample}")
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """Parse ``"WxH"`` (e.g. ``"768x576"``) into (width, height); InputError when malformed."""
-    parts = str(text).lower().replace("*", "x").split("x")
-    try:
-        if len(parts) != 2:
-            raise ValueError
-        w, h = int(parts[0]), int(parts[1])
-    except ValueError:
-        raise InputError(
-            f"--size must look like WIDTHxHEIGHT (e.g. 768x576), got {text!r}"
-        ) from None
-    if w < 8 or h < 8 or w > 16384 or h > 16384:
-        raise InputError(f"--size {text!r}: width and height must be within 8..16384")
-    return w, h
 
 
 # =============================================================================== cameras
