@@ -212,9 +212,15 @@ def benchmark(
         "--lpips-net", help="LPIPS backbone: vgg or alex.")] = "vgg",
     report: Annotated[bool, typer.Option(
         "--report/--no-report", help="Also write each run's report.html.")] = False,
+    render: Annotated[bool, typer.Option(
+        "--render/--no-render", help="Render the held-out views (volume rendering and IBR) of "
+                                     "runs with a field for PSNR / SSIM / LPIPS.")] = True,
+    render_size: Annotated[str | None, typer.Option(
+        "--render-size", help="Size WxH of those renders (default: the working size).")
+    ] = None,
     executor: Annotated[str, typer.Option(
         "--executor", help="Where the jobs run: local (this process, one after another) or "
-                           "ray (one Ray task per job; pip install \"svolsdf[cluster]\").")
+                           "ray (one Ray task per job; pip install \"svolsdf\\[cluster]\").")
     ] = "local",
     address: Annotated[str | None, typer.Option(
         "--address", help="Ray cluster to join, e.g. auto or ray://head:10001 (default: start "
@@ -229,8 +235,9 @@ def benchmark(
     """Run the pipeline on scenes x modes (x view sets), evaluate, and tabulate like the paper's
     Table 1.
 
-    Ground truth: gt_points.ply of synthetic scenes, or DTU's with --dtu-gt. Image metrics on the
-    held-out views that have renders. Each job runs into OUT/<scene>/<mode>/; a rerun skips
+    Ground truth: synthetic scenes their own (what the input views observe, as evaluate), DTU's
+    with --dtu-gt. Image metrics on the held-out views, rendered by each run with a field.
+    Each job runs into OUT/<scene>/<mode>/; a rerun skips
     finished jobs and resumes interrupted ones. Writes OUT/benchmark.md, .csv, .json and .png.
     """
     from svolsdf.evaluate.benchmark import BenchmarkConfig, run_benchmark
@@ -244,6 +251,8 @@ def benchmark(
         views=sets[0] if len(sets) == 1 else None, view_sets=sets if len(sets) > 1 else None,
         size=None if size is None else parse_size(size),
         device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report,
+        render=render, render_size=None if render_size is None else parse_size(render_size,
+                                                                               "--render-size"),
         executor=ExecutorConfig(name=executor, address=address, cpus_per_job=cpus_per_job,
                                 gpus_per_job=gpus_per_job))
     try:

@@ -294,7 +294,8 @@ class OutputConfig:
     finer_stage_optimization: bool = False
     """Paper option (METHOD.md 9.2.13; the released code forbids it): after stage 2, optimize
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
-    its depth again and centre stage 3 on it (svolsdf mode; `svolsdf.pipeline.finer.finer_stage_cascade`)."""
+    its depth again and centre stage 3 on it (svolsdf mode;
+    `svolsdf.pipeline.finer.finer_stage_cascade`)."""
 
 
 @dataclass

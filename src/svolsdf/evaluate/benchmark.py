@@ -65,8 +65,9 @@ log = logging.getLogger(__name__)
 MODES = ("svolsdf", "mvs-only", "volsdf")
 """The pipeline's modes (``cfg.train.mode``)."""
 
-METRIC_KEYS = ("accuracy", "completeness", "overall", "fscore", "psnr", "ssim", "lpips",
-               "mesh_overall", "time_s")
+METRIC_KEYS = ("accuracy", "completeness", "overall", "overall_dtu_rule", "fscore", "psnr",
+               "ssim", "lpips", "psnr_ibr", "ssim_ibr", "lpips_ibr", "mesh_overall",
+               "mesh_overall_dtu_rule", "time_s")
 """Numeric keys of a per-run metrics dict (None when not computed)."""
 
 
@@ -103,6 +104,11 @@ class BenchmarkConfig:
     """LPIPS weights file or folder (default: shared/weights/lpips)."""
     report: bool = False
     """Also write each run's report.html."""
+    render: bool = True
+    """Render the held-out (test) views of runs with a field, by volume rendering and IBR,
+    before scoring, so that the table has PSNR / SSIM / LPIPS (METHOD.md 7, 8.2)."""
+    render_size: tuple[int, int] | None = None
+    """(W, H) of those renders; None: the working size. Ground-truth images are resized to it."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     """Where the jobs run: in this process (local) or as Ray tasks (`ExecutorConfig`)."""
 
@@ -132,14 +138,19 @@ def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
     protocol)."""
     c = metrics.get("chamfer") or {}
     cm = metrics.get("chamfer_mesh") or {}
-    im = metrics.get("images") or {}
+
+    def image(block: str, key: str):
+        return ((metrics.get(block) or {}).get(key) or {}).get("mean")
+
     return {"scene": scene, "mode": mode, "status": status,
             "accuracy": c.get("accuracy"), "completeness": c.get("completeness"),
-            "overall": c.get("overall"), "protocol": c.get("protocol"),
-            "fscore": metrics.get("fscore"),
-            "psnr": (im.get("psnr") or {}).get("mean"), "ssim": (im.get("ssim") or {}).get("mean"),
-            "lpips": (im.get("lpips") or {}).get("mean"),
-            "mesh_overall": cm.get("overall"), "time_s": time_s}
+            "overall": c.get("overall"), "overall_dtu_rule": c.get("overall_dtu_rule"),
+            "protocol": c.get("protocol"), "fscore": metrics.get("fscore"),
+            **{k + sfx: image(block, k) for block, sfx in (("images", ""),
+                                                           ("images_ibr", "_ibr"))
+               for k in ("psnr", "ssim", "lpips")},
+            "mesh_overall": cm.get("overall"),
+            "mesh_overall_dtu_rule": cm.get("overall_dtu_rule"), "time_s": time_s}
 
 
 def _stage_seconds(run_dir: Path) -> float | None:
@@ -161,6 +172,10 @@ def _ground_truth(cfg: BenchmarkConfig, scene: Path) -> dict:
         scan = scan_number(scene) or cfg.scan
         if scan is not None:
             return {"dtu_gt": Path(cfg.dtu_gt).absolute(), "scan": int(scan)}
+    from svolsdf.evaluate.synthetic import is_synthetic_scene
+
+    if is_synthetic_scene(scene):  # as `svolsdf evaluate`: what the input views observe
+        return {}
     gt = scene / "gt_points.ply"
     if gt.is_file():
         return {"gt_points": gt}
@@ -191,6 +206,9 @@ class BenchmarkJob:
     evaluate: dict = field(default_factory=dict)
     """`EvaluateConfig` options: ground truth (gt_points or dtu_gt + scan), lpips_net,
     lpips_weights, report."""
+    render: dict | None = None
+    """Held-out views to render before scoring: ``{"size": [W, H] or None}`` (volume
+    rendering and IBR of the run's test views); None: none."""
 
     def key(self) -> str:
         """What decides the job's row (not where or on what device it runs): a finished run
@@ -198,10 +216,16 @@ class BenchmarkJob:
         over = {k: v for k, v in self.overrides.items() if k != "device"}
         text = json.dumps({"scene": str(Path(self.scene).resolve()), "mode": self.mode,
                            "views": self.views, "preset": self.preset, "overrides": over,
-                           "evaluate": self.evaluate, "label": self.label},
+                           "evaluate": self.evaluate, "label": self.label,
+                           # rows before the held-out renders and the synthetic protocol
+                           "render": self.render, "rows": ROW_VERSION},
                           sort_keys=True, default=str)
         return hashlib.sha1(text.encode()).hexdigest()[:16]
 
+
+ROW_VERSION = 2
+"""Bumped when a row's contents change (2: held-out renders, the synthetic protocol, DTU-rule
+and IBR columns): finished runs are scored again, their stages reused."""
 
 ROW_FILE = "benchmark_row.json"
 """A finished job's row in its run folder, with the job's `BenchmarkJob.key`."""
@@ -237,6 +261,8 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
                 jobs.append(BenchmarkJob(
                     scene=scene, label=row, mode=mode, views=views, out=base / mode,
                     preset=cfg.preset, evaluate=ev,
+                    render={"size": list(cfg.render_size) if cfg.render_size else None}
+                    if cfg.render and mode != "mvs-only" else None,
                     overrides={"train.steps": cfg.steps, "scene.views": views,
                                "scene.image_size": list(cfg.size) if cfg.size else None,
                                "device": cfg.device}))
@@ -291,6 +317,11 @@ def run_job(job: BenchmarkJob) -> dict:
     try:
         pipeline_module.Pipeline(job_config(job), out, progress=False).run()
         elapsed = time.perf_counter() - t0
+        if job.render is not None and run_views(out, "test"):
+            from svolsdf.render.novel import render_outputs
+
+            render_outputs(out, views=run_views(out, "test"), ibr=True,
+                           size=job.render.get("size"), progress=False)
         metrics = evaluate_run(EvaluateConfig(
             out=out, scene=Path(job.scene), views=run_views(out, "test"),
             extra={"benchmark": {"scene": job.label, "mode": job.mode}}, **job.evaluate))

@@ -48,8 +48,11 @@ def _grid(rows: list[dict], modes: list[str] | None) -> tuple[list[str], list[st
 def _columns(rows: list[dict]) -> list[tuple[str, str, int]]:
     """(key, header, digits) per mode; PSNR only when some run has it."""
     cols = [("accuracy", "Acc.", 2), ("completeness", "Comp.", 2), ("overall", "Chamfer", 2)]
-    if any(r.get("psnr") is not None for r in rows):
-        cols.append(("psnr", "PSNR", 2))
+    optional = [("overall_dtu_rule", "DTU rule", 2), ("mesh_overall", "mesh", 2),
+                ("mesh_overall_dtu_rule", "mesh DTU rule", 2), ("psnr", "PSNR", 2),
+                ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3), ("psnr_ibr", "PSNR IBR", 2),
+                ("ssim_ibr", "SSIM IBR", 3), ("lpips_ibr", "LPIPS IBR", 3)]
+    cols += [c for c in optional if any(r.get(c[0]) is not None for r in rows)]
     cols.append(("time_s", "time (s)", 0))
     return cols
 
@@ -121,7 +124,12 @@ def benchmark_markdown(rows: list[dict], modes: list[str] | None = None,
     out.append("Chamfer: accuracy (prediction -> ground truth), completeness (ground truth -> "
                "prediction) and their mean, of the fused point cloud, in the scene's world units "
                f"(DTU: mm); protocol: {', '.join(protocols) if protocols else 'none'}. "
-               + ("PSNR on held-out views. " if "psnr" in [k for k, _, _ in cols] else "")
+               + ("'DTU rule': distances beyond the clipping distance left out. "
+                  if "overall_dtu_rule" in [k for k, _, _ in cols] else "")
+               + ("'mesh': the same of mesh.ply. " if "mesh_overall" in [k for k, _, _ in cols]
+                  else "")
+               + ("PSNR / SSIM / LPIPS on held-out views, by volume rendering and by IBR. "
+                  if "psnr" in [k for k, _, _ in cols] else "")
                + "Time: the pipeline's stage times. "
                "'-': not computed; '*': mean over fewer scenes than the table has.")
     failed = [r for r in rows if r.get("status", "ok") != "ok"]
