@@ -1,0 +1,107 @@
+"""The ``svolsdf`` command: argument parsing only; the work happens in the package.
+
+Each sub-command maps its options onto the package's functions / dataclass configs. Bad input
+(`svolsdf.errors.InputError` and its subclasses, missing files) ends with exit status 2 and one
+line naming the file and the problem; ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+
+import typer
+
+from svolsdf.cli import results, runs  # noqa: F401  (registers the commands on the app)
+from svolsdf.cli.app import _Stopped, app, build_config
+from svolsdf.errors import InputError
+
+__all__ = ["app", "build_config", "join_list_options", "main"]
+
+_LIST_OPTIONS = ("--views", "--scenes", "--modes")
+
+
+def join_list_options(argv: list[str]) -> list[str]:
+    """``--views 25 22 28`` -> ``--views "25 22 28"`` (typer options take one value each).
+
+    Tokens after a list option are joined until the next token that starts with ``-`` (a negative
+    number still counts as a value) or, for ``--views``, is not an integer.
+    """
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        out.append(tok)
+        i += 1
+        if tok in _LIST_OPTIONS:
+            vals = []
+            while i < len(argv):
+                t = argv[i]
+                is_num = t.lstrip("-").replace(",", "").isdigit()
+                if (t.startswith("-") and not is_num) or (tok == "--views" and vals and not is_num):
+                    break
+                vals.append(t)
+                i += 1
+            if vals:
+                out.append(" ".join(vals))
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point (``svolsdf``).
+
+    Exit status: 0 done; 2 bad input, a bad option, or a file or folder that cannot be read or
+    written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one line; a
+    stopped reconstruction names its stage, and a rerun resumes it).
+    """
+    argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
+    debug = "--debug" in argv
+    got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
+
+    def terminate(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, terminate)
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
+    try:
+        # without standalone mode typer returns the status of typer.Exit, and of Ctrl-C (130)
+        code = app(args=argv, standalone_mode=False)
+    except _Stopped as e:
+        print(e, file=sys.stderr)
+        raise SystemExit(128 + got[0] if got else 130) from None
+    except (InputError, OSError) as e:  # OSError: a missing, unreadable or unwritable path
+        if debug:
+            raise
+        msg = str(e) if not isinstance(e, OSError) or not e.filename else (
+            f"{e.filename}: {e.strerror or e}"
+        )
+        print(f"error: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except typer.Exit as e:
+        raise SystemExit(e.exit_code) from None
+    except typer.Abort:
+        print("aborted", file=sys.stderr)
+        raise SystemExit(130) from None
+    except Exception as e:
+        # click's usage errors (an unknown option, a bad value): the message, not a traceback.
+        # Recognised by their interface: typer >= 0.2x raises its vendored copy of click's
+        # classes, older typer the click package's own
+        if callable(getattr(e, "show", None)) and isinstance(getattr(e, "exit_code", None), int):
+            e.show()
+            raise SystemExit(e.exit_code) from None
+        raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if code == 130:
+        print("terminated" if got else "interrupted", file=sys.stderr)
+        code = 128 + got[0] if got else 130
+    if isinstance(code, int) and code != 0:
+        raise SystemExit(code)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""The typer application, its root options, and the option parsing the commands share."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from svolsdf.errors import InputError, RunInterrupted
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="S-VolSDF: surfaces, point clouds and novel views from a few calibrated photos.",
+    pretty_exceptions_enable=False,
+)
+
+_STATE = {"debug": False}
+
+
+class _Stopped(Exception):
+    """A run that Ctrl-C stopped, with its message (typer would turn the `RunInterrupted`, a
+    KeyboardInterrupt, into a bare exit status 130)."""
+
+
+def _run_pipeline(pipeline) -> dict:
+    try:
+        return pipeline.run()
+    except RunInterrupted as e:
+        raise _Stopped(str(e)) from None
+
+
+@app.callback()
+def _root(
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="More log output.")] = False,
+) -> None:
+    _STATE["debug"] = debug
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+
+
+
+
+# --------------------------------------------------------------------------- info
+def _parse_views(text: str | None) -> list[int] | None:
+    """'25,22,28' or '25 22 28' -> [25, 22, 28]; None -> None."""
+    if text is None:
+        return None
+    out = []
+    for tok in text.replace(",", " ").split():
+        try:
+            v = int(tok)
+        except ValueError:
+            raise InputError(f"--views: '{tok}' is not a view id (give integers, e.g. "
+                             f"--views 25,22,28)") from None
+        if v in out:
+            raise InputError(f"--views {text}: view {v} is given twice (give each view once)")
+        out.append(v)
+    if not out:
+        raise InputError("--views: no view ids given (e.g. --views 25,22,28)")
+    return out
+
+
+def _parse_auto_views(text: str | None) -> int | None:
+    """'auto' -> 3, 'auto 5' -> 5; anything else -> None (view ids)."""
+    if text is None:
+        return None
+    tok = text.replace(",", " ").split()
+    if not tok or tok[0].lower() != "auto":
+        return None
+    if len(tok) > 2 or (len(tok) == 2 and not tok[1].isdigit()):
+        raise InputError(f"--views: '{text}' is neither view ids nor 'auto [N]' (e.g. --views "
+                         f"auto 3)")
+    n = int(tok[1]) if len(tok) == 2 else 3
+    if n < 2:
+        raise InputError(f"--views auto {n}: need at least 2 views")
+    return n
+
+
+
+
+# --------------------------------------------------------------------------- reconstruct / demo
+def _parse_size(text: str | None) -> list[int] | None:
+    """'768x576' -> [768, 576]; None stays None (`svolsdf.scene.size.parse_size`)."""
+    from svolsdf.scene.size import parse_size
+
+    return None if text is None else list(parse_size(text))
+
+
+def build_config(scene: Path | None, config: Path | None, preset_name: str | None,
+                 overrides: dict, labels: dict[str, str] | None = None,
+                 sets: list[str] | None = None) -> object:
+    """Config from --config (or the preset), then the command-line overrides, then ``--set``
+    items, validated (`svolsdf.config.validate_config`) before anything runs.
+
+    Args:
+        overrides: dotted config key -> value (None: not given).
+        labels: dotted config key -> its option, for error messages.
+        sets: ``--set section.option=value`` items (`svolsdf.config.parse_set`).
+    """
+    from svolsdf.config import apply_overrides, load_config, parse_set, preset
+
+    if config is not None:
+        cfg = load_config(config)
+        if preset_name is not None and preset_name != cfg.preset:
+            raise InputError(f"--preset {preset_name} contradicts {config} (preset "
+                             f"{cfg.preset}); drop one of them")
+    else:
+        cfg = preset(preset_name or "fast")
+    apply_overrides(cfg, {"scene.path": None if scene is None else str(scene), **overrides},
+                    labels={"scene.path": "SCENE", **(labels or {})})
+    given = parse_set(sets)
+    if given:
+        apply_overrides(cfg, given, labels={k: f"--set {k}" for k in given}, skip_none=False)
+    if not cfg.scene.path:
+        raise InputError("no scene given (pass SCENE or a --config with scene.path)")
+    return cfg
+
+
+
+
+#: config key -> the `reconstruct` option that sets it (for error messages)
+_RECONSTRUCT_OPTIONS = {
+    "scene.views": "--views", "scene.image_size": "--size", "mvs.backbone": "--backbone",
+    "mvs.weights": "--weights", "mvs.scale": "--mvs-scale", "train.mode": "--mode",
+    "train.ablation": "--ablation", "train.steps": "--steps", "device": "--device",
+    "output.mesh_resolution": "--mesh-resolution", "train.seed": "--seed",
+    "field.background": "--background", "threads": "--threads",
+    "output.fusion_network": "--fusion-network",
+    "output.fusion_network_weights": "--fusion-network",
+}
+
+

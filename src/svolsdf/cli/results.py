@@ -1,0 +1,198 @@
+"""Commands over finished runs: evaluate, report, benchmark, render."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
+from svolsdf.errors import RunInterrupted
+
+
+# --------------------------------------------------------------------------- evaluate
+@app.command("evaluate")
+def evaluate(
+    out: Annotated[Path, typer.Argument(help="Run folder (points.ply, mesh.ply, renders/, ...).")],
+    gt_points: Annotated[Path | None, typer.Option(
+        "--gt-points", help="Ground-truth points (.ply or (N,3) .npy) for the generic Chamfer "
+                            "and F-score.")] = None,
+    dtu_gt: Annotated[Path | None, typer.Option(
+        "--dtu-gt", help="DTU ground-truth root (ObsMask/, Points/stl/): DTU Chamfer protocol."
+    )] = None,
+    scan: Annotated[int | None, typer.Option(
+        "--scan", help="DTU scan number (default: from the scene).")] = None,
+    scene: Annotated[Path | None, typer.Option(
+        "--scene", help="Scene folder with the ground-truth images (default: from "
+                        "OUT/config.yaml).")] = None,
+    views: Annotated[str | None, typer.Option(
+        "--views", help="View ids to evaluate, e.g. '1,2,9' (default: every "
+                        "renders/<id>.png).")] = None,
+    threshold: Annotated[float | None, typer.Option(
+        "--threshold", help="F-score threshold in world units (default: 1% of the ground "
+                            "truth's bounding-box diagonal).")] = None,
+    lpips_net: Annotated[str, typer.Option(
+        "--lpips-net", help="LPIPS backbone: vgg (the paper's) or alex.")] = "vgg",
+    lpips_weights: Annotated[Path | None, typer.Option(
+        "--lpips-weights", help="LPIPS weights file or folder (default: shared/weights/lpips)."
+    )] = None,
+    ssim_data_range: Annotated[float, typer.Option(
+        "--ssim-data-range", help="SSIM data range; 2.0 reproduces the released code.")] = 1.0,
+    no_report: Annotated[bool, typer.Option(
+        "--no-report", help="Write metrics.json only.")] = False,
+) -> None:
+    """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+
+    cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
+                         views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
+                         lpips_weights=lpips_weights, ssim_data_range=ssim_data_range,
+                         report=not no_report)
+    m = evaluate_run(cfg)
+    c, im = m["chamfer"], m["images"]
+    lp = im["lpips"]
+    typer.echo(f"chamfer acc {c['accuracy']} comp {c['completeness']} overall {c['overall']}; "
+               f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
+               f"lpips {lp['mean']}" + (f" ({lp['missing']})" if lp.get("missing") and
+                                        im["psnr"]["mean"] is not None else ""))
+    typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
+                                                   f" and {out / 'report.html'}"))
+
+
+@app.command("report")
+def report(
+    out: Annotated[Path, typer.Argument(help="Run folder (points.ply, mesh.ply, renders/, ...).")],
+    scene: Annotated[Path | None, typer.Option(
+        "--scene", help="Scene folder with the input photos (default: from OUT/config.yaml).")
+    ] = None,
+) -> None:
+    """Regenerate OUT/report.html from the run folder and OUT/metrics.json (no metrics computed:
+    `svolsdf evaluate` computes them and writes the report too)."""
+    from svolsdf.evaluate.run import write_run_report
+
+    path = write_run_report(out, scene_path=scene)
+    typer.echo(f"report {path}")
+
+
+# --------------------------------------------------------------------------- benchmark
+@app.command("benchmark")
+def benchmark(
+    scenes: Annotated[str, typer.Option(
+        "--scenes", help="Scene folders: --scenes A B ... (or one quoted, space-separated "
+                         "string).")],
+    modes: Annotated[str, typer.Option(
+        "--modes", help="Pipeline modes: --modes svolsdf mvs-only volsdf.")
+    ] = "svolsdf mvs-only volsdf",
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", help="Output folder: OUT/<scene>/<mode>/ runs and "
+                            "OUT/benchmark.{md,csv,json}.")] = Path("benchmark"),
+    preset_name: Annotated[str, typer.Option("--preset", help="Config preset: fast or paper.")
+                           ] = "fast",
+    steps: Annotated[int | None, typer.Option(
+        "--steps", help="Optimization steps (default: the preset's).")] = None,
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Input view ids for every scene, e.g. --views 25 22 28; several sets "
+                        "separated by ';' each make a job: --views '25 22 28; 23 24 33' "
+                        "(default: the pipeline's choice).")] = None,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Working image size WxH (default: the pipeline's).")] = None,
+    device: Annotated[str | None, typer.Option(
+        "--device", help="auto, cpu or cuda (default: the preset's).")] = None,
+    dtu_gt: Annotated[Path | None, typer.Option(
+        "--dtu-gt", help="DTU ground-truth root (ObsMask/, Points/stl/): DTU Chamfer for "
+                         "scenes named scanNN (or --scan).")] = None,
+    scan: Annotated[int | None, typer.Option(
+        "--scan", help="DTU scan number for scenes whose name has none.")] = None,
+    lpips_net: Annotated[str, typer.Option(
+        "--lpips-net", help="LPIPS backbone: vgg or alex.")] = "vgg",
+    report: Annotated[bool, typer.Option(
+        "--report/--no-report", help="Also write each run's report.html.")] = False,
+    render: Annotated[bool, typer.Option(
+        "--render/--no-render", help="Render the held-out views (volume rendering and IBR) of "
+                                     "runs with a field for PSNR / SSIM / LPIPS.")] = True,
+    render_size: Annotated[str | None, typer.Option(
+        "--render-size", help="Size WxH of those renders (default: the working size).")
+    ] = None,
+    executor: Annotated[str, typer.Option(
+        "--executor", help="Where the jobs run: local (this process, one after another) or "
+                           "ray (one Ray task per job; pip install \"svolsdf\\[cluster]\").")
+    ] = "local",
+    address: Annotated[str | None, typer.Option(
+        "--address", help="Ray cluster to join, e.g. auto or ray://head:10001 (default: start "
+                          "a local Ray). --executor ray only.")] = None,
+    cpus_per_job: Annotated[float, typer.Option(
+        "--cpus-per-job", help="CPUs Ray reserves per job (its torch threads). --executor ray "
+                               "only.")] = 1.0,
+    gpus_per_job: Annotated[float, typer.Option(
+        "--gpus-per-job", help="GPUs Ray reserves per job (use with --device cuda). "
+                               "--executor ray only.")] = 0.0,
+) -> None:
+    """Run the pipeline on scenes x modes (x view sets), evaluate, and tabulate like the paper's
+    Table 1.
+
+    Ground truth: synthetic scenes their own (what the input views observe, as evaluate), DTU's
+    with --dtu-gt. Image metrics on the held-out views, rendered by each run with a field.
+    Each job runs into OUT/<scene>/<mode>/; a rerun skips
+    finished jobs and resumes interrupted ones. Writes OUT/benchmark.md, .csv, .json and .png.
+    """
+    from svolsdf.evaluate.benchmark import BenchmarkConfig, run_benchmark
+    from svolsdf.evaluate.executors import ExecutorConfig
+    from svolsdf.scene.size import parse_size
+
+    sets = [_parse_views(t) for t in views.split(";")] if views is not None else [None]
+    cfg = BenchmarkConfig(
+        scenes=[Path(s) for s in scenes.split()],
+        modes=modes.replace(",", " ").split(), out=out, preset=preset_name, steps=steps,
+        views=sets[0] if len(sets) == 1 else None, view_sets=sets if len(sets) > 1 else None,
+        size=None if size is None else parse_size(size),
+        device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report,
+        render=render, render_size=None if render_size is None else parse_size(render_size,
+                                                                               "--render-size"),
+        executor=ExecutorConfig(name=executor, address=address, cpus_per_job=cpus_per_job,
+                                gpus_per_job=gpus_per_job))
+    try:
+        rows = run_benchmark(cfg)
+    except RunInterrupted as e:  # the stage that stopped, not a bare status 130
+        raise _Stopped(str(e)) from None
+    failed = sum(r["status"] != "ok" for r in rows)
+    typer.echo((out / "benchmark.md").read_text())
+    typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'}, "
+               f"{out / 'benchmark.png'} and {out / 'benchmark.json'} ({len(rows)} runs" +
+               (f", {failed} failed)" if failed else ")"))
+
+
+
+
+# --------------------------------------------------------------------------- render
+@app.command("render")
+def render(
+    out: Annotated[Path, typer.Argument(help="Run folder of svolsdf reconstruct.")],
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Scene view ids to render, e.g. --views 1 2 3 (default: the held-out "
+                        "test views of OUT/views.json, else the inputs).")] = None,
+    path: Annotated[str | None, typer.Option(
+        "--path", help="'orbit': a camera path through the input views (frames + video) "
+                       "instead of scene views.")] = None,
+    frames: Annotated[int, typer.Option("--frames", help="Orbit frames.")] = 60,
+    ibr: Annotated[bool, typer.Option(
+        "--ibr", help="Also image-based rendering (METHOD.md 7) -> OUT/renders_ibr/.")] = False,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Render size WxH, e.g. 768x576 (default: the run's working size).")
+    ] = None,
+    chunk: Annotated[int, typer.Option("--chunk", help="Rays per batch.")] = 4096,
+) -> None:
+    """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
+    from svolsdf.render.novel import render_outputs
+
+    res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
+                         size=_parse_size(size), frames=frames, chunk=chunk, progress=True)
+    w, h = res["size"]
+    typer.echo(f"rendered {len(res['files'])} view(s) at {w}x{h} "
+               f"({res['seconds_per_view']:.1f} s per view) -> {out / 'renders'}"
+               + (f"; IBR -> {out / 'renders_ibr'}" if res["ibr_files"] else ""))
+    for key in ("video", "video_ibr"):
+        if res[key] is not None:
+            typer.echo(f"video {res[key]}")
+
+

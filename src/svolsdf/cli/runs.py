@@ -1,0 +1,329 @@
+"""Commands that make scenes and runs: info, config, reconstruct, demo, calibrate, mvs, synth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from svolsdf.cli.app import (
+    _RECONSTRUCT_OPTIONS,
+    _parse_auto_views,
+    _parse_size,
+    _parse_views,
+    _run_pipeline,
+    app,
+    build_config,
+)
+from svolsdf.errors import InputError
+
+
+@app.command("info")
+def info(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (IDR/NeuS, DTU raw, MVSNet, "
+                                               "COLMAP or transforms.json).")],
+    views: Annotated[str | None, typer.Option(
+        "--views", help="View ids to keep, in order, e.g. '25,22,28' (default: all).")] = None,
+    sheet: Annotated[Path | None, typer.Option(
+        "--sheet", help="Also write a contact sheet of the views with masks overlaid (PNG).")
+    ] = None,
+    lighting: Annotated[str, typer.Option(
+        "--lighting", help="DTU raw lighting index 0..6 or 'max'.")] = "3",
+) -> None:
+    """Summarize a scene: format, views, image size, units, depth ranges, pairs, normalization."""
+    from svolsdf.scene.info import contact_sheet, describe_scene
+    from svolsdf.scene.loaders import load_scene
+
+    light: int | str = int(lighting) if lighting.isdigit() else lighting
+    s = load_scene(scene, views=_parse_views(views), load_images=False, lighting=light)
+    typer.echo(describe_scene(s))
+    if sheet is not None:
+        out = contact_sheet(s, sheet)
+        typer.echo(f"contact sheet {out}")
+
+
+
+
+@app.command("config")
+def config_cmd(
+    preset_name: Annotated[str, typer.Option(
+        "--preset", help="fast (default) or paper.")] = "fast",
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="Show this config.yaml (e.g. OUT/config.yaml) instead of a preset.")
+    ] = None,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="Change options first, as reconstruct --set.")] = None,
+) -> None:
+    """Print every option as YAML, each with its documentation as a comment.
+
+    Save it, edit it and pass it back with ``svolsdf reconstruct SCENE --config FILE``, or set
+    single options with ``--set section.option=value``.
+    """
+    from svolsdf.config import apply_overrides, config_yaml, load_config, parse_set, preset
+
+    cfg = load_config(config) if config is not None else preset(preset_name)
+    given = parse_set(set_)
+    if given:
+        apply_overrides(cfg, given, labels={k: f"--set {k}" for k in given}, skip_none=False)
+    typer.echo(config_yaml(cfg), nl=False)
+
+
+
+
+@app.command("reconstruct")
+def reconstruct(
+    scene: Annotated[Path | None, typer.Argument(
+        help="Scene folder (any format `svolsdf info` reads); optional with --config.")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out"),
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Input view ids, e.g. --views 25 22 28, or --views auto [N]: N (3) views "
+                        "with good overlap and baselines (default: DTU's 25 22 28, or a "
+                        "central view and its two best source views).")] = None,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Working size WxH (default: 768 wide, never upsampled).")] = None,
+    preset_name: Annotated[str | None, typer.Option(
+        "--preset", help="fast (default: minutes on a CPU) or paper (METHOD.md constants).")
+    ] = None,
+    backbone: Annotated[str | None, typer.Option(
+        "--backbone", help="MVS backbone: planesweep (default), casmvsnet, patchmatchnet.")
+    ] = None,
+    weights: Annotated[Path | None, typer.Option(
+        "--weights", help="Weights of a learned MVS backbone.")] = None,
+    mvs_scale: Annotated[float | None, typer.Option(
+        "--mvs-scale", help="MVS at this multiple of the working size (mvs.scale; default: "
+                            "the backbone's).")] = None,
+    mode: Annotated[str | None, typer.Option(
+        "--mode", help="svolsdf (default), mvs-only, or volsdf (no MVS prior).")] = None,
+    ablation: Annotated[str | None, typer.Option(
+        "--ablation", help="soft-consistency-only, mse, no-prob-volume or ce.")] = None,
+    steps: Annotated[int | None, typer.Option("--steps", help="Optimization steps.")] = None,
+    device: Annotated[str | None, typer.Option(
+        "--device", help="auto (default), cpu or cuda.")] = None,
+    threads: Annotated[int | None, typer.Option(
+        "--threads", help="torch CPU threads (default: the cores this process may use).")] = None,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="A config.yaml (e.g. from an earlier OUT) to start from.")] = None,
+    mesh_resolution: Annotated[int | None, typer.Option(
+        "--mesh-resolution", help="Marching-cubes resolution.")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
+    background: Annotated[bool | None, typer.Option(
+        "--background/--no-background",
+        help="NeRF++ inverted-sphere background for unbounded scenes (METHOD.md 5.5).")] = None,
+    fusion_network: Annotated[Path | None, typer.Option(
+        "--fusion-network", help="Weights of a PatchmatchNet (TorchScript) to start from the "
+                                 "field's depth and fuse as a further hypothesis "
+                                 "(output.fusion_network).")] = None,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="Any option as section.option=value (YAML value), repeatable, applied "
+                      "last: --set train.steps=200 --set output.mesh_method=poisson; "
+                      "`svolsdf config` lists them all.")] = None,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+) -> None:
+    """Reconstruct a scene: MVS, S-VolSDF optimization, guided MVS, fusion and mesh.
+
+    Writes OUT/points.ply, OUT/mesh.ply, OUT/depth/<view>.npy (+ PNG), OUT/config.yaml, OUT/log
+    and OUT/timing.json. A rerun reuses finished stages and resumes an interrupted optimization.
+    """
+    from svolsdf.pipeline import Pipeline
+
+    auto = _parse_auto_views(views)
+    cfg = build_config(scene, config, preset_name, {
+        "scene.views": None if auto else _parse_views(views),
+        "scene.view_selection": "auto" if auto else None,
+        "scene.num_views": auto or None, "scene.image_size": _parse_size(size),
+        "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
+        "mvs.scale": mvs_scale, "train.mode": mode, "train.ablation": ablation,
+        "train.steps": steps, "device": device, "output.mesh_resolution": mesh_resolution,
+        "train.seed": seed, "field.background": background, "threads": threads,
+        "output.fusion_network": None if fusion_network is None else "patchmatchnet",
+        "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
+    }, _RECONSTRUCT_OPTIONS, sets=set_)
+    if auto:  # auto also replaces the views a --config file lists
+        cfg.scene.views = None
+    pipe = Pipeline(cfg, out, progress=not no_progress)
+    if auto:
+        pipe.load()
+        typer.echo(f"views auto: picked {pipe.views} of {len(pipe.all_view_ids)} views "
+                   f"(reference {pipe.views[0]})")
+    summary = _run_pipeline(pipe)
+    typer.echo(f"points: {summary['points']}")
+    if summary.get("mesh"):
+        typer.echo(f"mesh:   {summary['mesh']}")
+    typer.echo(f"total {summary['timing'].get('total', {}).get('seconds', 0):.0f} s; "
+               f"details in {Path(out) / 'timing.json'}")
+
+
+@app.command("demo")
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path(
+        "svolsdf_demo"),
+    size: Annotated[str, typer.Option("--size", help="Image size WxH of the synthetic scene.")
+                    ] = "768x576",
+    seed: Annotated[int, typer.Option("--seed", help="Synthetic scene seed.")] = 0,
+    steps: Annotated[int | None, typer.Option("--steps", help="Optimization steps.")] = None,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+) -> None:
+    """Generate a synthetic scene, reconstruct it from 3 views with the fast preset, and score it.
+
+    Prints where the outputs are and the Chamfer distance against the scene's ground truth, and
+    writes OUT/run/metrics.json and OUT/run/report.html (open it in a browser).
+    """
+    import json
+
+    from svolsdf.config import apply_overrides, preset
+    from svolsdf.evaluate.synthetic import synthetic_chamfer
+    from svolsdf.io.ply import read_ply
+    from svolsdf.pipeline import Pipeline
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    w, h = _parse_size(size)
+    scene_dir = out / "scene"
+    # the run's options first: a bad one fails before minutes of scene rendering
+    cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
+                          labels={"train.steps": "--steps"})
+    if not (scene_dir / "gt_points.ply").is_file():
+        typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
+        make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
+    run = out / "run"
+    typer.echo(f"reconstructing into {run} (fast preset) ...")
+    summary = _run_pipeline(Pipeline(cfg, run, progress=not no_progress))
+    views = json.loads((run / "views.json").read_text())["inputs"]
+    lines = []
+    result = {}
+    for name in ("points", "mesh"):
+        p = summary.get(name)
+        if p and Path(p).is_file():
+            r = synthetic_chamfer(read_ply(p)["points"], scene_dir, views)
+            result[name] = r
+            lines.append(f"{name:6s} {p}: Chamfer accuracy {r['accuracy']:.3f} mm, completeness "
+                         f"{r['completeness']:.3f} mm, overall {r['overall']:.3f} mm, F-score "
+                         f"{r['fscore']:.3f} at {r['threshold']:.2f} mm")
+    (run / "demo_metrics.json").write_text(json.dumps(result, indent=1))
+    typer.echo("\n".join(lines))
+    typer.echo(f"total {summary['timing']['total']['seconds']:.0f} s; inputs {views}; "
+               f"outputs in {run}")
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+
+    evaluate_run(EvaluateConfig(out=run))
+    typer.echo(f"report {run / 'report.html'}")
+
+
+
+
+# --------------------------------------------------------------------------- calibrate
+@app.command("calibrate")
+def calibrate(
+    inputs: Annotated[Path, typer.Argument(help="A folder of photos or a video file.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Scene folder to write (COLMAP "
+                                                          "model + images/).")],
+    max_size: Annotated[int, typer.Option(
+        "--max-size", help="Longest image side in pixels for SfM and the scene's images.")
+    ] = 1600,
+    matcher: Annotated[str, typer.Option(
+        "--matcher", help="exhaustive (photos), sequential (video frames) or auto.")] = "auto",
+    frames: Annotated[int, typer.Option("--frames", help="Frames sampled from a video.")] = 40,
+    threads: Annotated[int, typer.Option(
+        "--threads", help="CPU threads for structure from motion (-1: all cores).")] = -1,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+) -> None:
+    """Camera poses for your own photos or video (structure from motion with pycolmap).
+
+    Writes OUT as a COLMAP scene that `svolsdf reconstruct OUT --views auto` reads: the registered
+    photos (undistorted) in OUT/images/, cameras and sparse points in OUT/sparse/0/, and a summary
+    in OUT/calibration.json.
+    """
+    from svolsdf.calibrate import CalibrateConfig
+    from svolsdf.calibrate import calibrate as run_calibrate
+
+    cfg = CalibrateConfig(max_size=max_size, matcher=matcher, frames=frames, threads=threads,
+                          progress=not no_progress)
+    s = run_calibrate(inputs, out, cfg)
+    n_in, n_reg = s["num_inputs"], len(s["registered"])
+    kind = "frames" if s["video"] else "photos"
+    typer.echo(f"registered {n_reg} of {n_in} {kind} at {s['size'][0]}x{s['size'][1]} "
+               f"({'one shared camera' if s['shared_camera'] else 'one camera per photo'}, "
+               f"{s['matcher']} matching, reprojection error "
+               f"{s['mean_reprojection_error_px']} px) in {s['seconds']['total']:.0f} s")
+    if s["unregistered"]:
+        more = " ..." if len(s["unregistered"]) > 10 else ""
+        typer.echo(f"not registered: {', '.join(s['unregistered'][:10])}{more}")
+    typer.echo(f"scene {out}; next: svolsdf reconstruct {out} --views auto -o RUN")
+
+
+# --------------------------------------------------------------------------- mvs / synth
+@app.command("mvs")
+def mvs(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (any format `svolsdf info` reads).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    views: Annotated[str | None, typer.Option(
+        "--views", help="Input view ids, e.g. --views 25 22 28 (default: all views).")] = None,
+    backbone: Annotated[str, typer.Option(
+        "--backbone", help="planesweep (training-free, default), casmvsnet or patchmatchnet.")
+    ] = "planesweep",
+    weights: Annotated[Path | None, typer.Option(
+        "--weights", help="Weights of casmvsnet (required) or patchmatchnet (default: "
+                          "../shared/weights/patchmatchnet).")] = None,
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Working size WxH (default: as reconstruct, at most 768 wide).")
+    ] = None,
+    depth_range: Annotated[str | None, typer.Option(
+        "--depth-range", help="NEAR,FAR z-depth in world units for every view (default: the "
+                              "scene's per-view ranges).")] = None,
+    no_fuse: Annotated[bool, typer.Option("--no-fuse", help="Skip the fused points.ply.")
+                       ] = False,
+) -> None:
+    """MVS alone: per-view depth, confidence and probability volumes, and a fused point cloud.
+
+    Writes OUT/mvs/stage{1,2,3}/<view>.npz, OUT/depth/<view>.npy (+ PNG; stage-3 z-depth in
+    world units at the backbone's MVS size, 2x the working size for the plane sweep),
+    OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json.
+    """
+    from svolsdf.mvs.run import MVSJobConfig, run_mvs
+    from svolsdf.scene.size import parse_size
+
+    rng = None
+    if depth_range is not None:
+        try:
+            near, far = (float(x) for x in depth_range.replace(",", " ").split())
+        except ValueError:
+            raise InputError(f"--depth-range must be NEAR,FAR (e.g. 425,931); got "
+                             f"{depth_range!r}") from None
+        rng = (near, far)
+    cfg = MVSJobConfig(scene=scene, out=out, views=_parse_views(views), backbone=backbone,
+                       weights=weights, size=None if size is None else parse_size(size),
+                       depth_range=rng, fuse=not no_fuse)
+    s = run_mvs(cfg)
+    typer.echo(f"mvs ({s['backbone']}) on views {s['views']} at {s['size'][0]}x{s['size'][1]}: "
+               f"{s['seconds']['total']:.1f} s")
+    if "fusion" in s:
+        typer.echo(f"points: {out / 'points.ply'} ({s['fusion']['points_total']} points)")
+    typer.echo(f"depth:  {out / 'depth'}/<view>.npy, volumes in {out / 'mvs'}")
+
+
+@app.command("synth")
+def synth(
+    out: Annotated[Path, typer.Argument(help="Output folder (new, empty, or an earlier "
+                                             "synthetic scene).")],
+    seed: Annotated[int, typer.Option("--seed", help="Random seed (same seed, same bytes).")
+                    ] = 0,
+    views: Annotated[int, typer.Option("--views", help="Number of views.")] = 9,
+    size: Annotated[str, typer.Option("--size", help="Image size WxH.")] = "768x576",
+    object_kind: Annotated[str, typer.Option(
+        "--object", help="Object kind: random, sphere, box, torus, capsule or blobs.")
+    ] = "random",
+    cameras_from: Annotated[Path | None, typer.Option(
+        "--cameras-from", help="Borrow the cameras of this IDR scene (cameras.npz or "
+                               "cameras_sphere.npz, image/).")] = None,
+) -> None:
+    """Render a synthetic scene with exact ground truth (IDR layout, gt_depth/, gt_points.ply)."""
+    from svolsdf.scene.size import parse_size
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    w, h = parse_size(size)
+    cfg = SynthConfig(seed=seed, views=views, width=w, height=h, object=object_kind,
+                      cameras_from=None if cameras_from is None else str(cameras_from))
+    path = make_synthetic_scene(out, cfg)
+    typer.echo(f"synthetic scene ({views} views, {w}x{h}, {object_kind}, seed {seed}): {path}")
+
+
