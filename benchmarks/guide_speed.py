@@ -31,7 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import cpu_name, write_results
 
-from svolsdf.render.novel import open_run
+from svolsdf.commands.render import open_run
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -23,6 +23,8 @@ def _imports(path: Path) -> set[str]:
             names |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             names.add(node.module)
+            if node.module == "svolsdf":  # from svolsdf import pipeline
+                names |= {f"svolsdf.{a.name}" for a in node.names}
     return names
 
 
@@ -41,4 +43,14 @@ def test_stages_below_fusion_do_not_import_it(package):
 def test_geometry_imports_only_the_scene():
     bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules("geometry") for m in _imports(p)
            if m.startswith("svolsdf.") and not m.startswith(("svolsdf.scene", "svolsdf.geometry"))]
+    assert not bad, "; ".join(bad)
+
+
+@pytest.mark.parametrize("package", ["scene", "io", "geometry", "mvs", "prior", "field",
+                                     "render", "ibr", "fusion", "optimize", "evaluate",
+                                     "calibrate", "config"])
+def test_components_do_not_import_the_pipeline_or_the_commands(package):
+    # runs are opened (svolsdf.pipeline.Run) and driven only by commands/ and cli/
+    bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules(package) for m in _imports(p)
+           if m.startswith(("svolsdf.pipeline", "svolsdf.commands", "svolsdf.cli"))]
     assert not bad, "; ".join(bad)

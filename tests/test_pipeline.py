@@ -491,7 +491,7 @@ def test_a_finished_field_loads_without_its_stage1_volumes(tiny_run, tmp_path):
     run folder) the stored field still loads as it was trained, and renders."""
     import shutil
 
-    from svolsdf.render.novel import open_run
+    from svolsdf.commands.render import open_run
 
     out, _, p = tiny_run
     copy = tmp_path / "nomvs"

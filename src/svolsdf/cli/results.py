@@ -136,8 +136,8 @@ def benchmark(
     Each job runs into OUT/<scene>/<mode>/; a rerun skips
     finished jobs and resumes interrupted ones. Writes OUT/benchmark.md, .csv, .json and .png.
     """
-    from svolsdf.evaluate.benchmark import BenchmarkConfig, run_benchmark
-    from svolsdf.evaluate.executors import ExecutorConfig
+    from svolsdf.commands.benchmark import BenchmarkConfig, run_benchmark
+    from svolsdf.commands.executors import ExecutorConfig
     from svolsdf.scene.size import parse_size
 
     sets = [_parse_views(t) for t in views.split(";")] if views is not None else [None]
@@ -183,7 +183,7 @@ def render(
     chunk: Annotated[int, typer.Option("--chunk", help="Rays per batch.")] = 4096,
 ) -> None:
     """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
-    from svolsdf.render.novel import render_outputs
+    from svolsdf.commands.render import render_outputs
 
     res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
                          size=_parse_size(size), frames=frames, chunk=chunk, progress=True)

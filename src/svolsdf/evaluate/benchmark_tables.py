@@ -1,8 +1,8 @@
-"""The tables and the chart of ``svolsdf benchmark`` (`svolsdf.evaluate.benchmark`), from its
+"""The tables and the chart of ``svolsdf benchmark`` (`svolsdf.commands.benchmark`), from its
 per-run rows: a Markdown table like the paper's Table 1, the same as CSV, and a bar chart.
 
 Functions of the rows alone (dicts with ``scene``, ``mode`` and the numeric keys of
-`svolsdf.evaluate.benchmark.METRIC_KEYS`): they run nothing and read no run folder;
+`svolsdf.commands.benchmark.METRIC_KEYS`): they run nothing and read no run folder;
 `benchmark_plot` writes the one file it is given.
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Tests of svolsdf.evaluate.benchmark: the Table-1 writers (pure functions), the driver with a
+"""Tests of svolsdf.commands.benchmark: the Table-1 writers (pure functions), the driver with a
 stand-in pipeline on a tiny synthetic scene, the CLI, and one real mvs-only run."""
 
 from __future__ import annotations
@@ -15,14 +15,14 @@ from PIL import Image
 
 from conftest import shared_path
 from svolsdf.cli import main
-from svolsdf.errors import InputError
-from svolsdf.evaluate.benchmark import (
+from svolsdf.commands.benchmark import (
     BenchmarkConfig,
     benchmark_csv,
     benchmark_markdown,
     run_benchmark,
     scan_number,
 )
+from svolsdf.errors import InputError
 from svolsdf.io.ply import read_ply, write_points_ply
 
 # --------------------------------------------------------------------------- pure table writers
@@ -137,8 +137,8 @@ class FakePipeline:
 
 
 def test_run_benchmark_with_stand_in_pipeline(tmp_path, monkeypatch, synth_scene):
+    import svolsdf.commands.render
     import svolsdf.pipeline
-    import svolsdf.render.novel
 
     monkeypatch.setattr(svolsdf.pipeline, "Pipeline", FakePipeline)
     FakePipeline.calls = []
@@ -153,7 +153,7 @@ def test_run_benchmark_with_stand_in_pipeline(tmp_path, monkeypatch, synth_scene
             Path(out) / "renders_ibr" / "3.png")
         return {}
 
-    monkeypatch.setattr(svolsdf.render.novel, "render_outputs", fake_render)
+    monkeypatch.setattr(svolsdf.commands.render, "render_outputs", fake_render)
     out = tmp_path / "bench"
     cfg = BenchmarkConfig(scenes=[synth_scene, synth_scene], modes=["svolsdf", "mvs-only",
                                                                      "volsdf"],
@@ -272,7 +272,7 @@ def test_bad_run_options_fail_before_any_run(tmp_path, monkeypatch):
 
 
 def test_benchmark_plot_writes_a_chart(tmp_path):
-    from svolsdf.evaluate.benchmark import benchmark_plot
+    from svolsdf.commands.benchmark import benchmark_plot
 
     path = benchmark_plot(ROWS, tmp_path / "b.png", ["svolsdf", "mvs-only"])
     img = Image.open(path)

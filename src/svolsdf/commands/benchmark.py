@@ -12,7 +12,7 @@ Every (scene, mode, input views) is a job (`BenchmarkJob`, `benchmark_jobs`); on
 - images: PSNR / SSIM / LPIPS (METHOD.md 8.3) of the held-out views named in the run's
   ``views.json`` (``"test"``) that have a render in ``renders/``; none when there are none.
 
-The jobs run on an executor (`svolsdf.evaluate.executors`): ``local``, one after another in this
+The jobs run on an executor (`svolsdf.commands.executors`): ``local``, one after another in this
 process, or ``ray``, one Ray task each on a local or remote Ray cluster; both run `run_job` and
 write the same tables. A job leaves its row in ``benchmark_row.json`` in its folder: a rerun does
 not run finished jobs again, and an interrupted one resumes its pipeline's finished stages.
@@ -37,9 +37,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from svolsdf.commands.executors import ExecutorConfig
 from svolsdf.errors import InputError
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
-from svolsdf.evaluate.executors import ExecutorConfig
 
 __all__ = [
     "MODES",
@@ -318,7 +318,7 @@ def run_job(job: BenchmarkJob) -> dict:
         pipeline_module.Pipeline(job_config(job), out, progress=False).run()
         elapsed = time.perf_counter() - t0
         if job.render is not None and run_views(out, "test"):
-            from svolsdf.render.novel import render_outputs
+            from svolsdf.commands.render import render_outputs
 
             render_outputs(out, views=run_views(out, "test"), ibr=True,
                            size=job.render.get("size"), progress=False)
@@ -397,7 +397,7 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
     """Run and evaluate every job (scene x view set x mode); write OUT/benchmark.{md,csv,json}
     and OUT/benchmark.png.
 
-    Jobs run on ``cfg.executor`` (`svolsdf.evaluate.executors`: in this process, or as Ray
+    Jobs run on ``cfg.executor`` (`svolsdf.commands.executors`: in this process, or as Ray
     tasks), each with `run_job` into its own run folder. A job that finished before with the
     same settings is not run again (its row is read back, `finished_row`); an interrupted one
     resumes its pipeline's finished stages. The tables are rewritten as each job finishes, with
@@ -416,7 +416,7 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
             scene without a scan number, or Ray options without Ray; raised before any job
             starts.
     """
-    from svolsdf.evaluate.executors import check_executor, run_jobs
+    from svolsdf.commands.executors import check_executor, run_jobs
     from svolsdf.io.folders import ensure_writable_folder
 
     cfg.scenes = [Path(s) for s in cfg.scenes]

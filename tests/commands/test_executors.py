@@ -1,4 +1,4 @@
-"""Tests of svolsdf.evaluate.executors and the benchmark on them: the local and Ray executors
+"""Tests of svolsdf.commands.executors and the benchmark on them: the local and Ray executors
 write the same table for the same jobs, a failed job is a row with its error, a rerun skips
 finished jobs and resumes interrupted ones, a task whose worker dies is a row too.
 
@@ -16,9 +16,9 @@ import pytest
 import ray  # the dev extra installs it, as the cluster extra
 
 from svolsdf.cli import main
+from svolsdf.commands.benchmark import ROW_FILE, BenchmarkConfig, run_benchmark
+from svolsdf.commands.executors import ExecutorConfig, check_executor, run_local, run_ray
 from svolsdf.errors import InputError
-from svolsdf.evaluate.benchmark import ROW_FILE, BenchmarkConfig, run_benchmark
-from svolsdf.evaluate.executors import ExecutorConfig, check_executor, run_local, run_ray
 
 # view 9 does not exist: that job fails in the pipeline, the other runs
 VIEW_SETS = [[0, 1, 2], [0, 1, 9]]

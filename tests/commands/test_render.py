@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from svolsdf.cli import main as cli_main
+from svolsdf.commands.render import box_near_far, camera_normals, open_run, render_outputs
 from svolsdf.config import preset
 from svolsdf.errors import InputError
 from svolsdf.evaluate.images import masked_psnr
 from svolsdf.io.images import read_image
 from svolsdf.pipeline import Pipeline
-from svolsdf.render.novel import box_near_far, camera_normals, open_run, render_outputs
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.loaders import load_scene
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
