@@ -64,20 +64,26 @@ def test_reconstruct_mvs_only_and_config_roundtrip(scene, tmp_path, capsys):
     assert "reconstruct" not in capsys.readouterr().err
 
 
-def test_background_flag_reaches_the_config(monkeypatch, tmp_path):
-    # the flag sets field.background; the pipeline is replaced by a recorder (no run)
+@pytest.fixture
+def seen(monkeypatch):
+    """The config `reconstruct` builds: the pipeline is replaced by a recorder (no run)."""
     import svolsdf.pipeline as pl
 
-    seen = {}
+    got = {}
 
     class Recorder:
         def __init__(self, cfg, out, progress=True):
-            seen["cfg"] = cfg
+            got["cfg"] = cfg
 
         def run(self):
             return {"points": "p", "mesh": None, "timing": {}}
 
     monkeypatch.setattr(pl, "Pipeline", Recorder)
+    return got
+
+
+def test_background_flag_reaches_the_config(seen, tmp_path):
+    # the flag sets field.background
     for flag, want in (("--background", True), ("--no-background", False), (None, False)):
         argv = ["reconstruct", str(tmp_path), "-o", str(tmp_path / "o")] + ([flag] if flag else [])
         seen.clear()
@@ -480,20 +486,8 @@ def test_calibrate_errors_exit_2_with_one_line(tmp_path, capsys):
     assert code == 2 and "unknown matcher" in out.err
 
 
-def test_set_reaches_any_option_and_is_applied_last(monkeypatch, tmp_path, capsys):
-    # --set section.option=value (YAML values) after the flags; the pipeline is a recorder
-    import svolsdf.pipeline as pl
-
-    seen = {}
-
-    class Recorder:
-        def __init__(self, cfg, out, progress=True):
-            seen["cfg"] = cfg
-
-        def run(self):
-            return {"points": "p", "mesh": None, "timing": {}}
-
-    monkeypatch.setattr(pl, "Pipeline", Recorder)
+def test_set_reaches_any_option_and_is_applied_last(seen, tmp_path, capsys):
+    # --set section.option=value (YAML values), applied after the flags
     main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), "--steps", "50",
           "--set", "train.steps=70", "--set", "output.mesh_method=poisson",
           "--set", "mvs.ndepths=[64, 16, 8]", "--set", "output.fusion_network_weights=null"])
