@@ -215,7 +215,7 @@ class OutputConfig:
     mesh_cull_unseen: bool = False
     """Mesh: also remove the faces no input view sees, i.e. whose centroid lies more than
     ``mesh_cull_tol`` behind the field's rendered depth in every view that contains it
-    (`svolsdf.fusion.mesh.cull_unseen`). Off as released (mask culling only, METHOD.md 8.3):
+    (`svolsdf.fusion.cull.cull_unseen`). Off as released (mask culling only, METHOD.md 8.3):
     the interior of a sparse-view reconstruction is unconstrained and may hold cavities."""
     mesh_cull_tol: float = _limited(0.01, min=0)
     """Mesh: relative depth slack of ``mesh_cull_unseen``."""
