@@ -63,8 +63,8 @@ class Trainer:
         model: the field (unit frame).
         data: `TrainData`.
         cfg: `TrainConfig` (steps, rays, learning rates, loss weights, mode, ablation).
-        prior: `svolsdf.prior.consistency.MVSPrior` over the stage-1 volumes of the same views (same order),
-            or None (mode ``volsdf``).
+        prior: `svolsdf.prior.consistency.MVSPrior` over the stage-1 volumes of the same views
+            (same order), or None (mode ``volsdf``).
         sampler: ``sampler(model, rays, training) -> SamplerOutput``.
         out_dir: where checkpoints and the loss log go (None: nowhere).
         device: torch device.

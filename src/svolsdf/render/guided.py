@@ -54,7 +54,8 @@ class MVSGuidedSampler:
     """Samples concentrated where P' and the current surface are.
 
     Args:
-        prior: an `svolsdf.prior.consistency.MVSPrior` (or None: field weights only, e.g. for novel views).
+        prior: an `svolsdf.prior.consistency.MVSPrior` (or None: field weights only, e.g. for
+            novel views).
         config: `GuidedSamplerConfig`.
         use_prior_at_eval: also use P' when not training (input views only).
     """
