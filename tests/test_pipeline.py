@@ -649,3 +649,14 @@ def test_poisson_mesh_option(tiny_run, tmp_path):
     w = read_ply(tmp_path / "pzw" / "mesh.ply")
     assert "method" not in p3.timing["mesh"], p3.timing  # the field's closed zero level
     assert trimesh.Trimesh(w["points"], w["faces"], process=True).is_watertight
+
+
+def test_poisson_mesh_falls_back_to_the_field(tiny_run, tmp_path):
+    """A Poisson surface that cannot be made (here trimmed away entirely) leaves the field's
+    zero level as the mesh, with the reason in the log and timing.json: the run still ends."""
+    out, _, p = tiny_run
+    p2 = _rerun_on_copy(out, tmp_path / "pzf", mesh_method="poisson", poisson_depth=6,
+                        poisson_trim=14)
+    assert "poisson_failed" in p2.timing["mesh"], p2.timing["mesh"]
+    assert len(read_ply(tmp_path / "pzf" / "mesh.ply")["faces"]) > 100
+    assert "no Poisson surface" in (tmp_path / "pzf" / "log").read_text()

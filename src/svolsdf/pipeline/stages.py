@@ -483,24 +483,33 @@ class Pipeline(Run):
             load_model(model, self.dir.refined_model)
         scene = self.load()
         use_masks = scene.masks is not None and o.use_masks
+        fallback = None
         if options.wants_poisson(self.cfg):
             from svolsdf.io.ply import read_ply
 
             d = read_ply(self.stage_fusion())
             pts = d["points"]
-            if len(pts) < 100:
-                raise InputError(f"{self.dir.points}: {len(pts)} fused points, too few for a "
-                                 "Poisson mesh (output.mesh_method = poisson); use "
-                                 "output.mesh_method = field")
-            vw, f, cols = poisson_mesh(pts, d["colors"], model, scene, o.poisson_depth,
-                                       o.poisson_trim, use_masks=use_masks,
-                                       unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol,
-                                       device=self.device)
-            save_mesh(path, vw, f, cols, fmt=o.mesh_format)
-            self._mark("mesh")
-            self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)), method="poisson",
-                       points=int(len(pts)))
-            return path
+            try:
+                if len(pts) < 100:
+                    raise RuntimeError(f"{len(pts)} fused points")
+                vw, f, cols = poisson_mesh(pts, d["colors"], model, scene, o.poisson_depth,
+                                           o.poisson_trim, use_masks=use_masks,
+                                           unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol,
+                                           device=self.device)
+                if len(f) == 0:
+                    raise RuntimeError("no face left after culling")
+            except (RuntimeError, ValueError, ImportError) as e:
+                # the points can be too few or too scattered for a surface; the field's zero
+                # level is always there, so the run still ends with a mesh
+                fallback = " ".join(str(e).split())[:200]
+                log.warning("mesh: no Poisson surface of the fused points (%s); the field's "
+                            "zero level instead", fallback)
+            else:
+                save_mesh(path, vw, f, cols, fmt=o.mesh_format)
+                self._mark("mesh")
+                self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)),
+                           method="poisson", points=int(len(pts)))
+                return path
         fit = options.wants_mesh_fit(self.cfg)
         if fit:
             model = self._surface_fitted_to_points(model)
@@ -517,5 +526,6 @@ class Pipeline(Run):
         cols = field_mesh_colours(model, v, f, device=self.device)
         save_mesh(path, vw, f, cols, fmt=o.mesh_format)
         self._mark("mesh")
-        self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)))
+        self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)),
+                   **({"poisson_failed": fallback} if fallback else {}))
         return path
