@@ -41,6 +41,7 @@ def _tiny_cfg(scene, steps=300):
     # the mesh from the field alone: the key tests below change fusion options, which the
     # fitted mesh follows (test_mesh_fitted_to_the_points covers it)
     cfg.output.mesh_fit_points = 0
+    cfg.output.mesh_method = "field"  # the field's own mesh; Poisson has its own tests
     return cfg
 
 

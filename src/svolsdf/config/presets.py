@@ -30,7 +30,8 @@ def _fast() -> Config:
     c.output.fusion_unguided = True  # the unguided stages 2-3 as a second depth hypothesis
     c.output.guide_mask_dilation = 32  # the guide rendered only near the object masks
     c.output.mesh_cull_unseen = True  # the mesh keeps the surface the input views see
-    c.output.mesh_fit_points = 300  # the mesh surface refined to pass through the fused points
+    c.output.mesh_method = "poisson"  # the mesh of the fused points, not of the field
+    c.output.mesh_fit_points = 300  # with mesh_method field: that surface refined to the points
     return c
 
 

@@ -194,11 +194,12 @@ def cull_to_views(
     unseen: bool = False,
     depths: Tensor | str | None = "mesh",
     rel_tol: float = 0.01,
+    largest: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Keep what the input views can judge: faces inside some view's frustum, with ``masks``
     inside the dilated object mask of every view that sees them (the mesh culling of the DTU
-    evaluations, METHOD.md 8.3), the largest component, and with ``unseen`` only faces some
-    view sees (`cull_unseen`).
+    evaluations, METHOD.md 8.3), with ``largest`` the largest component, and with ``unseen``
+    only faces some view sees (`cull_unseen`).
 
     Visibility comes after the largest component: culling splits the surface where no view
     looked, and the parts it leaves are all observed (benchmarks/results/fast_preset.md,
@@ -214,6 +215,8 @@ def cull_to_views(
             depth), "mesh" (the mesh's own vertex z-buffer, `mesh_vertex_depths`), or None (not
             available: a warning, and hidden faces are kept).
         rel_tol: `cull_unseen`'s relative depth slack.
+        largest: keep only the largest connected component (METHOD.md 8.3, for a field's
+            zero level, whose other components are floaters); False keeps every part.
 
     Returns:
         vertices (V', 3), faces (F', 3), vertex_index (V',) int64 indices of the kept vertices
@@ -224,8 +227,9 @@ def cull_to_views(
         vw, f, idx = cull_by_masks(vw, f, cameras, masks,
                                    dilation=mask_cull_dilation(cameras.width))
         index = index[idx]
-    vw, f, idx = largest_component(vw, f, return_index=True)
-    index = index[idx]
+    if largest:
+        vw, f, idx = largest_component(vw, f, return_index=True)
+        index = index[idx]
     if unseen:
         if isinstance(depths, str):
             depths = mesh_vertex_depths(vw, cameras)

@@ -112,8 +112,8 @@ def poisson_mesh(
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """The screened Poisson surface of fused points, normals oriented by the input cameras and,
     where they straddle a point's tangent plane, by the field's gradient; culled like the
-    field's mesh, with the mesh's own depth deciding what the views see; vertex colours from
-    the points.
+    field's mesh (every component kept), with the mesh's own depth deciding what the views see;
+    vertex colours from the points.
 
     Args:
         points: (N, 3) world points; colours: (N, 3) uint8 or None.
@@ -143,6 +143,9 @@ def poisson_mesh(
     vw, f = torch.from_numpy(v), torch.from_numpy(f)
     c = None if c is None else torch.from_numpy(c)
     masks = scene.masks if use_masks else None
+    # every part: a Poisson surface trimmed by sample density has no floaters, and separate
+    # parts of the object are separate components (the largest alone dropped 15 % of a
+    # synthetic object's surface; benchmarks/results/table1.md)
     vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
-                               rel_tol=rel_tol)
+                               rel_tol=rel_tol, largest=False)
     return vw, f, (None if c is None else c[idx])
