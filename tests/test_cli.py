@@ -169,8 +169,9 @@ def test_ctrl_c_exits_130_naming_the_stage_and_a_rerun_resumes(scene, tmp_path):
 
     out = tmp_path / "run"
     # enough steps that the signal, sent once the first checkpoint exists, finds the
-    # optimization still running on a fast machine (30 steps could end before it arrived)
-    cfg = _small_config(tmp_path, scene, steps=600)
+    # optimization still running on a fast or a busy machine (30 steps could end before it
+    # arrived, and 600 did once while this process waited for a busy CPU)
+    cfg = _small_config(tmp_path, scene, steps=3000)
     env = dict(os.environ, PYTHONPATH=str(Path(svolsdf.__file__).parents[1]))
     p = subprocess.Popen([sys.executable, "-m", "svolsdf", "reconstruct", "-o", str(out),
                           "--config", str(cfg), "--no-progress"], env=env,

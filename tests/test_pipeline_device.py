@@ -111,6 +111,15 @@ def test_every_stage_receives_the_resolved_device(scene, tmp_path, monkeypatch):
         return colors_from_fn(*a, device=device, **kw)
 
     monkeypatch.setattr(mesh_mod, "colors_from_fn", spy_colors)
+    import svolsdf.fusion.meshing as meshing_mod
+
+    poisson = meshing_mod.poisson_mesh
+
+    def spy_poisson(*a, device=None, **kw):  # the fast preset's mesh: the field's gradient
+        record("mesh", device)
+        return poisson(*a, device=device, **kw)
+
+    monkeypatch.setattr(meshing_mod, "poisson_mesh", spy_poisson)
     pipe = Pipeline(_cfg(scene), tmp_path / "run", progress=False)
     pipe.run()
     assert pipe.device == MARK
