@@ -317,13 +317,14 @@ def run_job(job: BenchmarkJob) -> dict:
     try:
         pipeline_module.Pipeline(job_config(job), out, progress=False).run()
         elapsed = time.perf_counter() - t0
-        if job.render is not None and run_views(out, "test"):
+        test = run_views(out, "test")  # views.json, read once
+        if job.render is not None and test:
             from svolsdf.commands.render import render_outputs
 
-            render_outputs(out, views=run_views(out, "test"), ibr=True,
-                           size=job.render.get("size"), progress=False)
+            render_outputs(out, views=test, ibr=True, size=job.render.get("size"),
+                           progress=False)
         metrics = evaluate_run(EvaluateConfig(
-            out=out, scene=Path(job.scene), views=run_views(out, "test"),
+            out=out, scene=Path(job.scene), views=test,
             extra={"benchmark": {"scene": job.label, "mode": job.mode}}, **job.evaluate))
         t = _stage_seconds(out)
         row = {**run_metrics(metrics, job.label, job.mode, t if t is not None else elapsed),
