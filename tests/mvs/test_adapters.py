@@ -170,6 +170,32 @@ def test_patchmatchnet_bad_weights(tmp_path):
         get_backbone("patchmatchnet", weights=junk)
 
 
+def test_patchmatchnet_without_torchscript_is_a_clear_error(tmp_path, monkeypatch):
+    """When torch drops torch.jit.load, the user gets one line naming the file and what to do."""
+    weights = tmp_path / "pm.pt"
+    weights.write_bytes(b"x")
+    monkeypatch.delattr(torch.jit, "load")
+    with pytest.raises(InputError, match=r"pm\.pt: torch .* has no torch\.jit\.load.*casmvsnet"):
+        get_backbone("patchmatchnet", weights=weights)
+
+
+def test_patchmatchnet_bad_weights_exit_2_from_the_command(tmp_path, capsys):
+    """A weights file that does not load ends the command with exit 2 and no traceback."""
+    from svolsdf.cli import main
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    scene = make_synthetic_scene(tmp_path / "s", SynthConfig(views=3, width=64, height=48,
+                                                             supersample=1, gt_points=2000))
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a module")
+    with pytest.raises(SystemExit) as e:
+        main(["mvs", str(scene), "-o", str(tmp_path / "out"), "--backbone", "patchmatchnet",
+              "--weights", str(junk)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2, err
+    assert "junk.pt: cannot load as a TorchScript module" in err and "Traceback" not in err
+
+
 @pytest.fixture
 def pm_weights():
     """The shared PatchmatchNet weights (skips without them), torch on one thread meanwhile."""

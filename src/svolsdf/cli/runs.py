@@ -315,14 +315,31 @@ def synth(
     cameras_from: Annotated[Path | None, typer.Option(
         "--cameras-from", help="Borrow the cameras of this IDR scene (cameras.npz or "
                                "cameras_sphere.npz, image/).")] = None,
+    camera_views: Annotated[str | None, typer.Option(
+        "--camera-views", help="With --cameras-from: the view ids to borrow, e.g. "
+                               "'25 22 28 1 10 23' (default: --views evenly spaced ids).")
+    ] = None,
+    texture_contrast: Annotated[float, typer.Option(
+        "--texture-contrast", help="Object texture contrast in [0, 1]; below 1 a "
+                                   "low-texture object.")] = 1.0,
 ) -> None:
     """Render a synthetic scene with exact ground truth (IDR layout, gt_depth/, gt_points.ply)."""
     from svolsdf.scene.size import parse_size
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
     w, h = parse_size(size)
+    ids = None
+    if camera_views is not None:
+        if cameras_from is None:
+            raise InputError("--camera-views needs --cameras-from")
+        try:
+            ids = [int(t) for t in camera_views.replace(",", " ").split()]
+        except ValueError:
+            raise InputError(f"--camera-views: expected view ids, got {camera_views!r}") from None
+        views = len(ids)
     cfg = SynthConfig(seed=seed, views=views, width=w, height=h, object=object_kind,
-                      cameras_from=None if cameras_from is None else str(cameras_from))
+                      cameras_from=None if cameras_from is None else str(cameras_from),
+                      camera_views=ids, texture_contrast=texture_contrast)
     path = make_synthetic_scene(out, cfg)
     typer.echo(f"synthetic scene ({views} views, {w}x{h}, {object_kind}, seed {seed}): {path}")
 

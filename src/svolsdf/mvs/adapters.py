@@ -367,8 +367,18 @@ class PatchmatchNetBackbone(DepthConfidenceAdapter):
         if not path.is_file():
             raise InputError(f"{path}: PatchmatchNet weights file not found")
         config = AdapterConfig(**cfg)
+        load = getattr(getattr(torch, "jit", None), "load", None)
+        if load is None:  # TorchScript is deprecated; docs/dependencies.md
+            raise InputError(
+                f"{path}: torch {torch.__version__} has no torch.jit.load to read the TorchScript "
+                "PatchmatchNet weights; install a torch that has it (2.1-2.13 are tested) or use "
+                "--backbone casmvsnet / planesweep (docs/dependencies.md)")
         try:
-            module = torch.jit.load(str(path), map_location=config.device)
+            with warnings.catch_warnings():
+                # "torch.jit.load is deprecated": the weights exist only as TorchScript;
+                # docs/dependencies.md says what replaces it
+                warnings.simplefilter("ignore", DeprecationWarning)
+                module = load(str(path), map_location=config.device)
         except Exception as e:  # noqa: BLE001 - any load failure is bad input
             raise InputError(f"{path}: cannot load as a TorchScript module ({e})") from None
         if not hasattr(module, "patchmatch_num_sample"):

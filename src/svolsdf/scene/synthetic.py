@@ -136,6 +136,9 @@ class SynthConfig:
     """Borrow the cameras of this IDR scene folder instead of the synthetic cap."""
     camera_views: list[int] | None = None
     """With ``cameras_from``: which of its views to use (default: ``views`` evenly spaced ids)."""
+    texture_contrast: float = 1.0
+    """Contrast of the object's texture: 1 the full procedural pattern, lower values a
+    low-texture object (colours pulled towards each primitive's mean colour)."""
 
     def __post_init__(self) -> None:
         if self.object not in OBJECT_KINDS:
@@ -146,6 +149,8 @@ class SynthConfig:
             raise InputError(f"--views must be at least 1, got {self.views}")
         if self.width < 8 or self.height < 8:
             raise InputError(f"image size must be at least 8x8, got {self.width}x{self.height}")
+        if not 0.0 <= self.texture_contrast <= 1.0:
+            raise InputError(f"--texture-contrast must be in [0, 1], got {self.texture_contrast}")
         if self.supersample < 1:
             raise InputError(f"supersample must be >= 1, got {self.supersample}")
 
@@ -408,6 +413,7 @@ def make_synthetic_scene(out_dir, cfg: SynthConfig | None = None) -> Path:
     rng = np.random.default_rng([cfg.seed, 2])
 
     obj = make_object(cfg.object, cfg.seed)
+    obj.contrast = float(cfg.texture_contrast)
     # Stand the object on the table: lowest point 3 mm under z = 0, centred on the z axis.
     verts, faces = _object_mesh(obj, max(cfg.mesh_resolution, 4.0), cfg.chunk)
     lo, hi = verts.min(0), verts.max(0)

@@ -150,11 +150,14 @@ class SynthObject:
             ``period`` world units, ``stripe_dir`` (3,)).
         blend: smooth-union radius k (world units).
         seed: texture seed.
+        contrast: texture contrast; 1 is the full pattern, lower values pull every colour
+            towards the primitive's mean colour (a low-texture object, hard for MVS).
     """
 
     primitives: list[dict]
     blend: float
     seed: int
+    contrast: float = 1.0
 
     def __post_init__(self) -> None:
         self._noise = _Noise(self.seed)
@@ -206,7 +209,12 @@ class SynthObject:
             cols = q.new_tensor(prim["colors"])
             c = cols[0] * (1 - s[:, None]) + cols[1] * s[:, None]
             spots = 0.6 * (n[2] > 0.6).to(q.dtype)[:, None]
-            out[sel] = c * (1 - spots) + cols[2] * spots
+            c = c * (1 - spots) + cols[2] * spots
+            if self.contrast != 1.0:
+                c = cols.mean(0) + self.contrast * (c - cols.mean(0))
+            out[sel] = c
+        if self.contrast != 1.0:
+            fine = 0.5 + self.contrast * (fine - 0.5)
         return (out * (0.8 + 0.4 * fine[:, None])).clamp(0.0, 1.0)
 
 
