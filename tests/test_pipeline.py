@@ -360,6 +360,19 @@ def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
         Pipeline(cfg, tmp_path / "b", progress=False).run()
 
 
+def test_an_unrecognised_scene_folder_leaves_no_run_folder(tmp_path):
+    """Issue 38: a folder no scene format reads is refused before OUT (and OUT/log) exists."""
+    scene = tmp_path / "not_a_scene"
+    scene.mkdir()
+    (scene / "notes.txt").write_text("no cameras here")
+    cfg = preset("fast")
+    cfg.scene.path = str(scene)
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="no known scene layout"):
+        Pipeline(cfg, out, progress=False).run()
+    assert not (out / "log").exists() and not out.exists()
+
+
 def _rerun_on_copy(out, dest, **output):
     """Copy the finished run ``out`` to ``dest``, set ``cfg.output.<key> = value`` for each of
     ``output`` and run the pipeline there (finished stages are reused); returns the Pipeline."""
@@ -631,9 +644,8 @@ def test_watertight_mesh_option(tiny_run, tmp_path):
 
 def test_poisson_mesh_option(tiny_run, tmp_path):
     """output.mesh_method = poisson: only the mesh reruns; the mesh lies on the fused points
-    (nearer them than the field's zero level) and keeps colours; output.mesh_watertight still
-    gives the field's closed zero level."""
-    import trimesh
+    (nearer them than the field's zero level) and keeps colours; output.mesh_watertight with
+    it is refused."""
     from scipy.spatial import cKDTree
 
     out, _, p = tiny_run
@@ -645,11 +657,10 @@ def test_poisson_mesh_option(tiny_run, tmp_path):
     m = read_ply(tmp_path / "pz" / "mesh.ply")
     assert np.median(tree.query(m["points"])[0]) < 0.9 * field
     assert m["colors"] is not None and len(m["faces"]) > 100
-    p3 = _rerun_on_copy(out, tmp_path / "pzw", mesh_method="poisson", poisson_depth=8,
-                        mesh_watertight=True)
-    w = read_ply(tmp_path / "pzw" / "mesh.ply")
-    assert "method" not in p3.timing["mesh"], p3.timing  # the field's closed zero level
-    assert trimesh.Trimesh(w["points"], w["faces"], process=True).is_watertight
+    # a watertight mesh is the field's closed zero level: with poisson it is refused, naming
+    # both options (issue 38: Poisson was silently ignored)
+    with pytest.raises(InputError, match="mesh_watertight.*mesh_method"):
+        _rerun_on_copy(out, tmp_path / "pzw", mesh_method="poisson", mesh_watertight=True)
 
 
 def test_poisson_mesh_falls_back_to_the_field(tiny_run, tmp_path):

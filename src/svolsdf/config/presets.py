@@ -11,7 +11,7 @@ __all__ = ["PRESETS", "preset"]
 
 def _paper() -> Config:
     c = Config(preset="paper")
-    c.field = FieldConfig(kind="mlp")
+    c.field = FieldConfig(kind="mlp", init="sphere")  # the MLP starts from VolSDF's sphere
     c.train = TrainConfig(steps=100_000, sampler="error_bounded", lr=5e-4, checkpoint_every=5000)
     c.mvs = MVSConfig(backbone="planesweep", width="paper")
     c.output = OutputConfig(mesh_resolution=512)

@@ -110,8 +110,10 @@ class FieldConfig:
     grid_start_resolution: int = _limited(64, min=4)
     """grid: resolution at the start (coarse to fine)."""
     init: Literal["mvs", "sphere"] = "mvs"
-    """grid: initial surface. mvs: signed distance of the fused stage-1 MVS depth (fast preset,
-    svolsdf mode; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2)."""
+    """Initial surface. mvs: signed distance of the fused stage-1 MVS depth (the grid field in
+    svolsdf mode, fast preset; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2;
+    the MLP field's only start, so ``kind`` mlp in svolsdf mode needs it). The volsdf mode
+    always starts from the sphere (a baseline never sees MVS)."""
     sphere_radius: float = _limited(0.3, min=0.01)
     """grid started from a sphere (volsdf mode, or init = sphere): radius of VolSDF's initial
     sphere |x| - r (METHOD.md 5.2), unit frame, centred at the origin, in a grid over the box of

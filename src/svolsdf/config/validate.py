@@ -17,6 +17,7 @@ from svolsdf.errors import InputError
 
 __all__ = ["validate_config"]
 
+
 class _Rejected(Exception):
     """A value does not fit its field; ``args[0]`` says what would. ``near``: the value has the
     right type but is out of range (a union then reports this member alone)."""
@@ -188,12 +189,78 @@ def validate_config(cfg: Config, where: str | None = None,
         raise InputError(f"{where or 'config'}: expected a Config, got {type(cfg).__name__}")
     labels = labels or {}
     _validate_dataclass(cfg, "", where, labels)
-    head = f"{where}: " if where else ""
-    if cfg.output.finer_stage_optimization and (cfg.train.mode != "svolsdf"
-                                                or cfg.train.ablation is not None):
-        raise InputError(f"{head}output.finer_stage_optimization needs train.mode svolsdf "
-                         "without train.ablation (it optimizes the field against the stage-2 "
-                         "volumes)")
+    _check_combinations(cfg, f"{where}: " if where else "", labels)
     return cfg
 
 
+def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> None:
+    """The pairs of options where one would silently disable or contradict the other.
+
+    Raises:
+        InputError: one line naming both options (with the command-line option that set each,
+            from ``labels``) and what to do.
+    """
+    t, f, o = cfg.train, cfg.field, cfg.output
+
+    def opt(key: str, value: Any) -> str:
+        shown = value if isinstance(value, str) else _short(value)
+        label = labels.get(key)
+        if label is None:
+            return f"{key} = {shown}"
+        return f"{label}={shown}" if label == f"--set {key}" else f"{label} {shown} ({key})"
+
+    def refuse(a: str, va: Any, b: str, vb: Any, why: str) -> None:
+        raise InputError(f"{head}{opt(a, va)} with {opt(b, vb)}: {why}")
+
+    if o.finer_stage_optimization and (t.mode != "svolsdf" or t.ablation is not None):
+        which = ("train.mode", t.mode) if t.mode != "svolsdf" else ("train.ablation", t.ablation)
+        refuse("output.finer_stage_optimization", True, *which,
+               "the finer-stage optimization needs train.mode svolsdf without train.ablation "
+               "(it optimizes the field against the stage-2 volumes)")
+    # a baseline never sees MVS (issue 38): the ablations run stage-1 MVS, and the mvs rule
+    # reads its depth into the guide
+    if t.ablation is not None and t.mode != "svolsdf":
+        refuse("train.mode", t.mode, "train.ablation", t.ablation,
+               "the ablations change S-VolSDF's prior; "
+               + ("a VolSDF baseline must never see MVS" if t.mode == "volsdf"
+                  else "mvs-only fits no field") + ": drop the ablation or use train.mode svolsdf")
+    if t.mode == "volsdf" and o.low_weight_rule == "mvs":
+        refuse("train.mode", t.mode, "output.low_weight_rule", o.low_weight_rule,
+               "the mvs rule fills the guide with stage-1 MVS depth, which a VolSDF baseline "
+               "must never see: use output.low_weight_rule=max")
+    if o.fusion_network is not None and t.mode != "svolsdf":
+        refuse("train.mode", t.mode, "output.fusion_network", o.fusion_network,
+               "the fusion network starts from the field's guide in svolsdf mode only; "
+               "leave output.fusion_network unset")
+    if o.fusion_network_weights is not None and o.fusion_network is None:
+        refuse("output.fusion_network_weights", o.fusion_network_weights,
+               "output.fusion_network", None, "the weights are of the fusion network; set "
+               "output.fusion_network too or leave the weights out")
+    if t.mode == "mvs-only" and o.mesh_method == "field":
+        refuse("train.mode", t.mode, "output.mesh_method", o.mesh_method,
+               "mvs-only fits no field, so there is no field to mesh (its output is "
+               "points.ply): use output.mesh_method=poisson or another train.mode")
+    if o.mesh_watertight and o.mesh_method != "field":
+        refuse("output.mesh_watertight", True, "output.mesh_method", o.mesh_method,
+               "the watertight mesh is the field's closed zero level and a Poisson surface "
+               "opens at its octree's box: use output.mesh_method=field or drop "
+               "output.mesh_watertight")
+    if 0 < t.beta_start < t.beta_end:
+        refuse("train.beta_start", t.beta_start, "train.beta_end", t.beta_end,
+               "beta is annealed from beta_start down to beta_end (a sharper surface at the "
+               "end): give beta_start >= beta_end, or 0 for a learned beta")
+    if f.kind == "grid":
+        # the grid starts from the MVS surface only in svolsdf mode with init mvs
+        # (svolsdf.pipeline.options.grid_from_sphere); from a sphere otherwise
+        from_mvs = (t.mode == "svolsdf" and f.init == "mvs"
+                    and t.ablation != "soft-consistency-only")
+        key = "field.grid_start_resolution" if from_mvs else "field.sphere_start_resolution"
+        start = f.grid_start_resolution if from_mvs else f.sphere_start_resolution
+        if start > f.grid_resolution:
+            refuse(key, start, "field.grid_resolution", f.grid_resolution,
+                   "the grid refines coarse to fine, so its start resolution must not exceed "
+                   "the final one")
+    elif f.init == "mvs" and t.mode == "svolsdf":
+        refuse("field.kind", f.kind, "field.init", f.init,
+               "only the grid field starts from the MVS surface; the MLP starts from VolSDF's "
+               "sphere: use field.init=sphere or field.kind=grid")

@@ -139,13 +139,16 @@ class Pipeline(Run):
                     handler.close()
 
     def _check_options(self) -> None:
-        """Fail on a missing scene folder or on backbone options (weights, scale) that cannot
-        run before the output folder is touched."""
+        """Fail on a missing scene folder, one that no scene format recognises, or on backbone
+        options (weights, scale) that cannot run before the output folder is touched."""
         path = Path(self.cfg.scene.path)
         if not path.exists():
             raise InputError(f"{path}: scene folder does not exist")
         if not path.is_dir():
             raise InputError(f"{path} is not a folder; pass the scene folder")
+        from svolsdf.scene.loaders import detect_format
+
+        detect_format(path)  # a folder no format reads: refused before OUT/log exists
         if options.runs_mvs1(self.cfg):
             self.backbone()  # built once and dropped: its weights load again in stage 1
         if options.wants_network(self.cfg):
