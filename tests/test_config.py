@@ -171,6 +171,8 @@ def test_overrides_are_validated_and_name_their_option():
     ("paper", {"train.mode": "mvs-only"}, "train.mode", "output.mesh_method"),
     ("fast", {"field.kind": "mlp"}, "field.kind", "field.init"),
     ("paper", {"field.init": "mvs"}, "field.kind", "field.init"),
+    ("paper", {"field.mlp_depth": 2}, "field.kind", "field.mlp_depth"),
+    ("paper", {"field.mlp_width": 32}, "field.kind", "field.mlp_width"),
     ("fast", {"output.finer_stage_optimization": True, "train.ablation": "mse"},
      "output.finer_stage_optimization", "train.ablation"),
 ])

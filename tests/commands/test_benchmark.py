@@ -23,6 +23,7 @@ from svolsdf.commands.benchmark import (
     scan_number,
 )
 from svolsdf.errors import InputError
+from svolsdf.evaluate.benchmark_tables import method_label
 from svolsdf.io.ply import read_ply, write_points_ply
 
 # --------------------------------------------------------------------------- pure table writers
@@ -50,16 +51,18 @@ def test_markdown_table_values_mean_and_marks():
     md = benchmark_markdown(ROWS, ["svolsdf", "mvs-only"], title="T")
     lines = md.splitlines()
     assert lines[0] == "# T"
-    head = _cells(lines[2])
+    # rows without a field kind (made before it was recorded) say so
+    assert lines[2] == "Methods: svolsdf = S-VolSDF; mvs-only = MVS only."
+    head = _cells(lines[4])
     assert head == ["scene", "svolsdf Acc.", "svolsdf Comp.", "svolsdf Chamfer", "svolsdf PSNR",
                     "svolsdf time (s)", "mvs-only Acc.", "mvs-only Comp.", "mvs-only Chamfer",
                     "mvs-only PSNR", "mvs-only time (s)"]
-    r24 = _cells(lines[4])
+    r24 = _cells(lines[6])
     assert r24 == ["scan24", "1.00", "2.00", "**1.50**", "20.00", "100", "2.00", "4.00", "3.00",
                    "-", "10"]
-    r37 = _cells(lines[5])
+    r37 = _cells(lines[7])
     assert r37 == ["scan37", "3.00", "1.00", "2.00", "22.00", "300", "-", "-", "-", "-", "-"]
-    mean = _cells(lines[6])
+    mean = _cells(lines[8])
     # svolsdf: mean over both scenes; mvs-only: only scan24 has values -> marked with *.
     assert mean == ["**mean**", "2.00", "1.50", "**1.75**", "21.00", "200", "2.00*", "4.00*",
                     "3.00*", "-", "10*"]
@@ -81,6 +84,21 @@ def test_markdown_without_psnr_has_no_psnr_columns_and_csv_matches():
     assert full[0][4] == "svolsdf_psnr" and full[2][6:] == ["", "", "", "", ""]
     with pytest.raises(InputError, match="no runs"):
         benchmark_markdown([])
+
+
+def test_methods_are_named_for_what_they_are():
+    """Issue 38: --mode volsdf with the grid field is not the paper's VolSDF."""
+    rows = [{**_row("a", "volsdf", 1.0, 2.0), "field": "grid"},
+            {**_row("a", "svolsdf", 0.5, 0.7), "field": "grid"}]
+    md = benchmark_markdown(rows, ["svolsdf", "volsdf"])
+    assert "volsdf = VolSDF (grid field, no prior)" in md and "svolsdf = S-VolSDF;" in md
+    mlp = [{**r, "field": "mlp"} for r in rows]
+    assert "volsdf = VolSDF (MLP)" in benchmark_markdown(mlp, ["volsdf"])
+    mixed = benchmark_markdown(rows + [{**_row("b", "volsdf", 1.0, 1.0), "field": "mlp"}])
+    assert "volsdf = VolSDF (grid field, no prior) / VolSDF (MLP)" in mixed
+    assert "VolSDF (field kind not recorded)" in benchmark_markdown(
+        [_row("a", "volsdf", 1.0, 2.0)])
+    assert method_label("mvs-only") == "MVS only"
 
 
 def test_scan_number_from_names():

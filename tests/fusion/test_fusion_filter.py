@@ -194,6 +194,7 @@ def test_fusion_surface_counts_as_one_source():
     option, keeps its own depth, and a depth off the surface does not."""
     cams = three_cameras()
     depths = {v: sphere_depth(c).float() for v, c in cams.items()}
+    depths[0] = depths[0] * (1 + 1e-4)  # near the surface, but its own estimate
     depths[1] = depths[1] * 1.1  # views 1 and 2 fail everywhere: no MVS support for view 0
     depths[2] = depths[2] * 0.9
     surface = {v: sphere_depth(c).float() for v, c in cams.items()}
@@ -217,6 +218,26 @@ def test_fusion_surface_counts_as_one_source():
     big = {v: s.repeat_interleave(2, 0).repeat_interleave(2, 1) for v, s in surface.items()}
     out2 = fuse_depth_maps(depths, cams, cfg=cfg, surface_depths=big)
     assert torch.equal(out2.points, out.points)
+
+
+def test_a_depth_map_is_not_its_own_consistent_source():
+    """Issue 38: VolSDF's fused depth is its rendered surface; with that map as the surface
+    every valid pixel passed. A map equal to its surface gets no support from it, so a pixel
+    that only one view sees is dropped, and the multi-view check decides as for any map."""
+    cams = three_cameras()
+    depths = {v: sphere_depth(c).float() for v, c in cams.items()}
+    cfg = FusionConfig(surface_rel_thresh=5e-4, min_consistent=1)
+    alone = {0: depths[0], 1: torch.zeros_like(depths[1]), 2: torch.zeros_like(depths[2])}
+    out = fuse_depth_maps(alone, cams, cfg=cfg, surface_depths=alone)
+    assert out.stats[0]["points"] == 0 and out.stats[0]["surface_only"] == 0
+    # seen by the other views too: the same pixels pass on their multi-view support alone
+    both = fuse_depth_maps(depths, cams, cfg=cfg, surface_depths=depths)
+    ref = fuse_depth_maps(depths, cams, cfg=cfg)
+    assert torch.equal(both.points, ref.points) and both.stats[0]["points"] > 0
+    # a network hypothesis that echoes its surface gets no support from it either
+    extra = fuse_depth_maps(alone, cams, cfg=cfg, surface_depths=alone,
+                            extra_depths={"echo": alone})
+    assert extra.stats["0:echo"]["points"] == 0
 
 
 def test_primary_and_alt_mask_dilation_narrow_only_their_hypothesis():

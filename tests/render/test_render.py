@@ -184,3 +184,20 @@ def test_render_image_chunked_equals_unchunked():
     m = d["opacity"] > 0.99
     assert (c["depth"][m] - d["depth"][m]).abs().max() < 1e-2
     assert model.training  # restored
+
+
+def test_max_rule_filled_finds_the_low_weight_pixels():
+    """`max_rule_filled` recovers the pixels `guide_depths`' "max" rule filled (weight < 0.2),
+    with the covered pixels at exactly the maximum; VolSDF's fusion drops them (issue 38)."""
+    from svolsdf.render.views import guide_depths, max_rule_filled
+
+    g = torch.Generator().manual_seed(0)
+    depth = 1.0 + torch.rand(1, 12, 16, generator=g)
+    opacity = torch.rand(1, 12, 16, generator=g)
+    guide = guide_depths(depth, opacity, [3], 2.0, "max")[3]
+    low = opacity[0] < 0.2
+    at_max = (~low) & (depth[0] == depth[0][~low].max())
+    assert low.any() and torch.equal(max_rule_filled(guide), low | at_max)
+    assert max_rule_filled(torch.zeros(4, 5)).all()  # nothing covered: all fill
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        max_rule_filled(guide[None])

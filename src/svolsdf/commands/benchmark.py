@@ -135,7 +135,7 @@ def _labels(scenes: list[Path]) -> list[str]:
 def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
                 status: str = "ok") -> dict:
     """One benchmark row from an evaluate_run metrics dict (METRIC_KEYS, scene, mode, status,
-    protocol)."""
+    protocol); `run_job` adds ``views`` and ``field`` (the field kind, for `method_label`)."""
     c = metrics.get("chamfer") or {}
     cm = metrics.get("chamfer_mesh") or {}
 
@@ -288,10 +288,20 @@ def job_config(job: BenchmarkJob):
     return apply_overrides(c, dict(job.overrides), labels=_OPTION_LABELS)
 
 
+def _field_kind(job: BenchmarkJob) -> str | None:
+    """The job's ``field.kind`` (what its method is: `method_label`), None if its config is
+    invalid."""
+    try:
+        return job_config(job).field.kind
+    except InputError:
+        return None
+
+
 def failed_row(job: BenchmarkJob, error: BaseException) -> dict:
     """The row of a job that raised ``error``: no metrics, status "failed: <type>: <message>"."""
     msg = f"failed: {type(error).__name__}: {error}".strip().splitlines()[0]
-    return {**run_metrics({}, job.label, job.mode, None, status=msg), "views": job.views}
+    return {**run_metrics({}, job.label, job.mode, None, status=msg), "views": job.views,
+            "field": _field_kind(job)}
 
 
 def finished_row(job: BenchmarkJob) -> dict | None:
@@ -305,7 +315,9 @@ def finished_row(job: BenchmarkJob) -> dict | None:
     if not isinstance(saved, dict) or saved.get("key") != job.key():
         return None
     row = saved.get("row")
-    return row if isinstance(row, dict) and row.get("status") == "ok" else None
+    if not isinstance(row, dict) or row.get("status") != "ok":
+        return None
+    return row if "field" in row else {**row, "field": _field_kind(job)}  # an older row
 
 
 def run_job(job: BenchmarkJob) -> dict:
@@ -332,7 +344,7 @@ def run_job(job: BenchmarkJob) -> dict:
             extra={"benchmark": {"scene": job.label, "mode": job.mode}}, **job.evaluate))
         t = _stage_seconds(out)
         row = {**run_metrics(metrics, job.label, job.mode, t if t is not None else elapsed),
-               "views": job.views}
+               "views": job.views, "field": _field_kind(job)}
     except Exception as e:  # one failed run must not lose the others
         log.error("%s / %s failed: %s", job.label, job.mode, e,
                   exc_info=not isinstance(e, InputError))

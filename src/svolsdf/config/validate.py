@@ -260,6 +260,12 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
             refuse(key, start, "field.grid_resolution", f.grid_resolution,
                    "the grid refines coarse to fine, so its start resolution must not exceed "
                    "the final one")
+    elif f.mlp_depth < 4 or f.mlp_width <= 39:
+        # VolSDF's MLP (METHOD.md 5.2) feeds gamma(x) (39 values) in again at layer 4
+        bad = ("field.mlp_depth", f.mlp_depth) if f.mlp_depth < 4 else \
+            ("field.mlp_width", f.mlp_width)
+        refuse("field.kind", f.kind, *bad, "the MLP's skip connection enters gamma(x) (39 "
+               "values) again at layer 4: give field.mlp_depth >= 4 and field.mlp_width >= 40")
     elif f.init == "mvs" and t.mode == "svolsdf":
         refuse("field.kind", f.kind, "field.init", f.init,
                "only the grid field starts from the MVS surface; the MLP starts from VolSDF's "

@@ -18,7 +18,30 @@ __all__ = [
     "benchmark_csv",
     "benchmark_markdown",
     "benchmark_plot",
+    "method_label",
 ]
+
+
+def method_label(mode: str, field_kind: str | None = None) -> str:
+    """What a run of ``mode`` (``cfg.train.mode``) with a field of ``field_kind``
+    (``cfg.field.kind``; None: not recorded) is, for tables: ``--mode volsdf`` is the paper's
+    VolSDF only with the MLP; with the grid field it is the same fast field without the MVS
+    prior (issue 38)."""
+    if mode == "volsdf":
+        return {"grid": "VolSDF (grid field, no prior)", "mlp": "VolSDF (MLP)"}.get(
+            field_kind, "VolSDF (field kind not recorded)")
+    if mode == "svolsdf":
+        return {"grid": "S-VolSDF", "mlp": "S-VolSDF (MLP)"}.get(field_kind, "S-VolSDF")
+    return {"mvs-only": "MVS only"}.get(mode, mode)
+
+
+def _mode_labels(rows: list[dict], modes: list[str]) -> dict[str, str]:
+    """mode -> its method label(s) from the rows' ``field`` kinds ("a / b" when they differ)."""
+    out = {}
+    for m in modes:
+        kinds = list(dict.fromkeys(r.get("field") for r in rows if r["mode"] == m))
+        out[m] = " / ".join(method_label(m, k) for k in kinds or [None])
+    return out
 
 
 # --------------------------------------------------------------------------- tables
@@ -98,8 +121,10 @@ def benchmark_markdown(rows: list[dict], modes: list[str] | None = None,
         raise InputError("benchmark table: no runs to tabulate")
     scenes, modes, cols, body, means, partial = _table(rows, modes)
     head = ["scene"] + [f"{m} {h}" for m in modes for _, h, _ in cols]
-    out = [f"# {title}", "", "| " + " | ".join(head) + " |",
-           "|---|" + "---:|" * (len(head) - 1)]
+    names = _mode_labels(rows, modes)
+    out = [f"# {title}", "",
+           "Methods: " + "; ".join(f"{m} = {names[m]}" for m in modes) + ".", "",
+           "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     ci = [k for k, _, _ in cols].index("overall")
 
     def line(label, per_mode, marks=None):
@@ -177,6 +202,7 @@ def benchmark_plot(rows: list[dict], path: Path, modes: list[str] | None = None)
     import matplotlib.pyplot as plt
 
     scenes, modes, cols, body, means, _ = _table(rows, modes)
+    names = _mode_labels(rows, modes)
     keys = [k for k, _, _ in cols]
     panels = [("overall", "Chamfer (lower is better)")]
     if "psnr" in keys:
@@ -194,7 +220,7 @@ def benchmark_plot(rows: list[dict], path: Path, modes: list[str] | None = None)
             # not computed: no bar (NaN), not a zero that would read as a perfect score
             ys = [float(v) if v is not None else math.nan for v in vals]
             xs = [i + (j - (len(modes) - 1) / 2) * width for i in range(len(labels))]
-            ax.bar(xs, ys, width, label=m)
+            ax.bar(xs, ys, width, label=names[m])
         ax.set_xticks(range(len(labels)), labels, rotation=30 if len(labels) > 6 else 0,
                       ha="right" if len(labels) > 6 else "center")
         ax.set_title(title, fontsize=10)

@@ -9,7 +9,8 @@ Implements METHOD.md 6.3 (the released ``runner.py::filter_depth`` and
    within a relative depth difference ``rel_thresh`` (`svolsdf.geometry.reproject`).
 3. Optionally (not in METHOD.md; the fast preset's ``output.fusion_surface``), a pixel whose
    depth lies on the optimized surface (its rendered depth in the reference view, within a
-   relative tolerance) counts as one more consistent source.
+   relative tolerance) counts as one more consistent source; not for a depth map that is the
+   surface's own depth.
 4. Pixels with at least ``min_consistent`` consistent sources, a confidence above
    ``conf_thresh`` and inside the dilated object mask are kept; their depth is the average of the
    reference depth and the consistent reprojected depths, back-projected to world coordinates
@@ -105,7 +106,8 @@ class FusionConfig:
     pixel whose depth lies within this relative difference of the surface's depth counts as one
     more consistent source (its fused depth is not changed by it). The surface is fitted to all
     views at once, so agreeing with it is multi-view evidence where the other views' depth maps
-    failed (rims, occlusion borders). 0 = off (the released fusion)."""
+    failed (rims, occlusion borders). 0 = off (the released fusion). It is no source for a
+    depth map equal to it (VolSDF's rendered depth): that map would pass at every pixel."""
 
     estimate_normals: bool = False
     """Also return per-point normals, from finite differences of the fused depth map's
@@ -145,6 +147,13 @@ def _normals_from_points(pts: Tensor, center: Tensor) -> Tensor:
     to_cam = center.to(pts) - pts
     flip = (n * to_cam).sum(-1, keepdim=True) < 0
     return torch.where(flip, -n, n)
+
+
+def _same_map(a: Tensor, b: Tensor) -> bool:
+    """Two depth maps hold the same values (the same size, equal where either is finite)."""
+    return a is b or (tuple(a.shape) == tuple(b.shape)
+                      and torch.equal(torch.nan_to_num(a.float()),
+                                      torch.nan_to_num(b.float().to(a.device))))
 
 
 def _image_at(image: Tensor, height: int, width: int) -> Tensor:
@@ -331,7 +340,10 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         ds = surface_depths[ref].to(d_ref.device).float()
         if tuple(ds.shape) != (H, W):  # hypotheses may differ in size; nearest: no mixing
             ds = F.interpolate(ds[None, None], size=(H, W), mode="nearest")[0, 0]
-        on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
+        # a hypothesis that is the surface's own depth (VolSDF's rendered depth, a network
+        # echoing its guide) would lie on it at every pixel: the surface is no source for it
+        if not _same_map(ds, d_ref):
+            on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
         support = count + on_surface.int()
     geo = valid & (support >= cfg.min_consistent)
     keep = geo.clone()

@@ -63,8 +63,12 @@ def fuse(p, path: Path) -> tuple[int, dict]:
         fcfg.alt_mask_dilation = o.fusion_unguided_dilation
     # the refined surface after the finer-stage optimization
     sdir = p.dir.render_depth_dir(refined=bool(cfg.output.finer_stage_optimization))
-    # the rendered guide is the surface (the soft-consistency ablation's guide is not)
+    # the rendered guide is the surface (the soft-consistency ablation's guide is not). In
+    # volsdf mode OUT/depth is that guide itself: it must not count as its own consistent
+    # source, so VolSDF's points pass the same multi-view check as every other mode's
+    guide_is_depth = cfg.train.mode == "volsdf"
     use_surface = (o.fusion_surface > 0 and cfg.train.ablation != "soft-consistency-only"
+                   and not guide_is_depth
                    and all((sdir / f"{v}.npy").is_file() for v in views))
     cams = {v: scene.cameras[[i]] for i, v in enumerate(views)}
     images = {v: scene.images[i] for i, v in enumerate(views)}
@@ -79,6 +83,13 @@ def fuse(p, path: Path) -> tuple[int, dict]:
         return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
 
     depths = load(out, "depth")
+    if guide_is_depth and depths is not None and o.low_weight_rule == "max":
+        from svolsdf.render.views import max_rule_filled
+
+        # the pixels METHOD.md 6.1 filled with the map's maximum depth are no surface of the
+        # field (they only centre MVS in svolsdf mode): no depth
+        depths = {v: torch.where(max_rule_filled(d), torch.zeros_like(d), d)
+                  for v, d in depths.items()}
     confs = load(out, "confidence") if cfg.train.mode != "volsdf" else None
     alt = alt_confs = None
     if options.wants_unguided(cfg):  # the unguided stages 2-3 as each view's second hypothesis

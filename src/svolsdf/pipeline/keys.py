@@ -87,7 +87,10 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                                  weights=cfg.output.fusion_network_weights,
                                  max_sources=cfg.mvs.max_sources)
     k_fusion = _hash(k_mvs23, fo, k_unguided if wants_unguided(cfg) else None,
-                     *([net] if net is not None else []))
+                     *([net] if net is not None else []),
+                     # issue 38: VolSDF's rendered depth is fused under the multi-view rule
+                     # (before, its own surface passed every pixel): its old points are stale
+                     *(["multi-view"] if cfg.train.mode == "volsdf" else []))
     # mesh_fit_points enters only when set (with the fused points it fits): run folders
     # made before the option keep their mesh key
     fit = ([c["output"]["mesh_fit_points"], k_fusion] if wants_mesh_fit(cfg) else [])

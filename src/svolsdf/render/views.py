@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.cameras import Cameras
 
-__all__ = ["guide_depths", "guide_pixels", "render_field_views"]
+__all__ = ["guide_depths", "guide_pixels", "max_rule_filled", "render_field_views"]
 
 
 @torch.no_grad()
@@ -128,3 +128,22 @@ def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int]
             d = torch.where(low, m, d)
         guide[v] = d.float()
     return guide
+
+
+def max_rule_filled(guide: torch.Tensor) -> torch.Tensor:
+    """(H, W) bool: the pixels of a guide made with `guide_depths`' "max" rule that hold its
+    fill, the map's maximum depth (METHOD.md 6.1: accumulated weight < 0.2, or not rendered),
+    not a depth of the field's surface. The fill is the largest depth of the covered pixels, so
+    the few covered pixels at exactly that depth are counted too; a map without a finite
+    positive depth is all fill.
+
+    Args:
+        guide: (H, W) world z-depth from `guide_depths` with rule "max".
+    """
+    if guide.ndim != 2:
+        raise ValueError(f"max_rule_filled: expected an (H, W) depth map, got "
+                         f"{tuple(guide.shape)}")
+    ok = torch.isfinite(guide) & (guide > 0)
+    if not ok.any():
+        return torch.ones_like(ok)
+    return guide == guide[ok].max()
