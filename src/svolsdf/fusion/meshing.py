@@ -1,6 +1,8 @@
-"""A reconstruction's mesh: the zero level of the field (marching cubes, METHOD.md 8.3) or the
-screened Poisson surface of the fused points, each culled to what the input views can judge
-(`svolsdf.fusion.cull.cull_to_views`).
+"""A reconstruction's mesh: the zero level of the field (marching cubes, METHOD.md 8.3), the
+screened Poisson surface of the fused points, or the TSDF of the observed final depth, each
+culled to what the input views can judge (`svolsdf.fusion.cull.cull_to_views`), then, as
+options, to what they did not see as empty and to what the fused points support
+(`clean_mesh`).
 
 Meshes are (vertices (V, 3) float32, faces (F, 3) int64) torch tensors on the CPU; ``vw`` names
 world vertices (the cameras' units), ``v`` the same vertices in the field's unit frame.
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -17,7 +20,8 @@ from torch import Tensor
 
 from svolsdf.scene.scene import Scene
 
-__all__ = ["field_mesh", "field_mesh_colours", "poisson_mesh"]
+__all__ = ["MeshCleanup", "clean_mesh", "field_mesh", "field_mesh_colours", "poisson_mesh",
+           "points_tsdf_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -149,3 +153,106 @@ def poisson_mesh(
     vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
                                rel_tol=rel_tol, largest=False)
     return vw, f, (None if c is None else c[idx])
+
+
+def points_tsdf_mesh(
+    points: np.ndarray,
+    colours: np.ndarray | None,
+    scene: Scene,
+    observed: list[Tensor],
+    trunc: float,
+    resolution: int,
+    use_masks: bool = True,
+    unseen: bool = False,
+    rel_tol: float = 0.01,
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The TSDF mesh of the observed final depth (`svolsdf.fusion.tsdf.tsdf_mesh`), culled like
+    the Poisson mesh (every component kept); vertex colours of the nearest fused point.
+
+    Args:
+        points: (N, 3) fused world points; colours: (N, 3) uint8 or None.
+        scene: the input views (world cameras, masks).
+        observed: one (H, W) observed z-depth map per input view
+            (`svolsdf.fusion.observe.observed_depths`).
+        trunc: truncation distance, world units; resolution: voxels along the box's longest
+            side.
+        use_masks, unseen, rel_tol: as `field_mesh`.
+
+    Returns:
+        vw (V, 3) world vertices, faces (F, 3), colours (V, 3) or None.
+    """
+    from scipy.spatial import cKDTree
+
+    from svolsdf.fusion.cull import cull_to_views
+    from svolsdf.fusion.tsdf import tsdf_mesh
+
+    v, f = tsdf_mesh(points, observed, scene.cameras, trunc, resolution=resolution)
+    c = None
+    if colours is not None:
+        _, nn = cKDTree(points).query(v, workers=max(1, torch.get_num_threads()))
+        c = torch.from_numpy(np.asarray(colours)[nn])
+    vw, f = torch.from_numpy(v).float(), torch.from_numpy(f)
+    masks = scene.masks if use_masks else None
+    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
+                               rel_tol=rel_tol, largest=False)
+    return vw, f, (None if c is None else c[idx])
+
+
+@dataclass
+class MeshCleanup:
+    """What `clean_mesh` removed: faces before, after free-space culling, after trimming."""
+
+    faces_in: int = 0
+    free_space_removed: int = 0
+    support_removed: int = 0
+    steps: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"faces_in": self.faces_in, "free_space_removed": self.free_space_removed,
+                "support_removed": self.support_removed, "steps": list(self.steps)}
+
+
+def clean_mesh(
+    vw: Tensor,
+    faces: Tensor,
+    colours: Tensor | None,
+    scene: Scene,
+    observed: list[Tensor] | None = None,
+    free_space_tol: Tensor | float | None = None,
+    points: np.ndarray | None = None,
+    support_k: float = 0.0,
+) -> tuple[Tensor, Tensor, Tensor | None, MeshCleanup]:
+    """Free-space culling (with ``observed`` and ``free_space_tol``) and support trimming (with
+    ``points`` and ``support_k`` > 0) of any mesh, in that order (`svolsdf.fusion.observe`).
+
+    Args:
+        vw: (V, 3) world vertices; faces: (F, 3); colours: (V, 3) or None.
+        scene: the input views (world cameras).
+        observed: one (H, W) observed z-depth map per input view, or None (no free-space
+            culling).
+        free_space_tol: depth tolerance, world units, a float or (V,) per view.
+        points: (N, 3) fused world points, or None (no trimming).
+        support_k: the trimming distance in point spacings; 0 = off.
+
+    Returns:
+        vw (V', 3), faces (F', 3), colours (V', 3) or None, and what was removed.
+    """
+    from svolsdf.fusion.observe import cull_free_space, trim_by_support
+
+    info = MeshCleanup(faces_in=int(len(faces)))
+    if observed is not None and free_space_tol is not None and len(faces):
+        n = len(faces)
+        radius = max(1, round(2 * observed[0].shape[1] / scene.cameras.width))
+        vw, faces, idx = cull_free_space(vw, faces, scene.cameras, observed, free_space_tol,
+                                         radius=radius)
+        colours = None if colours is None else colours[idx]
+        info.free_space_removed = n - int(len(faces))
+        info.steps.append("free-space")
+    if points is not None and support_k > 0 and len(faces) and len(points) > 1:
+        n = len(faces)
+        vw, faces, idx = trim_by_support(vw, faces, points, support_k,
+                                         workers=max(1, torch.get_num_threads()))
+        colours = None if colours is None else colours[idx]
+        info.support_removed = n - int(len(faces))
+        info.steps.append(f"support {support_k:g}")
+    return vw, faces, colours, info

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from svolsdf.config import Config
 
-__all__ = ["grid_from_sphere", "has_field", "runs_mvs1", "wants_mesh_fit", "wants_network",
-           "wants_poisson", "wants_unguided"]
+__all__ = ["grid_from_sphere", "has_field", "mesh_from_points", "runs_mvs1", "wants_mesh_fit",
+           "wants_network", "wants_poisson", "wants_unguided"]
 
 
 def runs_mvs1(cfg: Config) -> bool:
@@ -51,3 +51,12 @@ def wants_poisson(cfg: Config) -> bool:
     surface opens where it meets its octree's box; the watertight mesh is the field's)."""
     o = cfg.output
     return o.mesh_method == "poisson" and not o.mesh_watertight
+
+
+def mesh_from_points(cfg: Config) -> str | None:
+    """The mesh method that meshes the fused points and depth ("poisson" or "tsdf"), or None
+    when the mesh is the field's (method field, or a watertight mesh: a surface of the points
+    opens where they stop; the watertight mesh is the field's closed zero level)."""
+    o = cfg.output
+    return o.mesh_method if o.mesh_method in ("poisson", "tsdf") and not o.mesh_watertight \
+        else None

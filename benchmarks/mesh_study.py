@@ -1,0 +1,251 @@
+"""The mesh against the points: mesh methods, free-space culling and support trimming on
+finished runs (issue 37).
+
+For every run folder (a finished `svolsdf reconstruct`), this script makes the mesh of each
+method from the run's own fused points and depth maps (the Poisson surface, `poisson`, and the
+TSDF of the observed final depth, `tsdf`; both culled by frusta, masks and visibility as the
+mesh stage culls them), then cleans each one with every combination of free-space culling
+(tolerance in final depth steps, 0 = off) and support trimming (k point spacings, 0 = off), as
+`svolsdf.fusion.meshing.clean_mesh` does in the mesh stage, and scores the result beside the
+run's points:
+
+- synthetic scenes (`svolsdf synth`): `svolsdf evaluate`'s protocol, against the ground truth
+  the input views observe (mesh by its vertices, as evaluate scores it);
+- DTU scans: against the many-view pseudo ground truth of benchmarks/dtu_pseudo_gt.py (its
+  cache in ``--pgt DIR``, made by running that script once with ``--out DIR``; the first
+  reference: "object" with masks, "observed" inside the ObsMask without), the mesh sampled on
+  its surface at 0.1 % of the reference's diagonal, as that script scores it.
+
+Each row: accuracy, completeness and Chamfer of the mesh, their ratios to the points', faces,
+and the seconds the mesh took (the method, plus the cleaning). The ``--summary`` lines give, per
+(method, free space, k), the mean and worst ratio over the runs: the trade-off curve.
+
+Usage:
+    python benchmarks/mesh_study.py --runs NAME=RUN [NAME=RUN ...] [--pgt NAME=DIR ...]
+        [--free-steps 0 2 4 8] [--support 0 1.5 2 3 4 6] [--methods poisson tsdf]
+        --results FILE.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _machine import cpu_name, peak_rss_gb, write_results
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _dtu_reference(run, pgt_dir: Path, size: tuple[int, int]):
+    """(reference points (M, 3) downsampled, obs mask or None) for a DTU run, from the cache of
+    benchmarks/dtu_pseudo_gt.py in ``pgt_dir``."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from dtu_pseudo_gt import seen_by
+
+    from svolsdf.evaluate.chamfer import (
+        greedy_radius_downsample,
+        load_obs_mask,
+        obs_mask_filter,
+    )
+    from svolsdf.scene.loaders import load_scene
+
+    scene_dir = Path(run.cfg.scene.path)
+    probe = load_scene(scene_dir, load_images=False)
+    has_masks = bool(probe.extras.get("mask_paths"))
+    tag = "dil0" if has_masks else "dilnone"
+    cache = next(iter(sorted(pgt_dir.glob(f"pseudo_gt_{size[0]}x{size[1]}_*_{tag}.npy"))), None)
+    if cache is None:
+        sys.exit(f"{pgt_dir}: no pseudo ground truth cache (run benchmarks/dtu_pseudo_gt.py "
+                 f"--scene {scene_dir} --out {pgt_dir} first)")
+    pts = np.load(cache)
+    keep = seen_by(pts, scene_dir, run.views, size)
+    obs = None
+    if not has_masks:
+        obs = load_obs_mask(probe.extras["obs_mask"])
+        keep &= obs_mask_filter(pts, obs)[1]
+    ref = pts[keep]
+    diag = float(np.linalg.norm(ref.max(0) - ref.min(0)))
+    ref = ref[np.random.default_rng(0).permutation(len(ref))]
+    return ref[greedy_radius_downsample(ref, 0.001 * diag)], obs
+
+
+class Scorer:
+    """Scores points and meshes of one run by its scene's protocol."""
+
+    def __init__(self, run, pgt_dir: Path | None):
+        from svolsdf.evaluate.synthetic import is_synthetic_scene
+
+        self.run = run
+        self.scene_dir = Path(run.cfg.scene.path)
+        self.synthetic = is_synthetic_scene(self.scene_dir)
+        if not self.synthetic:
+            if pgt_dir is None:
+                sys.exit(f"{self.scene_dir}: not synthetic; give --pgt NAME=DIR for it")
+            size = (run.load().width, run.load().height)
+            self.ref, self.obs = _dtu_reference(run, pgt_dir, size)
+            self.diag = float(np.linalg.norm(self.ref.max(0) - self.ref.min(0)))
+            self.protocol = "pseudo ground truth (benchmarks/dtu_pseudo_gt.py)"
+        else:
+            self.protocol = "synthetic: ground truth the input views observe"
+
+    def points(self, pts: np.ndarray) -> dict:
+        return self._score(pts)
+
+    def mesh(self, v: np.ndarray, f: np.ndarray) -> dict:
+        if self.synthetic:
+            return self._score(v)  # by its vertices, as svolsdf evaluate scores a mesh
+        from svolsdf.evaluate.chamfer import sample_mesh_surface
+
+        return self._score(sample_mesh_surface(v, f, density=0.001 * self.diag))
+
+    def _score(self, x: np.ndarray) -> dict:
+        x = np.asarray(x, dtype=np.float64)
+        if self.synthetic:
+            from svolsdf.evaluate.synthetic import synthetic_chamfer
+
+            r = synthetic_chamfer(x, self.scene_dir, self.run.views, on_empty="clip")
+            return {k: r[k] for k in ("accuracy", "completeness", "overall")}
+        from dtu_pseudo_gt import score
+
+        from svolsdf.evaluate.chamfer import obs_mask_filter
+
+        if self.obs is not None:
+            x = x[obs_mask_filter(x, self.obs)[1]]
+        r = score(x, self.ref, self.ref)
+        return {k: r[k] for k in ("accuracy", "completeness", "overall")}
+
+
+def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
+              free_steps: list[float], support: list[float]) -> tuple[dict, list[dict]]:
+    """(the points' scores, one row per (method, free-space steps, k))."""
+    from svolsdf.fusion.meshing import clean_mesh, poisson_mesh, points_tsdf_mesh
+    from svolsdf.fusion.observe import final_depth_step
+    from svolsdf.io.ply import read_ply
+    from svolsdf.pipeline.mesh import observed_depths_of
+    from svolsdf.pipeline.run import Run
+
+    run = Run.open(out)
+    cfg, o = run.cfg, run.cfg.output
+    scene = run.load()
+    scorer = Scorer(run, pgt)
+    d = read_ply(out / "points.ply")
+    pts, cols = d["points"], d["colors"]
+    pscore = scorer.points(pts)
+    print(f"{name}: {len(pts):,} points, {json.dumps(pscore)}", flush=True)
+    use_masks = scene.masks is not None and o.use_masks
+    step = final_depth_step(scene.depth_range, cfg.mvs.width)
+    t0 = time.perf_counter()
+    observed = observed_depths_of(run, pts)
+    t_obs = time.perf_counter() - t0
+    rows = []
+    for method in methods:
+        t0 = time.perf_counter()
+        if method == "poisson":
+            vw, f, c = poisson_mesh(pts, cols, run.model(), scene, o.poisson_depth, o.poisson_trim,
+                                    use_masks=use_masks, unseen=o.mesh_cull_unseen,
+                                    rel_tol=o.mesh_cull_tol, device=run.device)
+        else:
+            vw, f, c = points_tsdf_mesh(pts, cols, scene, observed,
+                                        trunc=float(o.tsdf_truncation_steps * step.mean()),
+                                        resolution=o.tsdf_resolution, use_masks=use_masks,
+                                        unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
+        t_method = time.perf_counter() - t0 + (t_obs if method == "tsdf" else 0.0)
+        for fs in free_steps:
+            for k in support:
+                t1 = time.perf_counter()
+                v2, f2, _, info = clean_mesh(
+                    vw, f, None, scene, observed=observed if fs > 0 else None,
+                    free_space_tol=fs * step if fs > 0 else None, points=pts, support_k=k)
+                t_clean = time.perf_counter() - t1 + (t_obs if fs > 0 and method != "tsdf"
+                                                       else 0.0)
+                s = scorer.mesh(v2.double().numpy(), f2.numpy()) if len(f2) else None
+                row = {"run": name, "method": method, "free_steps": fs, "k": k,
+                       "faces": int(len(f2)), "seconds": round(t_method + t_clean, 1),
+                       **({f"mesh_{a}": s[a] for a in s} if s else {}),
+                       **({f"ratio_{a}": s[a] / pscore[a] for a in s} if s else {})}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    return pscore, rows
+
+
+def _fmt(x, digits=2):
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", nargs="+", required=True, metavar="NAME=DIR")
+    ap.add_argument("--pgt", nargs="*", default=[], metavar="NAME=DIR",
+                    help="pseudo ground truth cache (benchmarks/dtu_pseudo_gt.py --out) per "
+                         "DTU run name")
+    ap.add_argument("--methods", nargs="+", default=["poisson", "tsdf"])
+    ap.add_argument("--free-steps", nargs="+", type=float, default=[0, 2, 4, 8])
+    ap.add_argument("--support", nargs="+", type=float, default=[0, 1.5, 2, 3, 4, 6])
+    ap.add_argument("--results", type=Path, required=True)
+    ap.add_argument("--json", type=Path, default=None, help="rows as JSON (default: next to "
+                    "--results)")
+    args = ap.parse_args()
+    pgt = dict(item.split("=", 1) for item in args.pgt)
+    all_rows, points = [], {}
+    for item in args.runs:
+        name, _, d = item.rpartition("=")
+        name = name or Path(d).name
+        p = Path(pgt[name]) if name in pgt else None
+        points[name], rows = study_run(name, Path(d), p, args.methods, args.free_steps,
+                                       args.support)
+        all_rows += rows
+    jpath = args.json or args.results.with_suffix(".json")
+    jpath.write_text(json.dumps({"points": points, "rows": all_rows}, indent=1))
+    lines = ["# The mesh against the points: methods, free-space culling, support trimming", "",
+             f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}; peak RSS "
+             f"{peak_rss_gb():.2f} GB",
+             f"- command: `python benchmarks/mesh_study.py {' '.join(sys.argv[1:])}`",
+             "- columns: the mesh's accuracy / completeness / Chamfer (the scene's units), their "
+             "ratios to the points' (mesh / points; 1 = as good), faces, and the seconds the "
+             "mesh took (method + cleaning). free = free-space tolerance in final depth steps "
+             "(0 = off); k = support trimming in point spacings (0 = off).", ""]
+    lines += ["## Points", "", "| run | acc | comp | Chamfer |", "|---|---:|---:|---:|"]
+    lines += [f"| {n} | {_fmt(s['accuracy'])} | {_fmt(s['completeness'])} | "
+              f"{_fmt(s['overall'])} |" for n, s in points.items()]
+    lines += ["", "## Trade-off curve (over the runs: mean and worst ratio)", "",
+              "| method | free | k | Chamfer ratio mean | worst | acc ratio mean | worst | "
+              "comp ratio mean | worst | seconds mean |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    keys = sorted({(r["method"], r["free_steps"], r["k"]) for r in all_rows},
+                  key=lambda t: (args.methods.index(t[0]), t[1], t[2]))
+    for m, fs, k in keys:
+        rs = [r for r in all_rows if (r["method"], r["free_steps"], r["k"]) == (m, fs, k)
+              and "ratio_overall" in r]
+        if not rs:
+            continue
+
+        def agg(key, rs=rs):
+            v = [r[key] for r in rs]
+            return f"{np.mean(v):.3f} | {max(v):.3f}"
+
+        lines.append(f"| {m} | {fs:g} | {k:g} | {agg('ratio_overall')} | {agg('ratio_accuracy')}"
+                     f" | {agg('ratio_completeness')} | "
+                     f"{np.mean([r['seconds'] for r in rs]):.1f} |")
+    lines += ["", "## Every run", "",
+              "| run | method | free | k | acc | comp | Chamfer | acc ratio | comp ratio | "
+              "Chamfer ratio | faces | s |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"
+              "---:|---:|"]
+    for r in all_rows:
+        lines.append(f"| {r['run']} | {r['method']} | {r['free_steps']:g} | {r['k']:g} | "
+                     f"{_fmt(r.get('mesh_accuracy'))} | {_fmt(r.get('mesh_completeness'))} | "
+                     f"{_fmt(r.get('mesh_overall'))} | {_fmt(r.get('ratio_accuracy'), 3)} | "
+                     f"{_fmt(r.get('ratio_completeness'), 3)} | "
+                     f"{_fmt(r.get('ratio_overall'), 3)} | {r['faces']:,} | {r['seconds']} |")
+    write_results(args.results, "\n".join(lines) + "\n")
+    print(f"wrote {args.results}")
+
+
+if __name__ == "__main__":
+    torch.set_grad_enabled(True)
+    main()

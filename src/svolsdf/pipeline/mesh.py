@@ -1,0 +1,173 @@
+"""The mesh stage's inputs and method choice: which surface the mesh is (the field's zero
+level, the Poisson surface of the fused points or the TSDF of the observed final depth), what it
+falls back to when that fails (and says so), and the culling every method gets
+(`svolsdf.fusion.meshing` holds the methods themselves)."""
+
+from __future__ import annotations
+
+import copy
+import logging
+
+import numpy as np
+import torch
+
+from svolsdf.pipeline import options
+from svolsdf.pipeline.run import Run, load_model
+from svolsdf.pipeline.rundir import save_torch
+
+__all__ = ["build_mesh", "observed_depths_of"]
+
+log = logging.getLogger("svolsdf.pipeline")
+
+
+def observed_depths_of(run: Run, points: np.ndarray) -> list[torch.Tensor] | None:
+    """Each input view's final depth (OUT/depth) where the fused ``points`` (N, 3) confirm it,
+    the unguided set (OUT/unguided/depth) where the guided one is not confirmed
+    (`svolsdf.fusion.observe.observed_depths`): one (H, W) map per input view, or None when a
+    view's depth map is missing.
+
+    Args:
+        run: a `Run` whose depth stages are finished.
+    """
+    from svolsdf.fusion.observe import observed_depths
+
+    sets = []
+    for v in run.views:
+        files = [run.out / "depth" / f"{v}.npy", run.dir.unguided_dir / "depth" / f"{v}.npy"]
+        if not files[0].is_file():
+            return None
+        sets.append([torch.from_numpy(np.load(f)).float() for f in files if f.is_file()])
+    return observed_depths(torch.from_numpy(np.asarray(points)), run.load().cameras, sets)
+
+
+def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+    """The run's mesh as `OutputConfig` asks: (vw (V, 3) world vertices, faces (F, 3), colours
+    (V, 3) uint8 or None, timing extras: ``mesh_source``, ``method``, ``cleanup``, ``points``).
+
+    ``mesh_source`` is "field", "poisson", "tsdf", or "field (poisson failed: REASON)" (the
+    same for tsdf) when the method asked for gave no surface and the field's zero level, which
+    always exists, replaced it.
+
+    Args:
+        p: the `svolsdf.pipeline.Pipeline` whose fusion stage can run or has run.
+
+    Raises:
+        RuntimeError: free-space culling and trimming left no face.
+    """
+    from svolsdf.fusion.meshing import clean_mesh, points_tsdf_mesh, poisson_mesh
+    from svolsdf.fusion.observe import final_depth_step
+    from svolsdf.io.ply import read_ply
+
+    o = p.cfg.output
+    model = p.model()
+    if o.finer_stage_optimization and p.dir.refined_model.is_file():
+        # the field after the finer-stage optimization
+        load_model(model, p.dir.refined_model)
+    scene = p.load()
+    use_masks = scene.masks is not None and o.use_masks
+    step = final_depth_step(scene.depth_range, p.cfg.mvs.width)
+    method = options.mesh_from_points(p.cfg)
+    pts = cols_pts = observed = None
+    if method is not None or o.mesh_free_space or o.mesh_support > 0:
+        d = read_ply(p.stage_fusion())
+        pts, cols_pts = d["points"], d["colors"]
+    if (method == "tsdf" or o.mesh_free_space) and len(pts):
+        observed = observed_depths_of(p, pts)
+    source = "field"
+    vw = f = cols = None
+    if method is not None:
+        try:
+            if len(pts) < 100:
+                raise RuntimeError(f"{len(pts)} fused points")
+            if method == "poisson":
+                vw, f, cols = poisson_mesh(pts, cols_pts, model, scene, o.poisson_depth,
+                                           o.poisson_trim, use_masks=use_masks,
+                                           unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol,
+                                           device=p.device)
+            else:
+                if observed is None:
+                    raise RuntimeError("no final depth maps to fuse")
+                vw, f, cols = points_tsdf_mesh(
+                    pts, cols_pts, scene, observed,
+                    trunc=float(o.tsdf_truncation_steps * step.mean()),
+                    resolution=o.tsdf_resolution, use_masks=use_masks,
+                    unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
+            if len(f) == 0:
+                raise RuntimeError("no face left after culling")
+            source = method
+        except (RuntimeError, ValueError, ImportError) as e:
+            # the points can be too few or too scattered for a surface; the field's zero level
+            # is always there, so the run still ends with a mesh, and says which
+            reason = " ".join(str(e).split())[:200]
+            source = f"field ({method} failed: {reason})"
+            vw = None
+            log.warning("mesh: no %s surface of the fused points (%s); the field's zero level "
+                        "instead", method, reason)
+    if vw is None:
+        vw, f, cols = _field_mesh(p, model, scene, use_masks)
+    vw, f, cols, cleanup = clean_mesh(
+        vw, f, cols, scene, observed=observed if o.mesh_free_space else None,
+        free_space_tol=o.mesh_free_space_steps * step if o.mesh_free_space else None,
+        points=pts, support_k=o.mesh_support)
+    if len(f) == 0:
+        raise RuntimeError("mesh: no face left after free-space culling and trimming")
+    info = {"mesh_source": source, "method": source.split(" ")[0],
+            "cleanup": cleanup.as_dict()}
+    if method is not None:
+        info["points"] = int(len(pts))
+    return vw, f, cols, info
+
+
+def _field_mesh(p, model, scene, use_masks: bool):
+    """The field's zero level, culled (`svolsdf.fusion.meshing.field_mesh`), with colours from
+    its colour network: (vw (V, 3), faces (F, 3), colours (V, 3) or None)."""
+    from svolsdf.fusion.meshing import field_mesh, field_mesh_colours
+
+    o = p.cfg.output
+    fit = options.wants_mesh_fit(p.cfg)
+    if fit:
+        model = _surface_fitted_to_points(p, model)
+    model.eval()
+    b = getattr(model, "bounds", None)
+    bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else p.field_bounds()
+    # the fitted surface moved away from the rendered depth: the views' depth of the mesh
+    # itself decides what they see
+    depths = "mesh" if fit else (lambda: _mesh_cull_depths(p, o.finer_stage_optimization))
+    v, vw, f = field_mesh(model, bounds, scene, o.mesh_resolution, watertight=o.mesh_watertight,
+                          use_masks=use_masks, unseen=o.mesh_cull_unseen, depths=depths,
+                          rel_tol=o.mesh_cull_tol, device=p.device, progress=p.progress)
+    return vw, f, field_mesh_colours(model, v, f, device=p.device)
+
+
+def _mesh_cull_depths(p, refined: bool) -> torch.Tensor | None:
+    """(V, H, W) rendered depth of the input views (the refined field's with ``refined``), for
+    `cull_unseen`; None when it is missing or is not the surface (the soft-consistency
+    ablation's guide)."""
+    if p.cfg.train.ablation == "soft-consistency-only":
+        return None
+    sdir = p.dir.render_depth_dir(refined and p.dir.refined_model.is_file())
+    files = [sdir / f"{v}.npy" for v in p.views]
+    if not all(f.is_file() for f in files):
+        return None
+    maps = [torch.from_numpy(np.load(f)).float() for f in files]
+    if len({tuple(m.shape) for m in maps}) != 1:
+        return None
+    return torch.stack(maps)
+
+
+def _surface_fitted_to_points(p, model):
+    """A copy of ``model`` whose SDF grid is refined to pass through OUT/points.ply
+    (`OutputConfig.mesh_fit_points`); saved as OUT/field/surface.pt."""
+    from svolsdf.field.fit import fit_sdf_to_points
+    from svolsdf.io.ply import read_ply
+
+    scene = p.load()
+    pts = read_ply(p.stage_fusion())["points"]
+    unit = scene.normalization.to_unit(torch.from_numpy(pts).double()).float()
+    fitted = copy.deepcopy(model)
+    fit_sdf_to_points(fitted, unit.to(p.device), steps=p.cfg.output.mesh_fit_points,
+                      seed=p.cfg.train.seed)
+    save_torch(p.dir.surface_model, {"model_state_dict": fitted.state_dict(),
+                                     "grid_resolution": getattr(fitted, "resolution", None),
+                                     "bounds": getattr(fitted, "bounds", None)})
+    return fitted
