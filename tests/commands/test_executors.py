@@ -17,7 +17,13 @@ import ray  # the dev extra installs it, as the cluster extra
 
 from svolsdf.cli import main
 from svolsdf.commands.benchmark import ROW_FILE, BenchmarkConfig, run_benchmark
-from svolsdf.commands.executors import ExecutorConfig, check_executor, run_local, run_ray
+from svolsdf.commands.executors import (
+    ExecutorConfig,
+    check_executor,
+    check_ray_address,
+    run_local,
+    run_ray,
+)
 from svolsdf.errors import InputError
 
 # view 9 does not exist: that job fails in the pipeline, the other runs
@@ -66,6 +72,47 @@ def test_executor_options_are_checked():
     with pytest.raises(InputError, match="--cpus-per-job must be > 0"):
         check_executor(ExecutorConfig(name="ray", cpus_per_job=0))
     check_executor(ExecutorConfig(name="ray", address="auto", cpus_per_job=2, gpus_per_job=1))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_wrong_ray_address_fails_within_30_s(scene, tmp_path, capsys):
+    """Issue 38: ray.init retried a wrong --address for ~12 minutes. Now: exit 2 within 30 s,
+    one line naming the address and what to do, before any job or folder."""
+    import socket
+    import time
+
+    out = tmp_path / "b"
+    for address, says in ((f"127.0.0.1:{_free_port()}", "nothing answers"),
+                          ("WRONG", "no port"), ("http://head:6379", "not a Ray address")):
+        t0 = time.monotonic()
+        with pytest.raises(SystemExit) as e:
+            main(["benchmark", "--scenes", str(scene), "--modes", "mvs-only", "-o", str(out),
+                  "--executor", "ray", "--address", address])
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and time.monotonic() - t0 < 30, err
+        assert len(err.splitlines()) == 1 and f"--address {address}" in err and says in err
+        assert "leave --address out" in err or "give host:port" in err, err
+        assert not out.exists()
+    # a port that answers but is not Ray's: the bounded join gives up
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        address = f"127.0.0.1:{server.getsockname()[1]}"
+        t0 = time.monotonic()
+        with pytest.raises(InputError, match="answers but no Ray cluster"):
+            check_ray_address(address, join_timeout=8)
+        assert time.monotonic() - t0 < 30
+
+
+def test_a_running_clusters_address_passes_the_check(local_ray):
+    check_ray_address(local_ray.get_runtime_context().gcs_address)
 
 
 def test_cuda_on_ray_needs_gpus_per_job(scene, tmp_path):

@@ -19,7 +19,8 @@ from typing import Any
 
 from svolsdf.errors import InputError
 
-__all__ = ["EXECUTORS", "ExecutorConfig", "check_executor", "run_jobs", "run_local", "run_ray"]
+__all__ = ["EXECUTORS", "ExecutorConfig", "check_executor", "check_ray_address", "run_jobs",
+           "run_local", "run_ray"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +66,62 @@ def check_executor(cfg: ExecutorConfig) -> None:
         raise InputError(f"--gpus-per-job must be >= 0, got {cfg.gpus_per_job}")
     if cfg.name == "ray":
         _import_ray()
+        if cfg.address is not None:
+            check_ray_address(cfg.address)
+
+
+def check_ray_address(address: str, timeout: float = 5.0, join_timeout: float = 20.0) -> None:
+    """Raise `InputError` unless a Ray cluster answers at ``address``: ``ray.init`` retries a
+    wrong one for about 12 minutes (issue 38). First a TCP connection to host:port (``timeout``
+    seconds), then ``ray.init`` in a child process, stopped after ``join_timeout`` seconds (a
+    port that answers need not be Ray's). ``auto`` (Ray finds the cluster this node joined)
+    is not checked.
+
+    Args:
+        address: ``ray://host:port``, ``host:port`` or ``auto``.
+    """
+    import socket
+    import subprocess
+    import sys
+    from urllib.parse import urlsplit
+
+    if address in ("auto", "local"):
+        return
+    what = "give host:port (the head's GCS, e.g. head:6379), ray://host:port or auto"
+    try:
+        parts = urlsplit(address if "://" in address else f"//{address}")
+        scheme, host, port = parts.scheme, parts.hostname, parts.port
+    except ValueError:  # a port that is not a number
+        scheme, host, port = "", None, None
+    if not host or scheme not in ("", "ray"):
+        raise InputError(f"--address {address}: not a Ray address; {what}")
+    if port is None:
+        raise InputError(f"--address {address}: no port; {what}")
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as e:
+        reason = "no answer" if isinstance(e, TimeoutError) else (e.strerror or str(e))
+        raise InputError(f"--address {address}: nothing answers at {host}:{port} ({reason} "
+                         f"within {timeout:g} s); start the cluster there (`ray start --head`), "
+                         "check the address with `ray status` on its head node, or leave "
+                         "--address out to start a local Ray") from None
+    code = (f"import ray; ray.init(address={address!r}, log_to_driver=False, "
+            "logging_level='ERROR'); ray.shutdown()")
+    try:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           timeout=join_timeout)
+    except subprocess.TimeoutExpired:
+        raise InputError(f"--address {address}: {host}:{port} answers but no Ray cluster let "
+                         f"this node join within {join_timeout:g} s; give the head's GCS "
+                         "address (`ray status` on the head node prints it, e.g. head:6379; "
+                         "ray://head:10001 for Ray Client) or leave --address out to start a "
+                         "local Ray") from None
+    if r.returncode != 0:
+        last = (r.stderr.strip().splitlines() or ["ray.init failed"])[-1]
+        raise InputError(f"--address {address}: could not join a Ray cluster there ({last}); "
+                         "check `ray status` on that node, or leave --address out to start a "
+                         "local Ray")
 
 
 def _progress(total: int, done: int, enabled: bool):
