@@ -23,13 +23,23 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["PageResult", "chromium_path", "load_page"]
+__all__ = ["PageResult", "browser_part_missing", "chromium_path", "load_page"]
 
 _FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
           "--disable-background-networking", "--disable-component-update", "--disable-sync",
           # WebGL on the CPU (SwiftShader): headless with --disable-gpu has no other GL
           "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
           "--remote-debugging-port=0", "--window-size=1280,900"]
+
+
+def browser_part_missing(msg: str) -> None:
+    """Skip the calling test for a missing browser part (Chromium, websocket-client), or fail
+    it when ``SVOLSDF_REQUIRE_BROWSER`` is set (CI, where the browser test must run)."""
+    import pytest
+
+    if os.environ.get("SVOLSDF_REQUIRE_BROWSER"):
+        pytest.fail(msg)
+    pytest.skip(msg)
 
 
 def chromium_path() -> str | None:

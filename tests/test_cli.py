@@ -482,7 +482,6 @@ def test_calibrate_maps_its_options(monkeypatch, tmp_path, capsys):
 
 
 def test_calibrate_errors_exit_2_with_one_line(tmp_path, capsys):
-    pytest.importorskip("pycolmap", reason="svolsdf calibrate needs pycolmap")
     code, out = _run(["calibrate", str(tmp_path / "none"), "-o", str(tmp_path / "S")], capsys)
     assert code == 2 and "does not exist" in out.err and len(out.err.strip().splitlines()) == 1
     code, out = _run(["calibrate", str(tmp_path), "-o", str(tmp_path / "S"), "--matcher", "x"],

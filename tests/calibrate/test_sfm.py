@@ -8,6 +8,7 @@ import json
 import sys
 
 import numpy as np
+import pycolmap  # noqa: F401  (a core dependency: without it these tests fail)
 import pytest
 from PIL import Image
 
@@ -16,8 +17,6 @@ from svolsdf.calibrate.sfm import _undistort_points, undistort_simple_radial
 from svolsdf.errors import InputError
 from svolsdf.scene.loaders import load_scene
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
-
-pytest.importorskip("pycolmap", reason="svolsdf calibrate needs pycolmap (the colmap extra)")
 
 # 20 views of one camera (no per-view intrinsics jitter) on a DTU-like cap, small and fast
 SYNTH = SynthConfig(views=20, width=384, height=288, seed=0, intrinsics_jitter=0.0,

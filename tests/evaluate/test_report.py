@@ -4,6 +4,7 @@ browser (headless Chromium; skipped with the reason when no Chromium is installe
 from __future__ import annotations
 
 import base64
+import importlib.util
 import json
 import os
 import re
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from headless_browser import chromium_path, load_page
+from headless_browser import browser_part_missing, chromium_path, load_page
 from svolsdf.cli import main
 from svolsdf.evaluate.run import write_run_report
 from svolsdf.evaluate.viewer import (
@@ -175,15 +176,24 @@ def test_report_says_what_is_missing(run, tmp_path):
     assert "<h2>3D view" in page and "<h2>Input views" not in page
 
 
+def test_a_missing_browser_part_fails_when_the_browser_is_required(monkeypatch):
+    """Issue 38: under SVOLSDF_REQUIRE_BROWSER a missing part (websocket-client too) fails the
+    browser test instead of skipping it."""
+    monkeypatch.setenv("SVOLSDF_REQUIRE_BROWSER", "1")
+    with pytest.raises(pytest.fail.Exception, match="websocket-client"):
+        browser_part_missing("websocket-client is missing")
+    monkeypatch.delenv("SVOLSDF_REQUIRE_BROWSER")
+    with pytest.raises(pytest.skip.Exception):
+        browser_part_missing("websocket-client is missing")
+
+
 def test_report_in_headless_chromium(run, tmp_path):
     """The page loads from disk with networking off, the 3D view makes its WebGL canvas, and
     nothing is logged as an error. The screenshot stays in tmp_path for debugging."""
     if chromium_path() is None:
-        msg = "no chromium on PATH (apt-get install chromium; CI installs it)"
-        if os.environ.get("SVOLSDF_REQUIRE_BROWSER"):
-            pytest.fail(msg)
-        pytest.skip(msg)
-    pytest.importorskip("websocket", reason="websocket-client is missing (the dev extra)")
+        browser_part_missing("no chromium on PATH (apt-get install chromium; CI installs it)")
+    if importlib.util.find_spec("websocket") is None:
+        browser_part_missing("websocket-client is missing (the dev extra)")
     write_run_report(run)
     keep = os.environ.get("SVOLSDF_SCREENSHOT_DIR")  # e.g. a CI artifact folder
     shot = (Path(keep) if keep else tmp_path) / "report_in_chromium.png"

@@ -1,6 +1,7 @@
 """Normals and the Poisson surface of `svolsdf.fusion.poisson` on a sampled sphere."""
 
 import numpy as np
+import pycolmap  # noqa: F401  (a core dependency: without it these tests fail)
 import pytest
 
 from svolsdf.fusion.poisson import estimate_normals, orient_normals, poisson_surface
@@ -38,7 +39,6 @@ def test_orient_normals_checks_shapes():
 
 
 def test_poisson_surface_of_a_sphere():
-    pytest.importorskip("pycolmap")
     pts = _sphere()
     cols = np.tile(np.array([[200, 40, 10]], np.uint8), (len(pts), 1))
     v, f, c = poisson_surface(pts, pts, cols, depth=7, trim=0)
