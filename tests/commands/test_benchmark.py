@@ -326,3 +326,21 @@ def test_view_sets_and_rerun_skip_with_stand_in_pipeline(tmp_path, monkeypatch, 
     with pytest.raises(SystemExit) as e:
         main(["benchmark", "--scenes", str(synth_scene), "-o", str(out), "--address", "auto"])
     assert e.value.code == 2 and "only with --executor ray" in capsys.readouterr().err
+
+
+def test_markdown_table_says_which_surface_the_mesh_columns_hold():
+    """Mesh accuracy and completeness sit beside the points'; a column that mixes a Poisson
+    mesh with a field mesh that replaced a failed one lists every run's kind."""
+    a = {**_row("s1", "svolsdf", 1.0, 2.0), "mesh_accuracy": 1.1, "mesh_completeness": 1.9,
+         "mesh_overall": 1.5, "mesh_source": "poisson"}
+    b = {**_row("s2", "svolsdf", 1.0, 2.0), "mesh_accuracy": 3.0, "mesh_completeness": 2.0,
+         "mesh_overall": 2.5, "mesh_source": "field (poisson failed: 12 fused points)"}
+    md = benchmark_markdown([a, b])
+    head = _cells(md.splitlines()[4])
+    assert head[1:6] == ["svolsdf Acc.", "svolsdf Comp.", "svolsdf Chamfer", "svolsdf mesh Acc.",
+                         "svolsdf mesh Comp."]
+    assert "The mesh columns mix surfaces" in md
+    assert "- s2 / svolsdf: field (poisson failed: 12 fused points)" in md
+    same = benchmark_markdown([a, {**b, "mesh_source": "poisson"}])
+    assert "mesh.ply of every run with a mesh column: poisson." in same
+    assert "mix surfaces" not in same

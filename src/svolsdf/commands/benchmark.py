@@ -66,8 +66,8 @@ MODES = ("svolsdf", "mvs-only", "volsdf")
 """The pipeline's modes (``cfg.train.mode``)."""
 
 METRIC_KEYS = ("accuracy", "completeness", "overall", "overall_dtu_rule", "fscore", "psnr",
-               "ssim", "lpips", "psnr_ibr", "ssim_ibr", "lpips_ibr", "mesh_overall",
-               "mesh_overall_dtu_rule", "time_s")
+               "ssim", "lpips", "psnr_ibr", "ssim_ibr", "lpips_ibr", "mesh_accuracy",
+               "mesh_completeness", "mesh_overall", "mesh_overall_dtu_rule", "time_s")
 """Numeric keys of a per-run metrics dict (None when not computed)."""
 
 
@@ -149,8 +149,13 @@ def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
             **{k + sfx: image(block, k) for block, sfx in (("images", ""),
                                                            ("images_ibr", "_ibr"))
                for k in ("psnr", "ssim", "lpips")},
+            "mesh_accuracy": cm.get("accuracy"), "mesh_completeness": cm.get("completeness"),
             "mesh_overall": cm.get("overall"),
-            "mesh_overall_dtu_rule": cm.get("overall_dtu_rule"), "time_s": time_s}
+            "mesh_overall_dtu_rule": cm.get("overall_dtu_rule"),
+            # which surface mesh.ply is (a table must not mix kinds in a column unsaid)
+            "mesh_source": (metrics.get("mesh_source") or cm.get("mesh_source")
+                            if cm.get("overall") is not None else None),
+            "time_s": time_s}
 
 
 def _stage_seconds(run_dir: Path) -> float | None:

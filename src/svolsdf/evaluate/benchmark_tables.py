@@ -71,7 +71,8 @@ def _grid(rows: list[dict], modes: list[str] | None) -> tuple[list[str], list[st
 def _columns(rows: list[dict]) -> list[tuple[str, str, int]]:
     """(key, header, digits) per mode; PSNR only when some run has it."""
     cols = [("accuracy", "Acc.", 2), ("completeness", "Comp.", 2), ("overall", "Chamfer", 2)]
-    optional = [("overall_dtu_rule", "DTU rule", 2), ("mesh_overall", "mesh", 2),
+    optional = [("overall_dtu_rule", "DTU rule", 2), ("mesh_accuracy", "mesh Acc.", 2),
+                ("mesh_completeness", "mesh Comp.", 2), ("mesh_overall", "mesh", 2),
                 ("mesh_overall_dtu_rule", "mesh DTU rule", 2), ("psnr", "PSNR", 2),
                 ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3), ("psnr_ibr", "PSNR IBR", 2),
                 ("ssim_ibr", "SSIM IBR", 3), ("lpips_ibr", "LPIPS IBR", 3)]
@@ -97,6 +98,21 @@ def _table(rows: list[dict], modes: list[str] | None):
         means.append(vals)
         partial.append(part)
     return scenes, modes, cols, body, means, partial
+
+
+def _mesh_source_notes(rows: list[dict]) -> list[str]:
+    """Lines saying which surface the mesh columns hold (``mesh_source`` of each row): one
+    line when every run's mesh is the same kind, else every run's kind, so that a column never
+    mixes kinds unsaid."""
+    kinds = {(r["scene"], r["mode"]): r.get("mesh_source") for r in rows
+             if r.get("mesh_overall") is not None}
+    if not kinds:
+        return []
+    distinct = sorted({str(k) for k in kinds.values()})
+    if len(distinct) == 1:
+        return ["", f"mesh.ply of every run with a mesh column: {distinct[0]}."]
+    return ["", "The mesh columns mix surfaces; mesh.ply of each run:", ""] + [
+        f"- {s} / {m}: {k}" for (s, m), k in kinds.items()]
 
 
 def benchmark_markdown(rows: list[dict], modes: list[str] | None = None,
@@ -157,6 +173,7 @@ def benchmark_markdown(rows: list[dict], modes: list[str] | None = None,
                   if "psnr" in [k for k, _, _ in cols] else "")
                + "Time: the pipeline's stage times. "
                "'-': not computed; '*': mean over fewer scenes than the table has.")
+    out += _mesh_source_notes(rows)
     failed = [r for r in rows if r.get("status", "ok") != "ok"]
     if failed:
         out += ["", "Runs without results:", ""]
