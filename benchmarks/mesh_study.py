@@ -124,7 +124,7 @@ class Scorer:
 def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
               free_steps: list[float], support: list[float]) -> tuple[dict, list[dict]]:
     """(the points' scores, one row per (method, free-space steps, k))."""
-    from svolsdf.fusion.meshing import clean_mesh, poisson_mesh, points_tsdf_mesh
+    from svolsdf.fusion.meshing import clean_mesh, points_tsdf_mesh, poisson_mesh
     from svolsdf.fusion.observe import final_depth_step
     from svolsdf.io.ply import read_ply
     from svolsdf.pipeline.mesh import observed_depths_of
