@@ -77,23 +77,34 @@ def test_outputs_are_present_and_valid(tiny_run):
 
 
 def test_zero_level_lies_near_the_ground_truth(tiny_run, tiny_scene):
-    """The fitted SDF's zero level (the mesh) is close to the object's observed surface: far
-    closer than the initial sphere, and within a few pixel footprints."""
+    """The fitted SDF's zero level (the mesh) is close to the object's observed surface: within
+    a few pixel footprints, and closer than the field the optimization started from (the grid
+    initialised from the stage-1 MVS depth, as the field stage does; issue 38: not the sphere,
+    which any MVS start beats without a step)."""
+    from svolsdf.field.init import init_grid_from_mvs
+
     out, summary, p = tiny_run
     views = json.loads((out / "views.json").read_text())["inputs"]
     r = synthetic_chamfer(read_ply(out / "mesh.ply")["points"], tiny_scene, views)
-    # initial field for comparison: the same model class before any step
+    scene = p.load()
     init = p.build_model()
+    init_grid_from_mvs(init, p.regressed_volumes1(), scene.normalization,
+                       scene.masks if p.cfg.output.use_masks else None,
+                       unverified_weight=p.cfg.field.init_unverified_weight)
     gt = observed_gt_points(tiny_scene, views)
-    gt_u = p.load().normalization.to_unit(torch.from_numpy(gt)).float()
-    sdf_init = init.sdf(gt_u).abs().mean().item() * p.load().normalization.scale
+    gt_u = scene.normalization.to_unit(torch.from_numpy(gt)).float()
     with torch.no_grad():
-        sdf_fit = p.model().sdf(gt_u).abs()
-    sdf_fit_mm = sdf_fit.median().item() * p.load().normalization.scale
+        sdf_init = init.sdf(gt_u).abs()
+        sdf_fit = p.model().sdf(gt_u.to(p.device)).abs().cpu()
+    mm = scene.normalization.scale
+    init_mm, fit_mm = sdf_init.median().item() * mm, sdf_fit.median().item() * mm
     footprint = 600.0 / (1.8 * 160)  # mm per pixel at the object (SynthConfig defaults)
     # stage-1 MVS runs at a quarter of 160x120 here, so a few footprints is what the data allow
-    assert sdf_fit_mm < 3.0 * footprint, (sdf_fit_mm, footprint)
-    assert sdf_fit_mm < 0.25 * sdf_init, (sdf_fit_mm, sdf_init)
+    assert fit_mm < 3.0 * footprint, (fit_mm, footprint)
+    # measured: median |SDF| 2.79 mm at the start, 2.19 mm after the 300 steps (mean 3.37 ->
+    # 3.09 mm); with 0 steps both are equal and these fail
+    assert fit_mm < 0.9 * init_mm, (fit_mm, init_mm)
+    assert sdf_fit.mean() < sdf_init.mean(), (sdf_fit.mean(), sdf_init.mean())
     assert r["accuracy"] < 3.0 * footprint and r["completeness"] < 4.0 * footprint, r
 
 
@@ -489,7 +500,8 @@ def test_set_threads(monkeypatch):
 
     before = torch.get_num_threads()
     try:
-        assert set_threads(1) == 1
+        torch.set_num_threads(2)
+        assert set_threads(1) == 1 and torch.get_num_threads() == 1  # applied, not only returned
         monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
         if hasattr(os, "sched_getaffinity"):
             assert set_threads(0) == len(os.sched_getaffinity(0))
@@ -744,6 +756,46 @@ def test_poisson_mesh_falls_back_to_the_field(tiny_run, tmp_path):
     out, _, p = tiny_run
     p2 = _rerun_on_copy(out, tmp_path / "pzf", mesh_method="poisson", poisson_depth=6,
                         poisson_trim=14)
-    assert "poisson_failed" in p2.timing["mesh"], p2.timing["mesh"]
+    src = p2.timing["mesh"]["mesh_source"]
+    assert src.startswith("field (poisson failed: "), p2.timing["mesh"]
     assert len(read_ply(tmp_path / "pzf" / "mesh.ply")["faces"]) > 100
-    assert "no Poisson surface" in (tmp_path / "pzf" / "log").read_text()
+    assert "no poisson surface" in (tmp_path / "pzf" / "log").read_text()
+    # the user reads it in metrics.json and the report, not only the log (issue 38)
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+
+    m = evaluate_run(EvaluateConfig(out=tmp_path / "pzf", report=True))
+    assert m["mesh_source"] == src == m["chamfer_mesh"]["mesh_source"]
+    assert json.loads((tmp_path / "pzf" / "metrics.json").read_text())["mesh_source"] == src
+    assert "poisson failed" in (tmp_path / "pzf" / "report.html").read_text()
+
+
+def test_tsdf_mesh_with_free_space_and_support(tiny_run, tmp_path):
+    """output.mesh_method = tsdf with free-space culling and support trimming: only the mesh
+    reruns; the mesh lies on the fused points (nearer them than the field's zero level), every
+    face within k spacings of a point; metrics.json names the surface and its ratios to the
+    points (issue 37)."""
+    from scipy.spatial import cKDTree
+
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.fusion.observe import point_spacing
+
+    out, _, p = tiny_run
+    p2 = _rerun_on_copy(out, tmp_path / "ts", mesh_method="tsdf", mesh_free_space=True,
+                        mesh_support=3.0)
+    assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
+    t = p2.timing["mesh"]
+    assert t["mesh_source"] == "tsdf" and t["cleanup"]["steps"] == ["free-space", "support 3"]
+    pts = read_ply(out / "points.ply")["points"]
+    tree = cKDTree(pts)
+    m = read_ply(tmp_path / "ts" / "mesh.ply")
+    assert m["colors"] is not None and len(m["faces"]) > 100
+    field = np.median(tree.query(read_ply(out / "mesh.ply")["points"])[0])
+    assert np.median(tree.query(m["points"])[0]) < 0.9 * field
+    cent = m["points"][m["faces"]].mean(1)
+    near = np.minimum(tree.query(cent)[0], tree.query(m["points"])[0][m["faces"]].min(1))
+    assert near.max() <= 3.0 * point_spacing(pts) * (1 + 1e-6)
+    metrics = evaluate_run(EvaluateConfig(out=tmp_path / "ts", report=False))
+    assert metrics["mesh_source"] == "tsdf"
+    r = metrics["mesh_over_points"]
+    assert r["overall"] == pytest.approx(metrics["chamfer_mesh"]["overall"]
+                                         / metrics["chamfer"]["overall"], rel=1e-3)

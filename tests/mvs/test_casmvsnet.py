@@ -166,11 +166,17 @@ def test_backbone_requires_weights(tmp_path):
         get_backbone("casmvsnet", weights=tmp_path / "missing.ckpt")
 
 
-def test_registry_loads_checkpoint(tmp_path, model):
+def test_registry_loads_checkpoint(tmp_path, model, scene):
+    """`get_backbone` loads the checkpoint's weights and options: the same volumes as the
+    network it was saved from."""
     p = tmp_path / "c.ckpt"
     torch.save({"model": model.state_dict()}, p)
     bb = get_backbone("casmvsnet", weights=p, ndepths=(8, 8, 8), x2_mvsres=False)
-    assert isinstance(bb, CasMVSNetBackbone)
+    for k, v in model.state_dict().items():
+        assert torch.equal(bb.model.state_dict()[k].cpu(), v.cpu()), k
+    a = bb.stage(1, scene, ref_ids=[0])[0]
+    b = _backbone(model).stage(1, scene, ref_ids=[0])[0]
+    assert a.prob.shape[0] == 8 and torch.equal(a.prob, b.prob)
 
 
 # --------------------------------------------------------------------------- chunking
