@@ -336,10 +336,15 @@ def test_a_failed_run_writes_its_error_to_out_log(scene, tmp_path, capsys):
     img = sorted((bad / "image").iterdir())[1]
     img.write_bytes(b"not a png")
     out = tmp_path / "o"
+    out.mkdir()  # an existing output folder keeps the error in its log
     code, res = _run(["reconstruct", str(bad), "-o", str(out), "--views", "0", "1", "2"], capsys)
     assert code == 2 and img.name in res.err
     line = res.err.strip().removeprefix("error: ")
     assert f"ERROR svolsdf.pipeline: error: {line}" in (out / "log").read_text()
+    # a new one is not left behind (issue 42)
+    code, res = _run(["reconstruct", str(bad), "-o", str(tmp_path / "new"), "--views", "0", "1",
+                      "2"], capsys)
+    assert code == 2 and img.name in res.err and not (tmp_path / "new").exists()
 
 
 @pytest.mark.parametrize("argv, msg", [

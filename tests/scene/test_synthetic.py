@@ -119,7 +119,7 @@ def test_bad_input(tmp_path):
     (tmp_path / "x").mkdir()
     (tmp_path / "x" / "keep.txt").write_text("mine")
     with pytest.raises(InputError, match="not a synthetic scene"):
-        make_synthetic_scene(tmp_path / "x", SynthConfig(views=1, width=16, height=12))
+        make_synthetic_scene(tmp_path / "x", SynthConfig(views=1, width=16, height=16))
 
 
 def test_cli_synth(tmp_path, capsys):

@@ -190,7 +190,8 @@ def gather_inputs(path: Path, out: Path, max_size: int | None = 1600, frames: in
     for p in tqdm(files, desc="calibrate: reading photos", unit="photo", disable=not progress):
         try:
             photos.append(_prepare_photo(p, out, max_size))
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError,
+                Image.DecompressionBombError) as e:  # a header declaring gigapixels
             bad.append(f"{p.name} ({e.__class__.__name__}: {e})")
     if bad:
         raise InputError(f"{path}: {len(bad)} of {len(files)} photos cannot be read: "

@@ -90,7 +90,8 @@ def _prepare_out(scene: Path) -> None:
         if not scene.is_dir():
             raise InputError(f"{scene} exists and is not a folder; pass a new folder as -o")
         entries = [p.name for p in scene.iterdir()]
-        if entries and "calibration.json" not in entries:
+        # colmap_logs/ alone: a calibration that registered too few photos
+        if entries and "calibration.json" not in entries and entries != ["colmap_logs"]:
             raise InputError(f"{scene} is not empty and not an earlier calibration "
                              f"({len(entries)} entries); pass a new or empty folder as -o")
         for name in ("images", "sparse", "calibration.json"):
@@ -292,6 +293,20 @@ def _mean_reprojection_error(model: Path) -> float | None:
     return round(float(np.mean(errs)), 4) if errs else None
 
 
+def _colmap_log_files(pycolmap, folder: Path | None) -> None:
+    """Send COLMAP's log files (glog: one per severity) to ``folder``; None writes none (glog
+    would start new ones in /tmp)."""
+    logging_ = pycolmap.logging
+    if not hasattr(logging_, "set_log_destination"):  # pragma: no cover - older pycolmap
+        return
+    base = ""
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+        base = str(folder / "colmap.")
+    for level in (logging_.INFO, logging_.WARNING, logging_.ERROR):
+        logging_.set_log_destination(level, base)
+
+
 # --------------------------------------------------------------------------- entry point
 def calibrate(inputs: str | Path, scene: str | Path, cfg: CalibrateConfig | None = None) -> dict:
     """Calibrate photos (a folder) or a video and write a COLMAP scene (module docstring).
@@ -339,13 +354,16 @@ def calibrate(inputs: str | Path, scene: str | Path, cfg: CalibrateConfig | None
         log.info("calibrate: %d %s at %dx%d, %s, %s matching", len(photos),
                  "frames" if video else "photos", *photos[0].size,
                  "one shared camera" if single else "one camera per photo", matcher)
-        # COLMAP logs every step at INFO level; keep its warnings and errors unless -v
+        # COLMAP logs every step at INFO level; keep its warnings and errors unless -v, in
+        # SCENE/colmap_logs/ (its own default is a file per run in /tmp)
         level = pycolmap.logging.minloglevel
         pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 1
+        _colmap_log_files(pycolmap, scene / "colmap_logs")
         try:
             model = _run_sfm(pycolmap, work, photos, single, matcher, cfg, timing)
         finally:
             pycolmap.logging.minloglevel = level
+            _colmap_log_files(pycolmap, None)
         n_reg = 0
         if model is not None:
             n_reg = sum(1 for ln in (model / "images.txt").read_text().splitlines()

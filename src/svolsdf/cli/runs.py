@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Annotated
 
@@ -293,12 +294,57 @@ def mvs(
     cfg = MVSJobConfig(scene=scene, out=out, views=_parse_views(views), backbone=backbone,
                        weights=weights, size=None if size is None else parse_size(size),
                        depth_range=rng, fuse=not no_fuse)
-    s = run_mvs(cfg)
+    _check_mvs_inputs(cfg)
+    with _own_output_folder(out, "svolsdf mvs"):
+        s = run_mvs(cfg)
+        if "fusion" in s and not s["fusion"]["points_total"]:
+            (out / "points.ply").unlink(missing_ok=True)
+            raise InputError(f"{out}: fusion kept no point: no pixel's depth agrees between "
+                             f"the views {s['views']}; check that the cameras look at the "
+                             "object and overlap (svolsdf info SCENE --sheet sheet.png)")
     typer.echo(f"mvs ({s['backbone']}) on views {s['views']} at {s['size'][0]}x{s['size'][1]}: "
                f"{s['seconds']['total']:.1f} s")
     if "fusion" in s:
         typer.echo(f"points: {out / 'points.ply'} ({s['fusion']['points_total']} points)")
     typer.echo(f"depth:  {out / 'depth'}/<view>.npy, volumes in {out / 'mvs'}")
+
+
+def _check_mvs_inputs(cfg) -> None:
+    """The checks of reconstruct before any work (`svolsdf.scene.checks`): an output that is
+    the scene, inside it or another command's folder; images below the cascade's size and
+    cameras that see nothing in common (headers and cameras only: no pixel is read)."""
+    from svolsdf.scene.checks import check_output_folder, check_scene
+    from svolsdf.scene.loaders import load_scene
+    from svolsdf.scene.size import working_size
+
+    check_output_folder(cfg.out, cfg.scene, "svolsdf mvs")
+    probe = load_scene(cfg.scene, views=cfg.views, load_images=False)
+    size = working_size(probe.width, probe.height, size=cfg.size)
+    if len(probe) >= 2:  # fewer: run_mvs says so
+        check_scene(load_scene(cfg.scene, views=cfg.views, load_images=False,
+                               image_size=size), use_masks=False)
+
+
+@contextlib.contextmanager
+def _own_output_folder(out: Path, command: str):
+    """Create OUT if needed and hold its lock (`svolsdf.io.runfolder.folder_lock`) while
+    ``command`` writes it; a folder this call created is removed again when the command fails
+    before writing anything into it."""
+    import shutil
+
+    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.runfolder import LOCK_NAME, folder_lock
+
+    new = not out.exists()
+    ensure_writable_folder(out)
+    ok = False
+    try:
+        with folder_lock(out, command):
+            yield
+            ok = True
+    finally:
+        if not ok and new and {p.name for p in out.iterdir()} <= {LOCK_NAME}:
+            shutil.rmtree(out, ignore_errors=True)
 
 
 @app.command("synth")

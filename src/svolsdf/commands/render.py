@@ -216,10 +216,6 @@ def render_outputs(
         InputError: not a finished run (see `open_run`), an unknown view id, a bad size or
             path.
     """
-    from svolsdf.ibr import IBRConfig, ibr_render, orbit_cameras
-    from svolsdf.io.images import write_depth_preview, write_image
-    from svolsdf.scene.loaders import load_scene
-
     out = Path(out)
     if path is not None and path != "orbit":
         raise InputError(f"--path {path!r}: the only camera path is 'orbit'")
@@ -229,8 +225,27 @@ def render_outputs(
         raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     p = open_run(out, progress=False)
     from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.runfolder import config_digest, folder_lock, output_provenance
 
+    if output_provenance(out, ["field"])["field"] == "another config":
+        raise InputError(f"{out}: field/model.pt came from an earlier config than "
+                         f"{out / 'config.yaml'} (a rerun with other options stopped before it "
+                         f"trained the field again); run svolsdf reconstruct -o {out} --config "
+                         f"{out / 'config.yaml'} first")
     ensure_writable_folder(out, "run folder")  # renders/ goes there: fail before rendering
+    with folder_lock(out, "svolsdf render"):
+        res = _render(p, out, views, path, ibr, size, frames, chunk, fps, ibr_config, progress)
+        p.dir.record("render", config_digest(p.dir.config))  # evaluate checks it
+    return res
+
+
+def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config,
+            progress) -> dict:
+    """`render_outputs` once the run is open and its lock held."""
+    from svolsdf.ibr import IBRConfig, ibr_render, orbit_cameras
+    from svolsdf.io.images import write_depth_preview, write_image
+    from svolsdf.scene.loaders import load_scene
+
     scene = p.load()
     norm = scene.normalization
     s = float(norm.scale)

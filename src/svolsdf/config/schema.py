@@ -210,8 +210,9 @@ class TrainConfig:
 
 @dataclass
 class OutputConfig:
-    mesh_resolution: int = _limited(256, min=8)
-    """Marching-cubes grid resolution in the unit frame."""
+    mesh_resolution: int = _limited(256, min=8, max=2048)
+    """Marching-cubes grid resolution in the unit frame (at most 2048: its 2048^3 samples
+    already take tens of GB)."""
     mesh_format: Literal["ply", "obj"] = "ply"
     """ply | obj."""
     mesh_cull_unseen: bool = False

@@ -505,9 +505,9 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
             f"</title><style>{_CSS}</style>{script}</head><body>{''.join(parts)}</body></html>")
     path = out_dir / "report.html"
-    tmp = path.with_suffix(".html.tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(path)
+    from svolsdf.io.runfolder import atomic_write  # a unique temporary name, as every writer
+
+    atomic_write(path, lambda tmp: tmp.write_text(page, encoding="utf-8"))
     log.info("report: 3D view %.1f s, pictures %.1f s, total %.1f s (%.1f MB)",
              t_fig - t0, t_pics - t_fig, time.perf_counter() - t0, len(page) / 1e6)
     return path

@@ -41,7 +41,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -368,7 +368,7 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
 
 
 def evaluate_run(cfg: EvaluateConfig) -> dict:
-    """Compute OUT/metrics.json (and OUT/report.html) for a run folder.
+    """Compute OUT/metrics.json (and OUT/report.html) for a run folder, holding its lock.
 
     Args:
         cfg: `EvaluateConfig`.
@@ -377,29 +377,88 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
         the metrics dict that was written.
 
     Raises:
-        InputError: a missing folder or ground-truth file, unreadable inputs.
+        InputError: a missing folder or ground-truth file, unreadable inputs, not a run, an
+            option that cannot be honoured (a scene that is not one, views without renders),
+            outputs that an earlier config made (``settings.provenance`` of the metrics), or
+            another command writing the folder.
     """
-    t0 = time.perf_counter()
+    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.runfolder import folder_lock
+
     out = Path(cfg.out)
     if not out.is_dir():
         raise InputError(f"{out}: run folder does not exist")
+    found = _check_run_folder(out, cfg.scene)
+    _check_evaluate_options(cfg, out)
+    prov = _check_provenance(out, found)
+    ensure_writable_folder(out, "run folder")  # metrics.json goes there: fail before the work
+    with folder_lock(out, "svolsdf evaluate"):
+        return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}))
+
+
+def _check_run_folder(out: Path, scene: Path | None) -> list[str]:
+    """The outputs evaluate and report read in OUT; refuses a folder without any (a scene, an
+    empty or half-finished run: nothing is written into it) and a ``scene`` that is none."""
+    found = [n for n in ("points.ply", "mesh.ply") if (out / n).is_file()] + [
+        n for n in ("renders", "renders_ibr") if _render_files(out / n, None)]
+    if not found:
+        raise InputError(f"{out}: not a run folder (no points.ply, mesh.ply or "
+                         "renders/<view id>.png); give the output folder of svolsdf "
+                         "reconstruct, mvs or render, once it has finished")
+    if scene is not None:
+        from svolsdf.scene.loaders import detect_format
+
+        detect_format(scene)  # --scene WRONG: refused, not scored against nothing
+    return found
+
+
+def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
+    """Options that evaluate could not honour are errors, not silently ignored."""
+    if cfg.views is not None:
+        have = set(_render_files(out / "renders", None)) | set(
+            _render_files(out / "renders_ibr", None))
+        missing = [v for v in cfg.views if v not in have]
+        if missing:
+            raise InputError(f"--views: no renders/<id>.png of view(s) {missing} in {out} "
+                             f"(rendered: {sorted(have) or 'none'}); run svolsdf render {out} "
+                             f"--views {' '.join(map(str, cfg.views))} first")
+    if cfg.scan is not None and cfg.dtu_gt is None:
+        raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
+    if cfg.dtu_gt is not None and cfg.gt_points is not None:
+        raise InputError("--dtu-gt and --gt-points: give one ground truth")
+
+
+def _check_provenance(out: Path, found: list[str]) -> dict[str, str]:
+    """{output: whether OUT/config.yaml made it} (`svolsdf.io.runfolder.output_provenance`);
+    refuses outputs that an earlier config made, which would be scored under the wrong one."""
+    from svolsdf.io.runfolder import output_provenance
+
+    names = [n for n in found if n in ("points.ply", "mesh.ply")]
+    if any(n.startswith("renders") for n in found):
+        names.append("renders")
+    prov = output_provenance(out, names)
+    stale = [n for n, v in prov.items() if v == "another config"]
+    if stale:
+        again = f"svolsdf reconstruct -o {out} --config {out / 'config.yaml'}"
+        if "renders" in stale:
+            again = (f"{again}, then " if stale != ["renders"] else "") + f"svolsdf render {out}"
+        raise InputError(f"{out}: {', '.join(stale)} came from an earlier config than "
+                         f"{out / 'config.yaml'} (a rerun with other options stopped before "
+                         f"it made them again); run {again} first")
+    return prov
+
+
+def _evaluate_run(cfg: EvaluateConfig) -> dict:
+    """`evaluate_run` once its checks passed and the lock is held."""
+    t0 = time.perf_counter()
+    out = Path(cfg.out)
     if cfg.lpips_net not in ("vgg", "alex"):
         raise InputError(f"--lpips-net {cfg.lpips_net!r}: expected 'vgg' or 'alex'")
     for name, v in (("--threshold", cfg.threshold), ("--ssim-data-range", cfg.ssim_data_range),
                     ("max_dist", cfg.max_dist)):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise InputError(f"{name} {v}: expected a number > 0")
-    # nothing to score: not a run folder (a scene folder, say); write nothing into it
-    found = [n for n in ("points.ply", "mesh.ply") if (out / n).is_file()] + [
-        n for n in ("renders", "renders_ibr") if _render_files(out / n, None)]
-    if not found:
-        raise InputError(f"{out}: not a run folder (no points.ply, mesh.ply or "
-                         "renders/<view id>.png); give the output folder of svolsdf "
-                         "reconstruct, mvs or render")
-    from svolsdf.io.folders import ensure_writable_folder
     from svolsdf.io.ply import read_ply
-
-    ensure_writable_folder(out, "run folder")  # metrics.json goes there: fail before the work
 
     run_cfg = _read_config(out)
     scene_path, input_views = _scene_info(run_cfg)
@@ -443,7 +502,7 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     _write_json(out / "metrics.json", metrics)
 
     if cfg.report:
-        write_run_report(out, metrics, views, notes, scene_path=scene_path,
+        _write_run_report(out, metrics, views, notes, scene_path=scene_path,
                          input_views=input_views)
         metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
         _write_json(out / "metrics.json", metrics)
@@ -500,13 +559,30 @@ def write_run_report(out: str | Path, metrics: dict | None = None,
         the path of report.html.
 
     Raises:
-        InputError: OUT is not a folder, or a file in it is unreadable.
+        InputError: OUT is not a folder or not a run (no outputs yet), ``scene_path`` is not a
+            scene, outputs came from an earlier config, a file in it is unreadable, or another
+            command writes the folder.
     """
-    from svolsdf.io.ply import read_ply
+    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.runfolder import folder_lock
 
     out = Path(out)
     if not out.is_dir():
         raise InputError(f"{out}: run folder does not exist")
+    _check_provenance(out, _check_run_folder(out, scene_path))
+    ensure_writable_folder(out, "run folder")
+    with folder_lock(out, "svolsdf report"):
+        return _write_run_report(out, metrics, views, notes, scene_path, input_views)
+
+
+def _write_run_report(out: Path, metrics: dict | None = None,
+                      views: list[ViewImages] | None = None, notes: list[str] | None = None,
+                      scene_path: Path | None = None, input_views: list[int] | None = None,
+                      ) -> Path:
+    """`write_run_report` once its checks passed and the lock is held."""
+    from svolsdf.io.ply import read_ply
+
+    out = Path(out)
     notes = list(notes or [])
     run_cfg = _read_config(out)
     cfg_scene, cfg_views = _scene_info(run_cfg)
@@ -591,7 +667,8 @@ def _synthetic_units(scene_path: Path) -> str | None:
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, allow_nan=False))
-    tmp.replace(path)
+    from svolsdf.io.runfolder import atomic_write
+
+    text = json.dumps(obj, indent=2, allow_nan=False)
+    atomic_write(path, lambda tmp: tmp.write_text(text))
 

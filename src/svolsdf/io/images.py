@@ -40,9 +40,18 @@ def _open(path: Path) -> Image.Image:
         im.load()
     except FileNotFoundError:
         raise
+    except Image.DecompressionBombError as e:
+        raise ImageReadError(_too_large(path, e)) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         raise ImageReadError(f"{path}: cannot read image ({e.__class__.__name__}: {e})") from e
     return im
+
+
+def _too_large(path: Path, e: Exception) -> str:
+    """The message for an image whose header declares more pixels than Pillow decodes (a
+    decompression bomb, or a real panorama: both would need gigabytes)."""
+    return (f"{path}: the image declares too many pixels to read ({' '.join(str(e).split())}); "
+            "downscale it (e.g. to 1600 pixels wide)")
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
@@ -57,6 +66,8 @@ def image_size(path: str | Path) -> tuple[int, int]:
             return int(im.width), int(im.height)
     except FileNotFoundError:
         raise
+    except Image.DecompressionBombError as e:
+        raise ImageReadError(_too_large(path, e)) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         raise ImageReadError(f"{path}: cannot read image ({e.__class__.__name__}: {e})") from e
 

@@ -1,8 +1,8 @@
 """PLY (and OBJ) reading and writing for point clouds and triangle meshes.
 
-Files are written atomically: the data go to ``<path>.tmp`` in the same folder, which then
-replaces ``path`` with :func:`os.replace`, so a killed run never leaves a half-written file behind
-(at worst a stale ``.tmp`` that the next write overwrites).
+Files are written atomically: the data go to a uniquely named temporary file in the same folder,
+which then replaces ``path`` with :func:`os.replace`, so a killed run never leaves a half-written
+file behind, and a failed write (a full disk) removes it and names ``path``.
 
 Conventions: coordinates are float32 in the writer's world units (ARCHITECTURE.md "Conventions":
 DTU millimetres); colours are uchar RGB; binary little-endian PLY.
@@ -25,15 +25,28 @@ __all__ = ["atomic_path", "read_ply", "write_mesh_ply", "write_obj", "write_poin
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success move it onto ``path`` atomically.
+    """Yield a unique temporary path beside ``path``; on success move it onto ``path``
+    atomically.
 
-    On an exception the temporary file is removed and ``path`` is left untouched.
+    On an exception the temporary file is removed and ``path`` is left untouched; an `OSError`
+    (no space left, read-only) becomes an `InputError` naming ``path``.
     """
+    import errno
+
+    from svolsdf.io.runfolder import unique_temp
+
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp = unique_temp(path)
+    except OSError as e:
+        raise InputError(f"{path}: cannot write it ({e.strerror or e})") from None
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        why = "the disk is full" if e.errno == errno.ENOSPC else (e.strerror or str(e))
+        raise InputError(f"{path}: cannot write it ({why})") from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -4,13 +4,21 @@ A stage whose key in OUT/stages.json equals the one computed here is finished an
 values must stay as they are for a given config: a changed key reruns the stage in every existing
 run folder. Options added after run folders existed therefore enter their stage's key only when
 set (the comments say which).
+
+Inputs: `input_manifest` records what the stages read from the scene (the input views' image and
+mask files by content, the cameras as loaded) and `input_keys` chains it per stage as the keys
+chain the config, so a replaced photo reruns the stages that read it. Input keys are stored beside
+the stage keys (OUT/stages.json "provenance"), not mixed into them: run folders made before they
+existed keep their finished stages (docs/run-folder.md).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import asdict
+from pathlib import Path
 
 from svolsdf.config import Config
 from svolsdf.pipeline.builders import backbone_kwargs
@@ -22,7 +30,7 @@ from svolsdf.pipeline.options import (
     wants_unguided,
 )
 
-__all__ = ["STAGES", "stage_keys"]
+__all__ = ["STAGES", "describe_changes", "input_keys", "input_manifest", "stage_keys"]
 
 STAGES = ("mvs1", "field", "guide", "mvs23", "unguided", "fusion", "mesh")
 """The stages in order (`svolsdf.pipeline.Pipeline`)."""
@@ -108,3 +116,106 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
             "unguided": k_unguided,
             "fusion": k_fusion, "mesh": k_mesh}
+
+
+# --------------------------------------------------------------------------- inputs
+def _file_entry(path: Path, previous: dict | None) -> dict:
+    """{path, size, mtime_ns, sha1} of a file; the content is hashed only when its size or
+    modification time differ from ``previous`` (the entry recorded by the last run)."""
+    st = os.stat(path)
+    entry = {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    if (isinstance(previous, dict) and previous.get("sha1")
+            and all(previous.get(k) == entry[k] for k in ("path", "size", "mtime_ns"))):
+        entry["sha1"] = previous["sha1"]
+        return entry
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    entry["sha1"] = h.hexdigest()[:16]
+    return entry
+
+
+def _cameras_digest(scene) -> str:
+    """Digest of the input views' cameras as the stages see them (intrinsics and extrinsics at
+    the working size, the normalization, depth ranges and source views). Rounded to float32,
+    so that a linear-algebra library's last bits do not count as a new camera."""
+    import numpy as np
+
+    def f32(t) -> bytes:
+        return np.asarray(t.detach().cpu().double().numpy(), np.float32).tobytes()
+
+    h = hashlib.sha1()
+    for part in (scene.cameras.K, scene.cameras.w2c, scene.normalization.center,
+                 scene.depth_range):
+        h.update(f32(part))
+    h.update(np.float32(float(scene.normalization.scale)).tobytes())
+    ids = set(scene.view_ids)
+    pairs = {int(v): [int(s) for s in (scene.pairs or {}).get(v, []) if s in ids]
+             for v in scene.view_ids}
+    h.update(json.dumps([scene.view_ids, pairs, [scene.width, scene.height]]).encode())
+    return h.hexdigest()[:16]
+
+
+def input_manifest(scene, previous: dict | None = None) -> dict[str, dict]:
+    """What the stages read from ``scene`` (a loaded `svolsdf.scene.Scene` of the input views).
+
+    Args:
+        scene: the input views at the working size.
+        previous: the manifest the last run recorded; files whose size and modification time
+            did not change keep their recorded content hash (no read).
+
+    Returns:
+        {"image:<view>": {path, size, mtime_ns, sha1}, "mask:<view>": ..., "cameras": {sha1}}.
+    """
+    previous = previous if isinstance(previous, dict) else {}
+    m: dict[str, dict] = {}
+    masks = scene.extras.get("mask_paths") if scene.masks is not None else None
+    for i, v in enumerate(scene.view_ids):
+        m[f"image:{v}"] = _file_entry(Path(scene.image_paths[i]), previous.get(f"image:{v}"))
+        if masks is not None:
+            m[f"mask:{v}"] = _file_entry(Path(masks[i]), previous.get(f"mask:{v}"))
+    m["cameras"] = {"sha1": _cameras_digest(scene)}
+    return m
+
+
+def input_keys(cfg: Config, manifest: dict[str, dict]) -> dict[str, str]:
+    """{stage: 12-hex key} of the inputs each stage reads, directly or through the stages it
+    follows (chained as `stage_keys` chains the config)."""
+    o = cfg.output
+
+    def part(kind: str) -> list:
+        return sorted((k, e.get("sha1")) for k, e in manifest.items() if k.startswith(kind))
+
+    images, cams = part("image:"), part("cameras")
+    masks = part("mask:") if o.use_masks else []
+    i_mvs1 = _hash("mvs1", images, cams)
+    i_field = _hash(i_mvs1, images, cams, masks)  # rays in the masks, the grid's start
+    i_guide = _hash(i_field, masks if o.guide_mask_dilation is not None else [])
+    i_mvs23 = _hash(i_guide, i_mvs1)
+    i_unguided = _hash(i_mvs1, "unguided")
+    i_fusion = _hash(i_mvs23, i_unguided if wants_unguided(cfg) else None, images, cams, masks)
+    i_mesh = _hash(i_field, cams, masks, i_mvs23 if o.finer_stage_optimization else None,
+                   i_guide if o.mesh_cull_unseen else None,
+                   i_fusion if (wants_mesh_fit(cfg) or wants_poisson(cfg)) else None)
+    return {"mvs1": i_mvs1, "field": i_field, "guide": i_guide, "mvs23": i_mvs23,
+            "unguided": i_unguided, "fusion": i_fusion, "mesh": i_mesh}
+
+
+def describe_changes(old: dict | None, new: dict[str, dict]) -> list[str]:
+    """The inputs of ``new`` whose content differs from ``old`` (a recorded manifest), named for
+    the log: ``image of view 1 (scene/image/001.png)``, ``the cameras``."""
+    if not isinstance(old, dict):
+        return []
+    out = []
+    for k, e in new.items():
+        before = old.get(k)
+        if isinstance(before, dict) and before.get("sha1") == e.get("sha1"):
+            continue
+        if k == "cameras":
+            out.append("the cameras")
+        else:
+            kind, view = k.split(":", 1)
+            what = "new" if before is None else "changed"
+            out.append(f"{kind} of view {view} ({e.get('path')}, {what})")
+    return out

@@ -4,15 +4,18 @@ folder lock, OUT/log, OUT/timing.json, and atomic saves.
 Layout (ARCHITECTURE.md "Data flow"; `svolsdf.pipeline` writes it):
 
 - ``config.yaml``, ``views.json`` (inputs, test views, working size, scene), ``stages.json``
-  (stage -> key of the config it finished under), ``timing.json``, ``log``, ``.svolsdf.lock``;
+  (stage -> key of the config it finished under; "provenance": stage -> the key of its inputs
+  and the digest of the config.yaml it finished or was last reused under; "manifest": the
+  input files, `svolsdf.pipeline.keys.input_manifest`), ``timing.json``, ``log``,
+  ``.svolsdf.lock`` (`svolsdf.io.runfolder.folder_lock`: every command that writes here);
 - ``mvs/stage{1,2,3}/<id>.npz``, ``depth/<id>.npy`` (+ .png), ``confidence/<id>.npy``;
 - ``field/model.pt`` (+ checkpoints), ``field/render_depth/<id>.npy``, ``field/render_rgb/``,
   ``normals/``, ``field/stage2/`` (the finer-stage optimization), ``field/surface.pt``;
 - ``unguided/{depth,confidence}/<id>.npy``, ``network/{depth,confidence}/<id>.npy``;
 - ``points.ply``, ``mesh.ply`` (or ``mesh.obj``).
 
-Every file is written to a temporary name and renamed, so a killed run never leaves a half
-file under the final name.
+Every file is written to a unique temporary name and renamed, so a killed run never leaves a
+half file under the final name.
 """
 
 from __future__ import annotations
@@ -20,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svolsdf.errors import InputError
+from svolsdf.io.runfolder import atomic_write, folder_lock
 
 __all__ = ["RunDir", "save_json", "save_npy", "save_torch"]
 
@@ -36,25 +38,20 @@ log = logging.getLogger(__name__)
 
 
 def save_npy(path: Path, arr: np.ndarray) -> None:
-    """Write ``arr`` to ``path`` (.npy) atomically, creating its folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npy")
-    np.save(tmp, arr)
-    os.replace(tmp, path)
+    """Write ``arr`` to ``path`` (.npy) atomically, creating its folder
+    (`svolsdf.io.runfolder.atomic_write`: a full disk names the file and leaves no temporary)."""
+    atomic_write(path, lambda tmp: np.save(tmp, arr), suffix=".npy")
 
 
 def save_json(path: Path, obj, indent: int = 1) -> None:
-    """Write ``obj`` as JSON to ``path`` atomically (through ``path`` with suffix .tmp)."""
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(obj, indent=indent))
-    os.replace(tmp, path)
+    """Write ``obj`` as JSON to ``path`` atomically."""
+    text = json.dumps(obj, indent=indent)
+    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def save_torch(path: Path, obj) -> None:
-    """``torch.save`` ``obj`` to ``path`` atomically (through ``path`` with suffix .tmp)."""
-    tmp = path.with_suffix(".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    """``torch.save`` ``obj`` to ``path`` atomically."""
+    atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
 def one_line(e: BaseException) -> str:
@@ -166,14 +163,13 @@ class RunDir:
 
     def write_views(self, inputs: list[int], test: list[int], size: tuple[int, int],
                     scene: str) -> None:
-        tmp = self.root / "views.json.tmp"
-        tmp.write_text(json.dumps({"inputs": inputs, "test": test, "size": list(size),
-                                   "scene": scene}, indent=1))
-        os.replace(tmp, self.views_file)
+        save_json(self.views_file, {"inputs": inputs, "test": test, "size": list(size),
+                                    "scene": scene})
 
     # ------------------------------------------------------------------ stage state
     def state(self) -> dict:
-        """OUT/stages.json: {stage: key}; {} (with one warning) when it is unreadable."""
+        """OUT/stages.json: {stage: key, "provenance": {...}, "manifest": {...}}; {} (with one
+        warning) when it is unreadable."""
         p = self.stages_file
         if not p.is_file():
             return {}
@@ -188,15 +184,48 @@ class RunDir:
             self._warned_state = True
         return {}
 
-    def mark(self, stage: str, key: str) -> None:
-        """Record ``stage`` as finished under ``key``."""
+    def mark(self, stage: str, key: str, inputs: str | None = None,
+             config: str | None = None) -> None:
+        """Record ``stage`` as finished under ``key``, with the key of its ``inputs`` and the
+        digest of the ``config`` (config.yaml) that made it, when given."""
         st = self.state()
         st[stage] = key
+        if inputs is not None or config is not None:
+            prov = st.get("provenance") if isinstance(st.get("provenance"), dict) else {}
+            prov[stage] = {"inputs": inputs, "config": config}
+            st["provenance"] = prov
+        save_json(self.stages_file, st)
+
+    def record(self, output: str, config: str | None) -> None:
+        """Record that ``output`` (e.g. "render": renders/) was made under the config.yaml of
+        digest ``config`` (`svolsdf.io.runfolder.output_provenance` reads it). An unreadable
+        stages.json is left for the next reconstruct to replace (and to say so)."""
+        st = self.state()
+        if not st and self.stages_file.is_file():
+            return
+        prov = st.get("provenance") if isinstance(st.get("provenance"), dict) else {}
+        prov[output] = {"config": config}
+        st["provenance"] = prov
+        save_json(self.stages_file, st)
+
+    def provenance(self, stage: str) -> dict:
+        """{"inputs": key, "config": digest} recorded for ``stage`` ({} when none is)."""
+        prov = self.state().get("provenance")
+        rec = prov.get(stage) if isinstance(prov, dict) else None
+        return rec if isinstance(rec, dict) else {}
+
+    def write_manifest(self, manifest: dict) -> None:
+        """Keep the input manifest (`svolsdf.pipeline.keys.input_manifest`) in stages.json."""
+        st = self.state()
+        st["manifest"] = manifest
         save_json(self.stages_file, st)
 
     def unmark(self, stages: Sequence[str]) -> None:
         """Forget ``stages`` (their files no longer follow from earlier ones)."""
-        save_json(self.stages_file, {k: v for k, v in self.state().items() if k not in stages})
+        st = {k: v for k, v in self.state().items() if k not in stages}
+        if isinstance(st.get("provenance"), dict):
+            st["provenance"] = {k: v for k, v in st["provenance"].items() if k not in stages}
+        save_json(self.stages_file, st)
 
     def done(self, stage: str, key: str) -> bool:
         """``stage`` finished under ``key``."""
@@ -219,42 +248,15 @@ class RunDir:
         save_json(tp, prev)
 
     # ------------------------------------------------------------------ lock
-    @contextlib.contextmanager
-    def lock(self):
-        """Hold an exclusive lock on OUT/.svolsdf.lock for a run.
-
-        Two runs writing one output folder would mix their stages. The lock is an advisory
-        ``flock`` that the operating system drops when the process ends, so a killed run never
-        leaves a stale lock behind. Where ``fcntl`` does not exist (Windows) runs are not
-        locked.
+    def lock(self, command: str = "svolsdf reconstruct"):
+        """Hold the folder's lock while ``command`` writes it (`svolsdf.io.runfolder.folder_lock`;
+        the folder must exist).
 
         Raises:
-            InputError: another process holds the folder; the message names the folder and its
-                pid.
+            InputError: another process holds the folder; the message names the folder, the
+                command and its pid.
         """
-        try:
-            import fcntl
-        except ImportError:  # pragma: no cover - not POSIX
-            yield
-            return
-        out = self.root
-        path = out / ".svolsdf.lock"
-        f = open(path, "a+")  # noqa: SIM115 - held for the whole run
-        try:
-            try:
-                fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                f.seek(0)
-                pid = f.read().strip() or "?"
-                raise InputError(f"{out}: another svolsdf run (pid {pid}) is writing this "
-                                 "folder; wait for it or choose another output folder") from None
-            f.seek(0)
-            f.truncate()
-            f.write(str(os.getpid()))
-            f.flush()
-            yield
-        finally:
-            f.close()
+        return folder_lock(self.root, command)
 
     # ------------------------------------------------------------------ log
     def attach_log(self) -> logging.Handler | None:

@@ -14,7 +14,10 @@ Stages (ARCHITECTURE.md "Data flow"; METHOD.md 0 and 6):
 7. ``mesh``: marching cubes of the SDF (OUT/mesh.ply).
 
 A stage is skipped on a rerun when its marker in OUT/stages.json carries the same config hash
-(`svolsdf.pipeline.keys`); a changed config reruns that stage and everything after it. The
+(`svolsdf.pipeline.keys`) and its inputs (images, masks, cameras) are those it finished with; a
+changed config or input reruns that stage and everything after it that reads it, and OUT/log says
+which input changed. Each stage also records the digest of the config.yaml it finished (or was
+last reused) under, so evaluate and report can tell outputs of an earlier config. The
 optimization resumes from its last checkpoint after a kill. All files are written atomically
 (`svolsdf.pipeline.rundir`). The algorithms live in their components; this module orders them.
 """
@@ -33,7 +36,7 @@ from svolsdf.config import Config, save_config, validate_config
 from svolsdf.errors import InputError, RunInterrupted
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline import builders, options
-from svolsdf.pipeline.keys import STAGES
+from svolsdf.pipeline.keys import STAGES, describe_changes, input_keys, input_manifest
 from svolsdf.pipeline.machine import peak_rss_gb, set_threads
 from svolsdf.pipeline.run import Run, load_model
 from svolsdf.pipeline.rundir import one_line, save_npy, save_torch
@@ -70,6 +73,10 @@ class Pipeline(Run):
         self._net: tuple | None = None  # (its config, the fusion network's backbone)
         self._stage = "setup"  # the stage run() is in, for the message of an interrupt
         self._trainer = None  # the field stage's Trainer while it runs (its step, ditto)
+        self.input_keys: dict[str, str] | None = None  # set by run() (`keys.input_keys`)
+        self._config_digest: str | None = None  # of OUT/config.yaml, set by run()
+        self._input_changes: list[str] = []
+        self._logged: set[str] = set()  # the stages whose reuse or rerun OUT/log explained
 
     # ------------------------------------------------------------------ bookkeeping
     def _reuse(self, stage: str, read, discard: Path | None = None):
@@ -88,10 +95,50 @@ class Pipeline(Run):
             return None
 
     def _mark(self, stage: str) -> None:
-        self.dir.mark(stage, self.keys[stage])
+        self.dir.mark(stage, self.keys[stage], **self._provenance(stage))
+
+    def _provenance(self, stage: str) -> dict:
+        """The inputs key and config digest a finished ``stage`` records (none outside run)."""
+        if self.input_keys is None:
+            return {}
+        base = "field" if stage == "field_partial" else stage
+        return {"inputs": self.input_keys[base], "config": self._config_digest}
 
     def _done(self, stage: str) -> bool:
-        return self.dir.done(stage, self.keys[stage])
+        return self._inputs_unchanged(stage, stage)
+
+    def _inputs_unchanged(self, stage: str, marker: str) -> bool:
+        """``marker`` (``stage`` or field_partial) is recorded under the stage's key, and its
+        inputs are the current ones. A marker without an inputs record (a run folder made before
+        they were recorded) is kept, with a line in OUT/log."""
+        if not self.dir.done(marker, self.keys[stage]):
+            return False
+        if self.input_keys is None:
+            return True
+        rec = self.dir.provenance(marker).get("inputs")
+        if rec is None:
+            if "unknown" not in self._logged:
+                self._logged.add("unknown")
+                log.info("%s: stages finished before their inputs were recorded are kept as "
+                         "finished (whether the scene's files changed since is unknown; delete "
+                         "%s to compute them again)", self.out, self.dir.stages_file)
+            return True
+        if rec == self.input_keys[stage]:
+            return True
+        if stage not in self._logged:
+            self._logged.add(stage)
+            what = "; ".join(self._input_changes) or "the scene's files"
+            log.info("stage %s: its inputs changed since it finished (%s); running it again",
+                     stage, what)
+        return False
+
+    def _adopt(self, stage: str) -> None:
+        """Record the current inputs and config.yaml for ``stage`` when it finished (or was
+        reused) under them, so that its outputs name the config that stands for them."""
+        if self.input_keys is None or not self.dir.done(stage, self.keys[stage]):
+            return
+        if self.dir.provenance(stage) != self._provenance(stage):
+            self._mark(stage)
 
     def _time(self, stage: str, t0: float, **extra) -> None:
         self.timing[stage] = {"seconds": round(time.perf_counter() - t0, 3),
@@ -117,11 +164,15 @@ class Pipeline(Run):
 
         t_all = time.perf_counter()
         self._check_options()
+        new = not self.out.exists()
         ensure_writable_folder(self.out)
         with self.dir.lock():
             handler = self.dir.attach_log()
+            finished = False
             try:
-                return self._run(t_all)
+                res = self._run(t_all)
+                finished = True
+                return res
             except KeyboardInterrupt:
                 msg = self._interrupt_message()
                 self.dir.log_to_file(log, logging.WARNING, msg)
@@ -137,6 +188,20 @@ class Pipeline(Run):
                 if handler is not None:  # this run's OUT/log only gets this run's messages
                     logging.getLogger("svolsdf").removeHandler(handler)
                     handler.close()
+                if not finished and new and self._stage == "setup":
+                    self._discard_new_folder()
+
+    def _discard_new_folder(self) -> None:
+        """Remove the folder this run created when it stopped before any stage (a scene that
+        fails its checks leaves no OUT behind); only the run's own bookkeeping is removed."""
+        import shutil
+
+        own = {".svolsdf.lock", "log", "config.yaml", "views.json", "stages.json"}
+        try:
+            if {p.name for p in self.out.iterdir()} <= own:
+                shutil.rmtree(self.out)
+        except OSError:
+            pass
 
     def _check_options(self) -> None:
         """Fail on a missing scene folder, one that no scene format recognises, or on backbone
@@ -146,9 +211,11 @@ class Pipeline(Run):
             raise InputError(f"{path}: scene folder does not exist")
         if not path.is_dir():
             raise InputError(f"{path} is not a folder; pass the scene folder")
+        from svolsdf.scene.checks import check_output_folder
         from svolsdf.scene.loaders import detect_format
 
         detect_format(path)  # a folder no format reads: refused before OUT/log exists
+        check_output_folder(self.out, path, "svolsdf reconstruct")
         if options.runs_mvs1(self.cfg):
             self.backbone()  # built once and dropped: its weights load again in stage 1
         if options.wants_network(self.cfg):
@@ -165,11 +232,26 @@ class Pipeline(Run):
                 f"kept{resumes})")
 
     def _run(self, t_all: float) -> dict:
+        from svolsdf.io.runfolder import config_digest
+        from svolsdf.scene.checks import check_scene
+
         scene = self.load()
+        # degenerate input (empty masks, tiny images, cameras that see nothing in common) ends
+        # here, before a stage, in one line
+        check_scene(scene, use_masks=self.cfg.output.use_masks)
         self.keys = self.stage_keys()
+        before = self.dir.state().get("manifest")
+        manifest = input_manifest(scene, before)
+        self.input_keys = input_keys(self.cfg, manifest)
+        self._input_changes = describe_changes(before, manifest)
         save_config(self.cfg, self.dir.config)
+        self._config_digest = config_digest(self.dir.config)
         self.dir.write_views(self.views, self.test_view_ids, (scene.width, scene.height),
                              str(self.cfg.scene.path))
+        self.dir.write_manifest(manifest)
+        if self._input_changes:
+            log.info("inputs changed since the last run: %s; the stages that read them run "
+                     "again", "; ".join(self._input_changes))
         threads = set_threads(self.cfg.threads)
         log.info("scene %s: inputs %s at %dx%d, mode %s, preset %s, %d torch thread(s)",
                  scene.path, self.views, scene.width, scene.height, self.cfg.train.mode,
@@ -188,6 +270,7 @@ class Pipeline(Run):
         for name, stage in stages:
             self._stage = name
             stage()
+            self._adopt(name)
         self._stage = "finish"
         self._time("total", t_all)
         return {"out": str(self.out), "points": str(self.dir.points),
@@ -253,14 +336,14 @@ class Pipeline(Run):
         t0 = time.perf_counter()
         tcfg = self.cfg.train
         trainer = self._field_trainer(model)
-        if self.dir.state().get("field_partial") == self.keys["field"]:
+        if self._inputs_unchanged("field", "field_partial"):
             ckpt = trainer.checkpoint_path()
             if not self._reuse("field", lambda: trainer.load_checkpoint() or True, ckpt):
                 torch.manual_seed(tcfg.seed)  # start again, exactly as a fresh run
                 model = self.build_model()
                 trainer = self._field_trainer(model)
         else:
-            self.dir.mark("field_partial", self.keys["field"])
+            self.dir.mark("field_partial", self.keys["field"], **self._provenance("field"))
         self._trainer = trainer  # its step, for the message of an interrupt
         trainer.fit(progress=self.progress)
         self._trainer = None
@@ -428,10 +511,26 @@ class Pipeline(Run):
         from svolsdf.pipeline.fusion import fuse
 
         n, extra = fuse(self, path)
+        if n == 0:  # never a finished run: nothing downstream can use it
+            path.unlink(missing_ok=True)
+            raise InputError(self._no_points_message())
         self._mark("fusion")
         self._time("fusion", t0, points=n, **extra)
         log.info("fused %d points -> %s %s", n, path, extra.get("points_per_set", ""))
         return path
+
+    def _no_points_message(self) -> str:
+        """Why fusion kept no point, as far as the run can tell, and what to try."""
+        o, why = self.cfg.output, []
+        if self.load().masks is not None and o.use_masks:
+            why.append("the object masks")
+        return (f"{self.out}: fusion kept no point: no pixel's depth agrees in "
+                f"{o.fusion_views} other input view(s) within {o.fusion_dist} px / "
+                f"{o.fusion_rel:g} relative depth"
+                + (f" inside {why[0]}" if why else "")
+                + f" (views {self.views}). Check that the cameras look at the object and "
+                  "overlap (svolsdf info SCENE --sheet sheet.png), or pick views with more "
+                  "overlap (--views auto)")
 
     def _mesh_cull_depths(self, refined: bool) -> torch.Tensor | None:
         """(V, H, W) rendered depth of the input views (the refined field's with

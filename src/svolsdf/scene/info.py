@@ -97,7 +97,7 @@ def _thumb(path: Path, width: int, height: int, mode: str = "RGB") -> np.ndarray
                 im = im.getchannel("A")
             im = im.convert(mode).resize((width, height), Image.BILINEAR)
             return np.asarray(im)
-    except OSError as e:
+    except (OSError, Image.DecompressionBombError) as e:
         raise SceneError(f"{path}: cannot read image ({e})") from None
 
 

@@ -267,5 +267,8 @@ def _has_alpha(p: Path) -> bool:
     try:
         with Image.open(p) as im:
             return "A" in im.getbands() or (im.mode == "P" and "transparency" in im.info)
+    except Image.DecompressionBombError:
+        _image_size(p)  # the one message for an image too large to read
+        raise
     except OSError:
         return False

@@ -147,8 +147,11 @@ class SynthConfig:
             )
         if self.views < 1:
             raise InputError(f"--views must be at least 1, got {self.views}")
-        if self.width < 8 or self.height < 8:
-            raise InputError(f"image size must be at least 8x8, got {self.width}x{self.height}")
+        from svolsdf.scene.checks import MIN_SIDE
+
+        if self.width < MIN_SIDE or self.height < MIN_SIDE:  # below, no run can use the scene
+            raise InputError(f"image size must be at least {MIN_SIDE}x{MIN_SIDE} (the smallest "
+                             f"that svolsdf reconstruct takes), got {self.width}x{self.height}")
         if not 0.0 <= self.texture_contrast <= 1.0:
             raise InputError(f"--texture-contrast must be in [0, 1], got {self.texture_contrast}")
         if self.supersample < 1:

@@ -1,0 +1,439 @@
+"""A run folder you can trust (issue 42): stage keys that follow the inputs' contents, the config
+that made each output, one lock for every writer, and degenerate input refused before any stage."""
+
+from __future__ import annotations
+
+import errno
+import json
+import shutil
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from svolsdf.cli import main
+from svolsdf.config import preset
+from svolsdf.errors import InputError
+from svolsdf.pipeline import STAGES, Run
+from svolsdf.pipeline.keys import input_keys, input_manifest
+from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rf") / "scene"
+    make_synthetic_scene(d, SynthConfig(views=4, width=64, height=48, seed=2, supersample=1,
+                                        gt_points=3000, object="sphere"))
+    return d
+
+
+@pytest.fixture(scope="module")
+def mvs_run(scene, tmp_path_factory):
+    """A finished mvs-only run of views 0 1 2 (seconds)."""
+    out = tmp_path_factory.mktemp("rfrun") / "run"
+    _main(["reconstruct", str(scene), "-o", str(out), "--mode", "mvs-only", "--views", "0", "1",
+          "2", "--no-progress"])
+    return out
+
+
+@pytest.fixture(scope="module")
+def field_run(scene, tmp_path_factory):
+    """A finished run with a field (a 16^3 grid, 10 steps: seconds)."""
+    d = tmp_path_factory.mktemp("rffield")
+    (d / "small.yaml").write_text(
+        f"scene: {{path: {scene}, views: [0, 1, 2]}}\n"
+        "field: {grid_start_resolution: 16, grid_resolution: 16}\n"
+        "output: {mesh_resolution: 24, fusion_unguided: false}\n"
+        "train: {rays: 32, checkpoint_every: 0, steps: 10}\n")
+    _main(["reconstruct", "-o", d / "run", "--config", d / "small.yaml", "--no-progress"])
+    return d / "run"
+
+
+def _main(argv) -> None:
+    main([str(a) for a in argv])
+
+
+def _run(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([str(a) for a in argv])
+    return e.value.code, capsys.readouterr()
+
+
+def _copy(src: Path, dest: Path) -> Path:
+    shutil.copytree(src, dest, ignore=shutil.ignore_patterns(".svolsdf.lock"))
+    return dest
+
+
+def _keys_of(scene_dir: Path, cfg) -> dict[str, str]:
+    cfg.scene.path, cfg.scene.views = str(scene_dir), [0, 1, 2]
+    return input_keys(cfg, input_manifest(Run(cfg, scene_dir / "unused").load()))
+
+
+def _mutate(path: Path) -> None:
+    """Change a file's content the way a user replacing it would."""
+    if path.suffix == ".png":
+        a = np.array(Image.open(path))
+        a[: a.shape[0] // 2] = 255 - a[: a.shape[0] // 2]
+        Image.fromarray(a).save(path)
+    elif path.suffix == ".npz":
+        d = dict(np.load(path))
+        for k in d:
+            if k.startswith("world_mat"):
+                d[k] = d[k] * 1.0 + np.eye(4)[0] * 0.5  # shift the principal point of every view
+        np.savez(path, **d)
+    elif path.suffix == ".npy":
+        np.save(path, np.load(path) + 1)
+    else:
+        path.write_bytes(path.read_bytes() + b"\n")
+
+
+# --------------------------------------------------------------------------- 1: inputs' contents
+def test_mutating_any_input_file_changes_exactly_the_stages_that_read_it(scene, tmp_path):
+    cfg = preset("fast")
+    assert cfg.output.use_masks and cfg.output.guide_mask_dilation is not None
+    base = _keys_of(scene, cfg)
+    # what reads what: every stage the pictures and cameras of the input views (stage 1 first);
+    # the masks every stage but stage 1 and the unguided stages 2-3 (the cascade takes none)
+    every, masks = set(STAGES), set(STAGES) - {"mvs1", "unguided"}
+    files = sorted(p for p in scene.rglob("*") if p.is_file())
+    assert len(files) > 10
+    for f in files:
+        rel = f.relative_to(scene)
+        want: set[str] = set()
+        if rel.parts[0] in ("image", "mask") and int(f.stem) in (0, 1, 2):
+            want = every if rel.parts[0] == "image" else masks
+        elif rel.name in ("cameras.npz", "cameras_sphere.npz"):
+            want = every
+        copy = tmp_path / f"s_{len(list(tmp_path.iterdir()))}"
+        shutil.copytree(scene, copy)
+        _mutate(copy / rel)
+        new = _keys_of(copy, cfg)
+        changed = {s for s in STAGES if new[s] != base[s]}
+        assert changed == want, (rel, changed, want)
+        shutil.rmtree(copy)
+
+
+def test_a_replaced_image_recomputes_with_a_log_line_and_touch_does_not(mvs_run, scene,
+                                                                        tmp_path, capsys):
+    sc = tmp_path / "scene"
+    shutil.copytree(scene, sc)
+    out = _copy(mvs_run, tmp_path / "run")
+    cfg = (out / "config.yaml").read_text().replace(str(scene), str(sc))
+    (out / "config.yaml").write_text(cfg)
+    _main(["reconstruct", "-o", out, "--config", out / "config.yaml", "--no-progress"])
+    before = json.loads((out / "stages.json").read_text())
+    img = sc / "image" / "000001.png"
+    img.touch()  # a new modification time, the same content: nothing to recompute
+    _main(["reconstruct", "-o", out, "--config", out / "config.yaml", "--no-progress"])
+    assert "inputs changed" not in (out / "log").read_text()
+    pts = (out / "points.ply").read_bytes()
+    # the same path, another picture: the stages that read it run again, and the log says why
+    a = np.array(Image.open(sc / "image" / "000003.png"))
+    Image.fromarray(a).save(img)
+    _main(["reconstruct", "-o", out, "--config", out / "config.yaml", "--no-progress"])
+    log = (out / "log").read_text()
+    assert f"image of view 1 ({img}, changed)" in log
+    assert "stage mvs1: its inputs changed since it finished" in log
+    after = json.loads((out / "stages.json").read_text())
+    assert after["provenance"]["mvs1"]["inputs"] != before["provenance"]["mvs1"]["inputs"]
+    assert (out / "points.ply").read_bytes() != pts
+
+
+def test_a_run_folder_from_before_the_record_keeps_its_stages(mvs_run, tmp_path):
+    out = _copy(mvs_run, tmp_path / "run")
+    st = json.loads((out / "stages.json").read_text())
+    old = {k: v for k, v in st.items() if k in STAGES}  # as run folders were written before
+    (out / "stages.json").write_text(json.dumps(old))
+    t = json.loads((out / "timing.json").read_text())["mvs1"]["seconds"]
+    _main(["reconstruct", "-o", out, "--config", out / "config.yaml", "--no-progress"])
+    log = (out / "log").read_text()
+    assert "finished before their inputs were recorded are kept" in log
+    assert json.loads((out / "timing.json").read_text())["mvs1"]["seconds"] == t  # not rerun
+    st = json.loads((out / "stages.json").read_text())
+    assert {k: st[k] for k in old} == old and st["provenance"]["fusion"]["inputs"]  # adopted
+
+
+# --------------------------------------------------------------------------- 2: provenance
+def test_outputs_of_an_earlier_config_are_refused_by_evaluate_and_report(mvs_run, tmp_path,
+                                                                         capsys, monkeypatch):
+    import svolsdf.pipeline as pl
+    from svolsdf.config import load_config
+
+    out = _copy(mvs_run, tmp_path / "run")
+    _main(["evaluate", out, "--no-report"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["settings"]["provenance"] == {"points.ply": "config.yaml"}
+    cfg = load_config(out / "config.yaml")
+    cfg.output.fusion_views = 2  # a rerun with a new option, killed before fusion
+    monkeypatch.setattr(pl.Pipeline, "stage_fusion", lambda self: (_ for _ in ()).throw(
+        KeyboardInterrupt))
+    with pytest.raises(KeyboardInterrupt):
+        pl.Pipeline(cfg, out, progress=False).run()
+    metrics = (out / "metrics.json").read_bytes()
+    for argv in (["evaluate", out], ["report", out]):
+        code, res = _run(argv, capsys)
+        assert code == 2 and "points.ply came from an earlier config" in res.err, res.err
+    assert (out / "metrics.json").read_bytes() == metrics
+
+
+# --------------------------------------------------------------------------- 3: locks, options
+_HOLD = """
+import sys, time
+from svolsdf.io.runfolder import folder_lock
+with folder_lock(sys.argv[1], "svolsdf test-holder"):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_every_writer_refuses_a_folder_another_command_writes(field_run, scene, tmp_path,
+                                                              capsys):
+    out = _copy(field_run, tmp_path / "run")
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(out)], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = sorted(p.name for p in out.iterdir())
+        for argv in (["evaluate", out], ["report", out], ["render", out, "--views", "0"],
+                     ["reconstruct", "-o", out, "--config", out / "config.yaml"]):
+            code, res = _run(argv, capsys)
+            assert code == 2 and "another svolsdf run (svolsdf test-holder, pid" in res.err, (
+                argv, res.err)
+        assert sorted(p.name for p in out.iterdir()) == before
+        mvs_out = tmp_path / "mvs"
+        mvs_out.mkdir()
+        holder2 = subprocess.Popen([sys.executable, "-c", _HOLD, str(mvs_out)],
+                                   stdout=subprocess.PIPE, text=True)
+        try:
+            assert holder2.stdout.readline().strip() == "held"
+            code, res = _run(["mvs", scene, "-o", mvs_out, "--views", "0", "1"], capsys)
+            assert code == 2 and "another svolsdf run" in res.err
+        finally:
+            holder2.kill()
+            holder2.wait()
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_two_evaluations_at_once_one_is_refused(mvs_run, tmp_path):
+    out = _copy(mvs_run, tmp_path / "run")
+    cmd = [sys.executable, "-m", "svolsdf", "evaluate", str(out), "--no-report"]
+    procs = [subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    res = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    codes = sorted(c for c, _ in res)
+    # both finish (one after the other) or one is refused with the lock's line; never a tear
+    assert codes in ([0, 0], [0, 2]), res
+    if codes == [0, 2]:
+        assert any("another svolsdf run (svolsdf evaluate, pid" in e for _, e in res)
+    json.loads((out / "metrics.json").read_text())
+    assert not [p for p in out.iterdir() if ".tmp" in p.name]
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["evaluate", "RUN", "--scene", "NOWHERE"], "NOWHERE"),
+    (["evaluate", "RUN", "--scene", "RUN"], "no known scene layout"),
+    (["report", "RUN", "--scene", "NOWHERE"], "NOWHERE"),
+    (["evaluate", "RUN", "--views", "99"], "no renders/<id>.png of view(s) [99]"),
+    (["evaluate", "RUN", "--scan", "9"], "--scan 9: only the DTU protocol"),
+])
+def test_options_evaluate_and_report_cannot_honour_exit_2(mvs_run, tmp_path, capsys, argv, msg):
+    out = _copy(mvs_run, tmp_path / "run")
+    _main(["evaluate", out, "--no-report"])
+    metrics = (out / "metrics.json").read_bytes()
+    sub = {"RUN": str(out), "NOWHERE": str(tmp_path / "nowhere")}
+    code, res = _run([sub.get(a, a) for a in argv], capsys)
+    assert code == 2 and msg.replace("NOWHERE", str(tmp_path / "nowhere")) in res.err, res.err
+    assert (out / "metrics.json").read_bytes() == metrics  # the good metrics stay
+
+
+def test_report_on_an_empty_or_half_finished_folder_is_not_a_run(mvs_run, tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    half = tmp_path / "half"
+    half.mkdir()
+    for name in ("config.yaml", "views.json", "stages.json"):
+        shutil.copy(mvs_run / name, half / name)
+    for folder in (empty, half):
+        for cmd in ("report", "evaluate"):
+            code, res = _run([cmd, folder], capsys)
+            assert code == 2 and "not a run folder" in res.err
+    assert list(empty.iterdir()) == [] and not (half / "report.html").exists()
+
+
+def test_an_output_that_is_the_scene_or_another_commands_folder_is_refused(mvs_run, scene,
+                                                                           tmp_path, capsys):
+    sc = tmp_path / "scene"
+    shutil.copytree(scene, sc)
+    before = sorted(p.name for p in sc.rglob("*"))
+    for argv in (["reconstruct", sc, "-o", sc], ["reconstruct", sc, "-o", sc / "run"],
+                 ["reconstruct", sc, "-o", tmp_path], ["mvs", sc, "-o", sc]):
+        code, res = _run(argv, capsys)
+        assert code == 2 and "-o" in res.err, (argv, res.err)
+    assert sorted(p.name for p in sc.rglob("*")) == before
+    out = _copy(mvs_run, tmp_path / "run")
+    points = (out / "points.ply").read_bytes()
+    code, res = _run(["mvs", sc, "-o", out, "--views", "0", "1"], capsys)
+    assert code == 2 and "a run of svolsdf reconstruct" in res.err
+    assert (out / "points.ply").read_bytes() == points
+
+
+# --------------------------------------------------------------------------- 4: degenerate input
+def _bomb_png(path: Path) -> None:
+    def chunk(t, d):
+        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d))
+
+    path.write_bytes(b"\x89PNG\r\n\x1a\n"
+                     + chunk(b"IHDR", struct.pack(">IIBBBBB", 60000, 60000, 8, 2, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(b"\x00" * 100)) + chunk(b"IEND", b""))
+
+
+def _cameras(sc: Path, change) -> None:
+    from svolsdf.scene.cameras import decompose_projection
+
+    d = dict(np.load(sc / "cameras.npz"))
+    c0 = None
+    for i in range(4):
+        K, w2c = (t.numpy() for t in decompose_projection(torch.from_numpy(d[f"world_mat_{i}"])))
+        c = -w2c[:3, :3].T @ w2c[:3, 3]
+        c0 = c if c0 is None else c0
+        w2c = change(i, w2c.copy(), c0)
+        P = np.eye(4)
+        P[:3] = K @ w2c[:3]
+        d[f"world_mat_{i}"] = P
+    np.savez(sc / "cameras.npz", **d)
+
+
+def _look_away(i, w2c, c0):
+    return np.diag([-1.0, 1, -1, 1]) @ w2c if i == 1 else w2c
+
+
+def _left_handed(i, w2c, c0):
+    if i == 1:
+        w2c[:3, :3] = -w2c[:3, :3]  # det R = -1
+    return w2c
+
+
+def _one_point(i, w2c, c0):
+    w2c[:3, 3] = -w2c[:3, :3] @ c0
+    return w2c
+
+
+def _black_masks(sc: Path) -> None:
+    for p in (sc / "mask").iterdir():
+        Image.fromarray(np.zeros_like(np.array(Image.open(p)))).save(p)
+
+
+@pytest.mark.parametrize("case, msg", [
+    ("black masks", "object mask of view 0 is empty"),
+    ("tiny", "reconstruction needs at least 16 pixels a side"),
+    ("bomb", "000001.png: the image declares too many pixels"),
+    ("mesh resolution", "output.mesh_resolution) = 100000"),
+    ("look away", "view 1's camera does not see the scene's bounding region"),
+    ("left-handed", "view 1's camera does not see the scene's bounding region"),
+    ("one point", "all have their camera at one point"),
+])
+def test_degenerate_input_exits_2_before_any_stage_leaving_no_out(scene, tmp_path, capsys,
+                                                                  case, msg):
+    sc = tmp_path / "scene"
+    shutil.copytree(scene, sc)
+    extra = []
+    if case == "black masks":
+        _black_masks(sc)
+    elif case == "tiny":
+        extra = ["--size", "12x12"]
+    elif case == "bomb":
+        _bomb_png(sc / "image" / "000001.png")
+    elif case == "mesh resolution":
+        extra = ["--mesh-resolution", "100000"]
+    else:
+        _cameras(sc, {"look away": _look_away, "left-handed": _left_handed,
+                      "one point": _one_point}[case])
+    out = tmp_path / "out"
+    code, res = _run(["reconstruct", sc, "-o", out, "--views", "0", "1", "2", *extra], capsys)
+    assert code == 2 and msg in res.err and len(res.err.strip().splitlines()) == 1, res.err
+    assert not out.exists()
+
+
+def test_a_right_handed_check_of_explicit_rotations(scene):
+    from svolsdf.scene.checks import check_scene
+    from svolsdf.scene.loaders import load_scene
+
+    s = load_scene(scene, load_images=False)
+    check_scene(s)
+    s.cameras.w2c[1, :3, :3] *= -1  # a mirror, as a transforms.json or cam.txt could hold
+    with pytest.raises(InputError, match="view 1's camera is left-handed|rotation of view 1"):
+        check_scene(s)
+
+
+def test_synth_refuses_a_size_no_run_takes(tmp_path, capsys):
+    code, res = _run(["synth", tmp_path / "s", "--size", "8x8"], capsys)
+    assert code == 2 and "at least 16x16" in res.err and not (tmp_path / "s").exists()
+
+
+def test_a_run_that_fuses_no_point_exits_2_saying_why(mvs_run, scene, tmp_path, capsys,
+                                                      monkeypatch):
+    import svolsdf.pipeline.fusion as pf
+
+    monkeypatch.setattr(pf, "fuse", lambda p, path: (path.write_bytes(b"") and 0) or (0, {}))
+    out = tmp_path / "run"
+    code, res = _run(["reconstruct", scene, "-o", out, "--mode", "mvs-only", "--views", "0",
+                      "1", "2", "--no-progress"], capsys)
+    assert code == 2 and "fusion kept no point" in res.err and "--views auto" in res.err
+    assert not (out / "points.ply").exists() and "fusion" not in json.loads(
+        (out / "stages.json").read_text())
+
+
+def test_disk_full_names_the_file_and_leaves_no_temporary(mvs_run, tmp_path, capsys,
+                                                          monkeypatch):
+    out = _copy(mvs_run, tmp_path / "run")
+    real = np.save
+
+    def full(file, *a, **k):
+        if "depth" in str(file) and "stage" not in str(file):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(file, *a, **k)
+
+    monkeypatch.setattr(np, "save", full)
+    from svolsdf.pipeline.rundir import save_npy
+
+    with pytest.raises(InputError, match="depth/7.npy: cannot write it, the disk is full"):
+        save_npy(out / "depth" / "7.npy", np.zeros(3))
+    # evaluate's and report's files: the same, through the one atomic writer
+    monkeypatch.setattr(Path, "write_text", lambda self, *a, **k: (_ for _ in ()).throw(
+        OSError(errno.ENOSPC, "No space left on device")))
+    code, res = _run(["evaluate", out, "--no-report"], capsys)
+    assert code == 2 and "metrics.json: cannot write it, the disk is full" in res.err, res.err
+    assert not [p for p in out.rglob("*") if ".tmp" in p.name]
+
+
+def test_temporary_names_are_unique(tmp_path):
+    from svolsdf.io.runfolder import unique_temp
+
+    names = {unique_temp(tmp_path / "metrics.json").name for _ in range(20)}
+    assert len(names) == 20 and all(n.startswith(".metrics.json.") for n in names)
+
+
+def test_colmap_log_files_go_to_the_given_folder(tmp_path):
+    pytest.importorskip("pycolmap")
+    code = f"""
+import pycolmap
+from pathlib import Path
+from svolsdf.calibrate.sfm import _colmap_log_files
+_colmap_log_files(pycolmap, Path({str(tmp_path / 'logs')!r}))
+pycolmap.logging.warning("written to the scene's folder")
+_colmap_log_files(pycolmap, None)
+pycolmap.logging.warning("written to no file")
+"""
+    env = {**__import__("os").environ, "GLOG_log_dir": str(tmp_path / "default")}
+    (tmp_path / "default").mkdir()
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, capture_output=True)
+    files = list((tmp_path / "logs").iterdir())
+    assert files and "written to the scene's folder" in files[0].read_text()
+    assert not list((tmp_path / "default").iterdir())  # glog's default folder gets nothing
