@@ -474,6 +474,7 @@ def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
     assert p.cfg.output.fusion_unguided
     cfg = load_config(out / "config.yaml")
     cfg.train.mode = "mvs-only"
+    cfg.output.mesh_method = "poisson"  # mvs-only has no field to mesh (and makes no mesh)
     out_m = tmp_path / "mvs_only"
     Pipeline(cfg, out_m, progress=False).run()
     for v in p.views:

@@ -111,10 +111,6 @@ def test_a_wrong_ray_address_fails_within_30_s(scene, tmp_path, capsys):
         assert time.monotonic() - t0 < 30
 
 
-def test_a_running_clusters_address_passes_the_check(local_ray):
-    check_ray_address(local_ray.get_runtime_context().gcs_address)
-
-
 def test_cuda_on_ray_needs_gpus_per_job(scene, tmp_path):
     cfg = _cfg(scene, tmp_path / "o", "ray")
     cfg.device = "cuda"
@@ -220,3 +216,8 @@ def test_a_task_whose_worker_dies_is_a_row(local_ray):
             progress=False)
     assert got[0] == {"k": 1, "status": "ok"} and got[2] == {"k": 3, "status": "ok"}
     assert got[1]["k"] == 2 and got[1]["status"].startswith("failed: ")
+
+
+def test_a_running_clusters_address_passes_the_check(local_ray):
+    """The address check joins a real cluster (the module's local Ray, by its GCS address)."""
+    check_ray_address(local_ray.get_runtime_context().gcs_address)
