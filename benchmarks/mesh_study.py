@@ -23,7 +23,7 @@ and the seconds the mesh took (the method, plus the cleaning). The ``--summary``
 Usage:
     python benchmarks/mesh_study.py --runs NAME=RUN [NAME=RUN ...] [--pgt NAME=DIR ...]
         [--free-steps 0 2 4 8] [--support 0 1.5 2 3 4 6] [--methods poisson tsdf]
-        --results FILE.md
+        [--cache DIR] --results FILE.md
 """
 
 from __future__ import annotations
@@ -122,7 +122,8 @@ class Scorer:
 
 
 def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
-              free_steps: list[float], support: list[float]) -> tuple[dict, list[dict]]:
+              free_steps: list[float], support: list[float], cache: Path | None = None
+              ) -> tuple[dict, list[dict]]:
     """(the points' scores, one row per (method, free-space steps, k))."""
     from svolsdf.fusion.meshing import clean_mesh, points_tsdf_mesh, poisson_mesh
     from svolsdf.fusion.observe import final_depth_step
@@ -146,7 +147,11 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
     rows = []
     for method in methods:
         t0 = time.perf_counter()
-        if method == "poisson":
+        cached = None if cache is None else cache / f"{name}_{method}.npz"
+        if cached is not None and cached.is_file():  # the base mesh of an earlier pass
+            z = np.load(cached)
+            vw, f, t_method = torch.from_numpy(z["v"]), torch.from_numpy(z["f"]), float(z["t"])
+        elif method == "poisson":
             vw, f, c = poisson_mesh(pts, cols, run.model(), scene, o.poisson_depth, o.poisson_trim,
                                     use_masks=use_masks, unseen=o.mesh_cull_unseen,
                                     rel_tol=o.mesh_cull_tol, device=run.device)
@@ -155,7 +160,11 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
                                         trunc=float(o.tsdf_truncation_steps * step.mean()),
                                         resolution=o.tsdf_resolution, use_masks=use_masks,
                                         unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
-        t_method = time.perf_counter() - t0 + (t_obs if method == "tsdf" else 0.0)
+        if cached is None or not cached.is_file():
+            t_method = time.perf_counter() - t0 + (t_obs if method == "tsdf" else 0.0)
+            if cached is not None:
+                cache.mkdir(parents=True, exist_ok=True)
+                np.savez(cached, v=vw.numpy(), f=f.numpy(), t=t_method)
         for fs in free_steps:
             for k in support:
                 t1 = time.perf_counter()
@@ -188,6 +197,8 @@ def main() -> None:
     ap.add_argument("--free-steps", nargs="+", type=float, default=[0, 2, 4, 8])
     ap.add_argument("--support", nargs="+", type=float, default=[0, 1.5, 2, 3, 4, 6])
     ap.add_argument("--results", type=Path, required=True)
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep each run's base meshes here; a rerun only cleans and scores")
     ap.add_argument("--json", type=Path, default=None, help="rows as JSON (default: next to "
                     "--results)")
     args = ap.parse_args()
@@ -198,7 +209,7 @@ def main() -> None:
         name = name or Path(d).name
         p = Path(pgt[name]) if name in pgt else None
         points[name], rows = study_run(name, Path(d), p, args.methods, args.free_steps,
-                                       args.support)
+                                       args.support, args.cache)
         all_rows += rows
     jpath = args.json or args.results.with_suffix(".json")
     jpath.write_text(json.dumps({"points": points, "rows": all_rows}, indent=1))

@@ -282,13 +282,32 @@ class OutputConfig:
     field; 0 = off, the paper: the mesh is the optimized field's zero level). The finer MVS
     stages place depth more precisely than the surface that guided them, so the fused points
     are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
-    mesh_method: Literal["field", "poisson"] = "field"
+    mesh_method: Literal["field", "poisson", "tsdf"] = "field"
     """Mesh source: field (the optimized field's zero level by marching cubes, the paper) |
     poisson (the screened Poisson surface of OUT/points.ply, trimmed where the points are
-    sparse: `svolsdf.fusion.poisson`, COLMAP's mesher through pycolmap). The fused points come
-    from the finer MVS stages and are more accurate than the field; poisson brings the mesh to
-    them. Culling (frusta, masks, ``mesh_cull_unseen`` by the mesh's own depth) is the same;
-    vertex colours come from the points."""
+    sparse: `svolsdf.fusion.poisson`, COLMAP's mesher through pycolmap) | tsdf (truncated
+    signed-distance fusion of the final depth maps where the fused points confirm them:
+    `svolsdf.fusion.tsdf`). The fused points come from the finer MVS stages and are more
+    accurate than the field; poisson and tsdf bring the mesh to them. Culling (frusta, masks,
+    ``mesh_cull_unseen`` by the mesh's own depth) is the same; vertex colours come from the
+    points."""
+    mesh_free_space: bool = False
+    """Mesh: remove faces that lie in space an input view saw as empty, i.e. more than
+    ``mesh_free_space_steps`` final depth steps in front of the depth that view observed there
+    (its final depth where the fused points confirm it; `svolsdf.fusion.observe`). Every mesh
+    method; off in the paper's protocol (METHOD.md 8.3: mask culling only)."""
+    mesh_free_space_steps: float = _limited(4.0, gt=0)
+    """Mesh: tolerance of ``mesh_free_space`` in final-stage depth steps (METHOD.md 2.5: half
+    the base interval, 1.3 mm on DTU)."""
+    mesh_support: float = _limited(0.0, min=0)
+    """Mesh: remove faces farther than this many point spacings (the median distance between
+    neighbouring fused points) from every fused point; 0 = off. Surface that no point supports
+    is a mesher's extrapolation over holes and past silhouettes."""
+    tsdf_resolution: int = _limited(384, min=32, max=1024)
+    """Mesh (tsdf): voxels along the longest side of the fused points' box (the voxel is at most
+    half the truncation)."""
+    tsdf_truncation_steps: float = _limited(4.0, gt=0)
+    """Mesh (tsdf): truncation distance in final-stage depth steps."""
     poisson_depth: int = _limited(10, min=5, max=14)
     """Mesh (poisson): octree depth; the finest cell is the points' box / 2^depth."""
     poisson_trim: float = _limited(5.0, min=0, max=14)

@@ -148,12 +148,24 @@ def _units(units: str | None) -> str:
 def _metrics_table(metrics: dict, units: str | None) -> str:
     u = _units(units)
     rows = []
-    for key, src in (("chamfer", "points"), ("chamfer_mesh", "mesh")):
+    msrc = metrics.get("mesh_source")
+    mesh_label = f"mesh: {msrc}" if msrc else "mesh"
+    for key, src in (("chamfer", "points"), ("chamfer_mesh", mesh_label)):
         blk = metrics.get(key) or {}
         if key == "chamfer_mesh" and blk.get("overall") is None:
             continue
         for k in ("accuracy", "completeness", "overall"):
             rows.append((f"Chamfer {k} ({src})", blk.get(k), u, METRIC_INFO[k]))
+    ratio = metrics.get("mesh_over_points") or {}
+    for k in ("accuracy", "completeness", "overall"):
+        if ratio.get(k) is not None:
+            rows.append((f"mesh / points, {k}", ratio[k], "ratio",
+                         "the mesh's score over the points' (1 = as good; above 1 the mesh "
+                         "carries error the points do not)"))
+    if msrc:
+        rows.append(("mesh.ply is", msrc, "",
+                     "which surface the mesh is: the field's zero level, the Poisson surface "
+                     "of the points or the TSDF of the depth; a failed method says so"))
     thr = metrics.get("fscore_threshold")
     at = f" at {_fmt(thr)} {u}" if thr else ""
     rows.append((f"F-score{at}", metrics.get("fscore"), "0..1", METRIC_INFO["fscore"]))

@@ -11,7 +11,10 @@ Reads from the run folder OUT:
 Writes OUT/metrics.json with fixed keys (null when not computable)::
 
     chamfer: {accuracy, completeness, overall, protocol, source}
-    chamfer_mesh: {accuracy, completeness, overall, protocol, source}
+    chamfer_mesh: {accuracy, completeness, overall, protocol, source, mesh_source}
+    mesh_source: which surface mesh.ply is (field | poisson | tsdf | "field (poisson failed:
+                ...)"), from timing.json; mesh_over_points: {accuracy, completeness, overall}
+                of the mesh over the points'
     fscore, fscore_threshold, precision, recall
     images:     {psnr: {mean, per_view, missing}, ssim: {...}, lpips: {...}}
                 (missing: why the metric is null, e.g. no renders or no LPIPS weights)
@@ -499,6 +502,7 @@ def _evaluate_run(cfg: EvaluateConfig) -> dict:
             log.warning("%s is unreadable (%s); timing left out", tj, e)
             notes.append(f"{tj.name} unreadable: stage timings left out.")
     metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
+    _mesh_provenance(metrics, mesh is not None)
     _write_json(out / "metrics.json", metrics)
 
     if cfg.report:
@@ -509,11 +513,30 @@ def _evaluate_run(cfg: EvaluateConfig) -> dict:
     return metrics
 
 
+def _mesh_provenance(metrics: dict, has_mesh: bool) -> None:
+    """``mesh_source`` (which surface mesh.ply is, `svolsdf.io.runinfo.mesh_source`) and
+    ``mesh_over_points`` (the mesh's accuracy, completeness and Chamfer over the points'), so
+    that a mesh worse than the points shows as a number."""
+    from svolsdf.io.runinfo import mesh_source
+
+    src = mesh_source(metrics.get("timing")) if has_mesh else None
+    if has_mesh and src is None:
+        src = "unknown (no mesh entry in timing.json)"
+    metrics["mesh_source"] = src
+    metrics["chamfer_mesh"]["mesh_source"] = src
+    p, m = metrics["chamfer"], metrics["chamfer_mesh"]
+    metrics["mesh_over_points"] = {
+        k: (round(m[k] / p[k], 4) if m.get(k) is not None and p.get(k) else None)
+        for k in ("accuracy", "completeness", "overall")}
+
+
 def _empty_metrics() -> dict:
     return {"chamfer": _chamfer_block(None, None, None),
             "chamfer_mesh": _chamfer_block(None, None, None),
             "fscore": None, "fscore_threshold": None, "precision": None, "recall": None,
             "images": _empty_images(), "images_ibr": _empty_images(),
+            "mesh_source": None,
+            "mesh_over_points": {"accuracy": None, "completeness": None, "overall": None},
             "timing": {}, "settings": {}}
 
 

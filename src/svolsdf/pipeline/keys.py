@@ -24,6 +24,7 @@ from svolsdf.config import Config
 from svolsdf.pipeline.builders import backbone_kwargs
 from svolsdf.pipeline.options import (
     grid_from_sphere,
+    mesh_from_points,
     wants_mesh_fit,
     wants_network,
     wants_poisson,
@@ -112,7 +113,16 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                    *(["watertight"] if c["output"]["mesh_watertight"] else []),
                    # ditto: the Poisson surface of the fused points
                    *((["poisson", c["output"]["poisson_depth"], c["output"]["poisson_trim"],
-                       k_fusion]) if wants_poisson(cfg) else []))
+                       k_fusion]) if wants_poisson(cfg) else []),
+                   # the TSDF of the observed depth, free-space culling and support trimming
+                   # (issue 37): each enters only when set, with the fusion it reads
+                   *((["tsdf", c["output"]["tsdf_resolution"],
+                       c["output"]["tsdf_truncation_steps"], k_fusion])
+                     if mesh_from_points(cfg) == "tsdf" else []),
+                   *((["free-space", c["output"]["mesh_free_space_steps"], k_fusion])
+                     if c["output"]["mesh_free_space"] else []),
+                   *((["support", c["output"]["mesh_support"], k_fusion])
+                     if c["output"]["mesh_support"] > 0 else []))
     return {"mvs1": k_mvs1, "field": k_field, "guide": k_guide, "mvs23": k_mvs23,
             "unguided": k_unguided,
             "fusion": k_fusion, "mesh": k_mesh}

@@ -532,102 +532,21 @@ class Pipeline(Run):
                   "overlap (svolsdf info SCENE --sheet sheet.png), or pick views with more "
                   "overlap (--views auto)")
 
-    def _mesh_cull_depths(self, refined: bool) -> torch.Tensor | None:
-        """(V, H, W) rendered depth of the input views (the refined field's with
-        ``refined``), for `cull_unseen`; None when it is missing or is not the surface (the
-        soft-consistency ablation's guide)."""
-        if self.cfg.train.ablation == "soft-consistency-only":
-            return None
-        sdir = self.dir.render_depth_dir(refined and self.dir.refined_model.is_file())
-        files = [sdir / f"{v}.npy" for v in self.views]
-        if not all(f.is_file() for f in files):
-            return None
-        maps = [torch.from_numpy(np.load(f)).float() for f in files]
-        if len({tuple(m.shape) for m in maps}) != 1:
-            return None
-        return torch.stack(maps)
-
-    def _surface_fitted_to_points(self, model):
-        """A copy of ``model`` whose SDF grid is refined to pass through OUT/points.ply
-        (`OutputConfig.mesh_fit_points`); saved as OUT/field/surface.pt."""
-        import copy
-
-        from svolsdf.field.fit import fit_sdf_to_points
-        from svolsdf.io.ply import read_ply
-
-        scene = self.load()
-        pts = read_ply(self.stage_fusion())["points"]
-        unit = scene.normalization.to_unit(torch.from_numpy(pts).double()).float()
-        fitted = copy.deepcopy(model)
-        fit_sdf_to_points(fitted, unit.to(self.device), steps=self.cfg.output.mesh_fit_points,
-                          seed=self.cfg.train.seed)
-        save_torch(self.dir.surface_model, {"model_state_dict": fitted.state_dict(),
-                                            "grid_resolution": getattr(fitted, "resolution",
-                                                                       None),
-                                            "bounds": getattr(fitted, "bounds", None)})
-        return fitted
-
     def stage_mesh(self) -> Path:
-        """The mesh (OUT/mesh.ply or .obj): the field's zero level
-        (`svolsdf.fusion.meshing.field_mesh`) or the Poisson surface of the fused points
-        (`svolsdf.fusion.meshing.poisson_mesh`), culled by the input views."""
+        """The mesh (OUT/mesh.ply or .obj; `svolsdf.pipeline.mesh.build_mesh`): the field's
+        zero level, the Poisson surface of the fused points or the TSDF of the observed final
+        depth, culled by the input views, then by free space and support. ``mesh_source`` in
+        OUT/timing.json says which surface it is, and why when it is not the one asked for."""
         o = self.cfg.output
         path = self.dir.mesh(o.mesh_format)
         if self._done("mesh") and path.is_file():
             return path
         t0 = time.perf_counter()
         from svolsdf.fusion.mesh import save_mesh
-        from svolsdf.fusion.meshing import field_mesh, field_mesh_colours, poisson_mesh
+        from svolsdf.pipeline.mesh import build_mesh
 
-        model = self.model()
-        if o.finer_stage_optimization and self.dir.refined_model.is_file():
-            # the field after the finer-stage optimization
-            load_model(model, self.dir.refined_model)
-        scene = self.load()
-        use_masks = scene.masks is not None and o.use_masks
-        fallback = None
-        if options.wants_poisson(self.cfg):
-            from svolsdf.io.ply import read_ply
-
-            d = read_ply(self.stage_fusion())
-            pts = d["points"]
-            try:
-                if len(pts) < 100:
-                    raise RuntimeError(f"{len(pts)} fused points")
-                vw, f, cols = poisson_mesh(pts, d["colors"], model, scene, o.poisson_depth,
-                                           o.poisson_trim, use_masks=use_masks,
-                                           unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol,
-                                           device=self.device)
-                if len(f) == 0:
-                    raise RuntimeError("no face left after culling")
-            except (RuntimeError, ValueError, ImportError) as e:
-                # the points can be too few or too scattered for a surface; the field's zero
-                # level is always there, so the run still ends with a mesh
-                fallback = " ".join(str(e).split())[:200]
-                log.warning("mesh: no Poisson surface of the fused points (%s); the field's "
-                            "zero level instead", fallback)
-            else:
-                save_mesh(path, vw, f, cols, fmt=o.mesh_format)
-                self._mark("mesh")
-                self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)),
-                           method="poisson", points=int(len(pts)))
-                return path
-        fit = options.wants_mesh_fit(self.cfg)
-        if fit:
-            model = self._surface_fitted_to_points(model)
-        model.eval()
-        b = getattr(model, "bounds", None)
-        bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else self.field_bounds()
-        # the fitted surface moved away from the rendered depth: the views' depth of the mesh
-        # itself decides what they see
-        depths = "mesh" if fit else (lambda: self._mesh_cull_depths(o.finer_stage_optimization))
-        v, vw, f = field_mesh(model, bounds, scene, o.mesh_resolution,
-                              watertight=o.mesh_watertight, use_masks=use_masks,
-                              unseen=o.mesh_cull_unseen, depths=depths, rel_tol=o.mesh_cull_tol,
-                              device=self.device, progress=self.progress)
-        cols = field_mesh_colours(model, v, f, device=self.device)
+        vw, f, cols, info = build_mesh(self)
         save_mesh(path, vw, f, cols, fmt=o.mesh_format)
         self._mark("mesh")
-        self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)),
-                   **({"poisson_failed": fallback} if fallback else {}))
+        self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)), **info)
         return path
