@@ -43,8 +43,10 @@ def evaluate(
         "--no-report", help="Write metrics.json only.")] = False,
 ) -> None:
     """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.run import EvaluateConfig, check_views_rendered, evaluate_run
 
+    if out.is_dir():  # a missing folder: evaluate_run says so first
+        check_views_rendered(out, _parse_views(views))
     cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
                          views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
                          lpips_weights=lpips_weights, ssim_data_range=ssim_data_range,

@@ -56,7 +56,8 @@ from svolsdf.evaluate.images import masked_psnr, ssim
 from svolsdf.evaluate.report import ViewImages
 from svolsdf.evaluate.synthetic import is_synthetic_scene
 
-__all__ = ["EvaluateConfig", "evaluate_run", "load_gt_points", "write_run_report"]
+__all__ = ["EvaluateConfig", "check_views_rendered", "evaluate_run", "load_gt_points",
+           "write_run_report"]
 
 log = logging.getLogger(__name__)
 
@@ -415,16 +416,27 @@ def _check_run_folder(out: Path, scene: Path | None) -> list[str]:
     return found
 
 
+def check_views_rendered(out: str | Path, views: list[int] | None) -> None:
+    """``svolsdf evaluate --views``: every view asked for has a render to score (a benchmark
+    passes its held-out views whether or not the run rendered them, and gets nulls).
+
+    Raises:
+        InputError: naming the views without renders/<id>.png and the command that makes them.
+    """
+    if views is None:
+        return
+    out = Path(out)
+    have = set(_render_files(out / "renders", None)) | set(
+        _render_files(out / "renders_ibr", None))
+    missing = [v for v in views if v not in have]
+    if missing:
+        raise InputError(f"--views: no renders/<id>.png of view(s) {missing} in {out} "
+                         f"(rendered: {sorted(have) or 'none'}); run svolsdf render {out} "
+                         f"--views {' '.join(map(str, views))} first")
+
+
 def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
     """Options that evaluate could not honour are errors, not silently ignored."""
-    if cfg.views is not None:
-        have = set(_render_files(out / "renders", None)) | set(
-            _render_files(out / "renders_ibr", None))
-        missing = [v for v in cfg.views if v not in have]
-        if missing:
-            raise InputError(f"--views: no renders/<id>.png of view(s) {missing} in {out} "
-                             f"(rendered: {sorted(have) or 'none'}); run svolsdf render {out} "
-                             f"--views {' '.join(map(str, cfg.views))} first")
     if cfg.scan is not None and cfg.dtu_gt is None:
         raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
     if cfg.dtu_gt is not None and cfg.gt_points is not None:
