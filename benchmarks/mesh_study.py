@@ -151,6 +151,10 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
         if cached is not None and cached.is_file():  # the base mesh of an earlier pass
             z = np.load(cached)
             vw, f, t_method = torch.from_numpy(z["v"]), torch.from_numpy(z["f"]), float(z["t"])
+        elif method == "run":  # the run's own OUT/mesh.ply, as its mesh stage made it
+            m = read_ply(out / "mesh.ply")
+            vw, f = torch.from_numpy(m["points"]).float(), torch.from_numpy(m["faces"]).long()
+            t_method = float(json.loads((out / "timing.json").read_text())["mesh"]["seconds"])
         elif method == "poisson":
             vw, f, c = poisson_mesh(pts, cols, run.model(), scene, o.poisson_depth, o.poisson_trim,
                                     use_masks=use_masks, unseen=o.mesh_cull_unseen,
@@ -160,7 +164,7 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
                                         trunc=float(o.tsdf_truncation_steps * step.mean()),
                                         resolution=o.tsdf_resolution, use_masks=use_masks,
                                         unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
-        if cached is None or not cached.is_file():
+        if method != "run" and (cached is None or not cached.is_file()):
             t_method = time.perf_counter() - t0 + (t_obs if method == "tsdf" else 0.0)
             if cached is not None:
                 cache.mkdir(parents=True, exist_ok=True)
@@ -193,7 +197,9 @@ def main() -> None:
     ap.add_argument("--pgt", nargs="*", default=[], metavar="NAME=DIR",
                     help="pseudo ground truth cache (benchmarks/dtu_pseudo_gt.py --out) per "
                          "DTU run name")
-    ap.add_argument("--methods", nargs="+", default=["poisson", "tsdf"])
+    ap.add_argument("--methods", nargs="+", default=["poisson", "tsdf"],
+                    help="poisson, tsdf, or run (the run's own mesh.ply, e.g. the fast "
+                         "preset's Poisson mesh, without making it again)")
     ap.add_argument("--free-steps", nargs="+", type=float, default=[0, 2, 4, 8])
     ap.add_argument("--support", nargs="+", type=float, default=[0, 1.5, 2, 3, 4, 6])
     ap.add_argument("--results", type=Path, required=True)

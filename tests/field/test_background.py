@@ -162,6 +162,7 @@ def test_pipeline_runs_with_background(tmp_path):
     cfg.train.checkpoint_every = 0
     cfg.field.background = True
     cfg.field.grid_start_resolution = cfg.field.grid_resolution = 12
+    cfg.field.sphere_start_resolution = 8  # volsdf starts from the sphere
     cfg.output.mesh_resolution = 24
     t0 = time.perf_counter()
     p = Pipeline(cfg, tmp_path / "out", progress=False)

@@ -283,14 +283,9 @@ class OutputConfig:
     stages place depth more precisely than the surface that guided them, so the fused points
     are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
     mesh_method: Literal["field", "poisson", "tsdf"] = "field"
-    """Mesh source: field (the optimized field's zero level by marching cubes, the paper) |
-    poisson (the screened Poisson surface of OUT/points.ply, trimmed where the points are
-    sparse: `svolsdf.fusion.poisson`, COLMAP's mesher through pycolmap) | tsdf (truncated
-    signed-distance fusion of the final depth maps where the fused points confirm them:
-    `svolsdf.fusion.tsdf`). The fused points come from the finer MVS stages and are more
-    accurate than the field; poisson and tsdf bring the mesh to them. Culling (frusta, masks,
-    ``mesh_cull_unseen`` by the mesh's own depth) is the same; vertex colours come from the
-    points."""
+    """Mesh source: field (the optimized field's zero level, the paper) | poisson (screened
+    Poisson of OUT/points.ply, `svolsdf.fusion.poisson`) | tsdf (the final depth maps the fused
+    points confirm, `svolsdf.fusion.tsdf`). docs/meshing.md compares them."""
     mesh_free_space: bool = False
     """Mesh: remove faces that lie in space an input view saw as empty, i.e. more than
     ``mesh_free_space_steps`` final depth steps in front of the depth that view observed there
