@@ -1,9 +1,9 @@
 """CasMVSNet on the CPU at the paper's MVS resolution (issue 3 target): time and peak memory.
 
 Three views at the working size 768x576 are upsampled to the paper's network input 1536x1152
-(METHOD.md 1.3, ``x2_mvsres``) and run through all three stages (192 / 32 / 8 hypotheses). No
+(docs/method.md 1.3, ``x2_mvsres``) and run through all three stages (192 / 32 / 8 hypotheses). No
 CasMVSNet weights ship with svolsdf, so the network is randomly initialised (seed 0), saved in the
-official checkpoint format (``{'model': state_dict}``, METHOD.md 2.1) and loaded back through
+official checkpoint format (``{'model': state_dict}``, docs/method.md 2.1) and loaded back through
 ``svolsdf.mvs.casmvsnet.load_casmvsnet``, exactly as a user's checkpoint would be. Random weights
 do the same arithmetic as trained ones, so the time and memory are those of the real network;
 the depth they give is meaningless and is not scored.
@@ -93,7 +93,8 @@ def main() -> None:
         f"- torch {torch.__version__}, Python {platform.python_version()}",
         f"- command: `python benchmarks/casmvsnet_cpu.py {' '.join(sys.argv[1:])}`",
         f"- scene: {scene_desc}; working size {w}x{h}, network input {Wn}x{Hn} "
-        "(METHOD.md 1.3, x2_mvsres); random weights loaded from the official checkpoint format",
+        "(docs/method.md 1.3, x2_mvsres); random weights loaded from the official checkpoint "
+        "format",
         f"- row-chunk budget of the cost volume / 3D U-Net: {args.chunk_mb:g} MB", "",
         "| stage | hypotheses x H x W | seconds (3 views) |",
         "|---|---|---|",

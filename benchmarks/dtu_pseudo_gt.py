@@ -9,15 +9,15 @@ independent reference from all the scan's views and scores three-view runs again
 1. Depth of every view with the DTU-trained PatchmatchNet (../shared/weights/patchmatchnet; a
    different MVS method from the plane-sweep backbone the runs use), each view with its
    ``--sources`` best source views by the scene's pair score (`Scene.source_views`, MVSNet's view
-   selection, METHOD.md 1.4), at the working size.
+   selection, docs/method.md 1.4), at the working size.
 2. Fusion: a pixel is kept when at least ``--min-views`` of its ``--fuse-neighbours`` best-paired
    views agree (`svolsdf.fusion.filter.check_geometric_consistency`: 1 px, 1 %); its depth is
    the mean of the agreeing depths. With object masks, two references: "object" (inside the
    masks as they are) and "object and rim" (the masks dilated as the runs' fusion dilates them,
-   12 px at the working size, METHOD.md 6.3: what the runs may fill, the table around the
+   12 px at the working size, docs/method.md 6.3: what the runs may fill, the table around the
    object included; DTU's own ground truth holds the scanned table too). Without masks (the raw
    layout), one reference, "observed": the fused points inside DTU's observation mask
-   (ObsMask<scan>_10.mat, METHOD.md 8.1), and the runs' points are scored inside it too, as
+   (ObsMask<scan>_10.mat, docs/method.md 8.1), and the runs' points are scored inside it too, as
    DTU scores accuracy. Cached in OUT.
 3. The reference is the part of that cloud the run's input views see: points within 0.5 % of
    the nearest pseudo-GT depth at their pixel (a 3x3 minimum of the splatted depth) in at least
@@ -25,7 +25,7 @@ independent reference from all the scan's views and scores three-view runs again
 4. Each run's points.ply (and mesh.ply, sampled) is scored as the synthetic benchmark scores
    (`svolsdf.evaluate.synthetic.truncated_chamfer`): both clouds evened out by greedy radius
    downsampling at 0.1 % of the first reference's diagonal, distances clipped at 5 % of it
-   ("clipped"; holes cost the cut-off) or left out beyond it ("DTU rule", METHOD.md 8.1), and
+   ("clipped"; holes cost the cut-off) or left out beyond it ("DTU rule", docs/method.md 8.1), and
    the F-score at 0.5 %.
 
 PatchmatchNet draws its initial depth samples at random (seeded per view here): two views rerun
@@ -121,7 +121,7 @@ def fuse(scene_dir: Path, depths: dict, size: tuple[int, int], k: int, min_views
             count += m.int()
             d_sum += torch.where(m, d_rep.double(), torch.zeros_like(d_sum))
         keep = (d_ref > 0) & (count >= min_views)
-        if sc.extras.get("mask_paths"):  # the region the runs' fusion may fill (METHOD.md 6.3)
+        if sc.extras.get("mask_paths"):  # the region the runs' fusion may fill (docs/method.md 6.3)
             mask = load_scene(scene_dir, views=[ref], image_size=size).masks[0, 0]  # one image
             keep &= mask_to_depth_resolution(dilate_mask(mask, dilation), H, W)
         fused = d_sum / (1 + count).double()
@@ -192,7 +192,7 @@ def main() -> None:
     ap.add_argument("--fuse-neighbours", type=int, default=8)
     ap.add_argument("--min-views", type=int, default=3)
     ap.add_argument("--mask-dilation", type=int, default=12,
-                    help="pixels at the working size; 12 as the runs' fusion (METHOD.md 6.3)")
+                    help="pixels at the working size; 12 as the runs' fusion (docs/method.md 6.3)")
     args = ap.parse_args()
 
     from svolsdf.evaluate.chamfer import (
@@ -213,7 +213,7 @@ def main() -> None:
                  "raw Rectified/ + Calibration/ layout)")
     has_masks = bool(probe.extras.get("mask_paths"))
     obs = None
-    if not has_masks:  # the region to score is DTU's observation mask (METHOD.md 8.1)
+    if not has_masks:  # the region to score is DTU's observation mask (docs/method.md 8.1)
         if not probe.extras.get("obs_mask"):
             sys.exit(f"{args.scene}: no object masks and no ObsMask/ObsMask<scan>_10.mat; "
                      "without either the pseudo ground truth has no region to cover")

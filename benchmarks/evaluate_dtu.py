@@ -1,4 +1,4 @@
-"""DTU-protocol evaluation time (METHOD.md 8.1) of a 3-view-like cloud of a few million points.
+"""DTU-protocol evaluation time (docs/method.md 8.1) of a 3-view-like cloud of a few million points.
 
 Target (issue 8): at most 2 minutes on two cores for the whole protocol.
 

@@ -79,7 +79,7 @@ def _score_points(scene: Path, pts, views: list[int], name: str) -> dict:
     from svolsdf.evaluate.synthetic import synthetic_chamfer
 
     r = synthetic_chamfer(pts, scene, views, on_empty="clip")
-    # overall_dtu_rule: the DTU / BlendedMVS rule (METHOD.md 8.1), distances beyond the cut-off
+    # overall_dtu_rule: the DTU / BlendedMVS rule (docs/method.md 8.1), distances beyond the cut-off
     # left out
     out = {k: r[k] for k in ("accuracy", "completeness", "overall", "overall_dtu_rule", "fscore")}
     if r["pred_points"] == 0:
@@ -241,7 +241,8 @@ def _ratio(d: dict, a: dict) -> float | None:
 
 
 def _dtu_chamfer(out: Path, gt: Path) -> dict:
-    """`svolsdf evaluate OUT --dtu-gt GT` (the DTU protocol, METHOD.md 8.1): points and mesh."""
+    """`svolsdf evaluate OUT --dtu-gt GT` (the DTU protocol, docs/method.md 8.1): points and
+    mesh."""
     subprocess.run([sys.executable, "-m", "svolsdf", "evaluate", str(out), "--dtu-gt", str(gt),
                     "--no-report"], check=True)
     m = json.loads((out / "metrics.json").read_text())
@@ -426,7 +427,7 @@ def main() -> None:
              "the ground-truth surface the input views observe (evaluate/synthetic.py), "
              "distances clipped at 5% of the object's diagonal (holes cost the cut-off); "
              "\"DTU rule\": the same with distances beyond the cut-off left out of the means "
-             "(METHOD.md 8.1, holes wider than the cut-off cost nothing)", "",
+             "(docs/method.md 8.1, holes wider than the cut-off cost nothing)", "",
              "| run | wall (s) | peak mem (GB) | points acc | points comp | points Chamfer | "
              "points Chamfer, DTU rule | points F | mesh Chamfer | mesh Chamfer, DTU rule | "
              "field steps/s |",

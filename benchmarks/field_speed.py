@@ -2,7 +2,7 @@
 
 A step here is what the trainer does with the field for one batch: ``sdf_and_grad`` with
 create_graph on every sample, Laplace density, colour, alpha compositing along the rays
-(METHOD.md 5.4), an L1 RGB loss plus 0.1 x eikonal (METHOD.md 4.6), backward, and (timed
+(docs/method.md 5.4), an L1 RGB loss plus 0.1 x eikonal (docs/method.md 4.6), backward, and (timed
 separately) an Adam step. Also measured: three ways to get the SDF grid's spatial gradient with
 create_graph (closed form from 8 gathered corners, autograd through ``grid_sample``, central finite
 differences at half a cell), and ``torch.compile`` of the grid field's forward.
@@ -78,12 +78,13 @@ def _loss(field: SurfaceModel, b: dict[str, torch.Tensor]) -> torch.Tensor:
     sigma = field.density(sdf).view(RAYS, SAMPLES)
     rgb = field.colour(b["x"], b["d"], grad, feat).view(RAYS, SAMPLES, 3)
     delta = torch.cat([b["z"][:, 1:] - b["z"][:, :-1], torch.full((RAYS, 1), 1e10)], dim=1)
-    sd = sigma * delta  # METHOD.md 5.4: alpha_i = 1 - exp(-sigma_i delta_i), T_i = exp(-sum_j<i)
+    # docs/method.md 5.4: alpha_i = 1 - exp(-sigma_i delta_i), T_i = exp(-sum_j<i)
+    sd = sigma * delta
     trans = torch.exp(-torch.cumsum(torch.cat([torch.zeros(RAYS, 1), sd[:, :-1]], 1), 1))
     w = (1 - torch.exp(-sd)) * trans
     colour = (w[..., None] * rgb).sum(1)
     eik = (grad.norm(dim=-1) - 1).square().mean()
-    return (colour - b["rgb"]).abs().mean() + 0.1 * eik  # METHOD.md 4.6 weights
+    return (colour - b["rgb"]).abs().mean() + 0.1 * eik  # docs/method.md 4.6 weights
 
 
 def _fwd_bwd(field: SurfaceModel, b) -> Callable[[], None]:

@@ -1,6 +1,6 @@
 """Guide-depth rendering (pipeline stage ``guide``): every pixel against the dilated masks only.
 
-The guide (METHOD.md 6.1) is the field's rendered depth of each input view. With object masks,
+The guide (docs/method.md 6.1) is the field's rendered depth of each input view. With object masks,
 fusion keeps the field-guided depth only within a few pixels of the masks
 (`OutputConfig.fusion_guided_dilation`; the unguided set, which does not use the guide, within
 `OutputConfig.fusion_unguided_dilation`), so the fast preset

@@ -5,7 +5,7 @@
     DTU scan 65's cameras 25, 22, 28 (when ../shared is present) and a "blobs" object under a
     DTU-like synthetic cap.
 (b) ../shared/data/dtu_scan65, views 25 22 28 at 768x576 (`svolsdf mvs`): depth pictures, the share
-    of masked pixels passing a two-view geometric consistency check (METHOD.md 6.3: 1 px, 1 %),
+    of masked pixels passing a two-view geometric consistency check (docs/method.md 6.3: 1 px, 1 %),
     wall time and peak memory.
 
 Run from the repository root:
@@ -51,7 +51,7 @@ NOTES = """## Notes
   0.37 %; adding margin 4 and the gradient ZNCC term (weight 0.5) gave 0.21 %. Larger supports
   over-smooth stage 1 (the object's silhouette bleeds into the table and stages 2-3, which search
   only +-16 and +-2 base intervals, cannot recover). SGM on/off: 0.47 % without vs 0.37 % with.
-- Depth estimate (`depth_radius`, session 3): the full expectation of METHOD.md 2.4 lands
+- Depth estimate (`depth_radius`, session 3): the full expectation of docs/method.md 2.4 lands
   between the two modes where a training-free cost has a second, wrong match, and the next stage
   then searches around no surface. Averaging only the 2r+1 hypotheses around the argmax (r = 2,
   now the default) raised the DTU any-source consistency of stage 3 from 31.0 / 18.7 / 17.9 % to
@@ -222,8 +222,8 @@ def main() -> None:
             f"load {t['load']:.1f} s, save {t['save']:.1f} s, fusion {t.get('fusion', 0):.1f} s; "
             f"whole job {dtu['wall_s']:.1f} s",
             f"- peak memory (max RSS of the benchmark process): **{peak:.0f} MB**",
-            "- two-view geometric consistency of the stage-3 depth (1 px, 1 %, METHOD.md 6.3), "
-            "share of the object-mask pixels:",
+            "- two-view geometric consistency of the stage-3 depth (1 px, 1 %, "
+            "docs/method.md 6.3), share of the object-mask pixels:",
             "",
             "| reference | vs each source | any source |",
             "|---|---|---|",

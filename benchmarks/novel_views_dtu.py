@@ -1,6 +1,6 @@
 """Novel-view benchmark on DTU (issue 7): S-VolSDF against the same code's VolSDF-only baseline.
 
-On ../shared/data/dtu_scan65 (inputs 25 22 28 at 768x576, the paper's protocol, METHOD.md 1.3)
+On ../shared/data/dtu_scan65 (inputs 25 22 28 at 768x576, the paper's protocol, docs/method.md 1.3)
 it runs, in fresh processes, for each mode (``svolsdf``: the default fast preset; ``volsdf``: the
 same field and schedule without the MVS prior, `--mode volsdf`):
 
@@ -8,7 +8,7 @@ same field and schedule without the MVS prior, `--mode volsdf`):
     svolsdf render WORK/<mode> --views <the 25 test views> --ibr
     svolsdf evaluate WORK/<mode> --no-report
 
-and writes PSNR / SSIM / LPIPS (masked, METHOD.md 8.3) of volume rendering and of image-based
+and writes PSNR / SSIM / LPIPS (masked, docs/method.md 8.3) of volume rendering and of image-based
 rendering, averaged over the held-out views and per view, with the render time per view, to a
 Markdown file with the machine and the command. A rerun reuses finished pipeline stages.
 
@@ -103,8 +103,8 @@ def main() -> None:
              "- command: `" + " ".join(["python benchmarks/novel_views_dtu.py", *sys.argv[1:]])
              + "`",
              "- inputs 25 22 28 at 768x576, fast preset; held-out views: the 25 test views of "
-             "METHOD.md 1.3; metrics inside the object mask (PSNR) / on a white background "
-             "(SSIM, LPIPS-VGG), METHOD.md 8.3",
+             "docs/method.md 1.3; metrics inside the object mask (PSNR) / on a white background "
+             "(SSIM, LPIPS-VGG), docs/method.md 8.3",
              f"- whole benchmark: {time.perf_counter() - t0:.0f} s"
              + (f"; kept from an earlier run (--keep): {', '.join(kept)} (commit "
                 f"{', '.join(str(res[m].get('commit', 'unknown')) for m in kept)})"

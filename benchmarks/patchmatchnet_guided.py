@@ -1,7 +1,7 @@
 """PatchmatchNet inside S-VolSDF: the network started from the field's guide depth, or not.
 
 With ``--backbone patchmatchnet`` the pipeline's guided stages 2-3 get the field's rendered
-depth (METHOD.md 6.1). By default the network then reruns from that depth (`mvs.guide_network`,
+depth (docs/method.md 6.1). By default the network then reruns from that depth (`mvs.guide_network`,
 `svolsdf.mvs.adapters`: its coarsest PatchMatch stage samples around the guide instead of at
 random); with ``mvs.guide_network: false`` it runs once per view, unguided, and the guide only
 centres the hypotheses its Laplacian is discretized on. For each scene this runs, in fresh

@@ -139,7 +139,7 @@ def main() -> None:
         "- Chamfer in the scene's units (synthetic: mm; the synthetic protocol of `svolsdf "
         "evaluate`: the ground truth the input views observe, distances clipped at 5 % of its "
         "diagonal; 'DTU rule': distances beyond that left out). Image metrics: masked PSNR, "
-        "SSIM, LPIPS (VGG) on the held-out views; 'IBR': image-based rendering (METHOD.md 7).",
+        "SSIM, LPIPS (VGG) on the held-out views; 'IBR': image-based rendering (docs/method.md 7).",
         "", *lines, "",
         "## What issue 28 checks", "",
         f"- VolSDF is {volsdf}.",

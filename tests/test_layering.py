@@ -1,4 +1,4 @@
-"""Dependencies point down the package table (ARCHITECTURE.md): the stages below fusion do not
+"""Dependencies point down the package table (docs/architecture.md): the stages below fusion do not
 import it, and the shared geometry helpers import only the scene."""
 
 from __future__ import annotations

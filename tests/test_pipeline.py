@@ -60,7 +60,7 @@ def test_outputs_are_present_and_valid(tiny_run):
     assert len(views) == 3 and info["size"] == [160, 120]  # working size: height a multiple of 8
     for v in views:
         d = np.load(out / "depth" / f"{v}.npy")
-        # the plane sweep's MVS size: 2x the working size (METHOD.md 9.2.2)
+        # the plane sweep's MVS size: 2x the working size (docs/method.md 9.2.2)
         assert d.shape == (240, 320) and np.isfinite(d).all()
         assert (out / "depth" / f"{v}.png").is_file()
     pts = read_ply(out / "points.ply")
@@ -412,7 +412,7 @@ def test_fusion_surface_option_adds_points_on_the_surface(tiny_run, tmp_path):
 
 
 def test_finer_stage_optimization(tiny_run, tmp_path):
-    """The paper's option (METHOD.md 9.2.13): more steps against the stage-2 volumes, then
+    """The paper's option (docs/method.md 9.2.13): more steps against the stage-2 volumes, then
     stage 3 around the re-rendered depth; reuses the finished field and stage-1 volumes."""
     out, _, p = tiny_run
     out2 = tmp_path / "finer"
@@ -634,7 +634,7 @@ def test_volsdf_mode_starts_from_a_sphere_with_nothing_from_mvs(volsdf_run, tiny
 
 def test_volsdf_points_pass_the_multi_view_check(volsdf_run, tmp_path):
     """Issue 38: VolSDF's fused depth is its rendered guide; that guide is no consistent
-    source for itself, and the pixels METHOD.md 6.1 fills with the map's maximum depth are no
+    source for itself, and the pixels docs/method.md 6.1 fills with the map's maximum depth are no
     surface. A pixel only one view sees is dropped: with the other views' depth removed,
     nothing of the remaining view is kept (before, every valid pixel passed)."""
     import shutil

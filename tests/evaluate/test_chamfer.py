@@ -1,6 +1,6 @@
 """Tests of svolsdf.evaluate.chamfer: known values, exact greedy downsampling, the obs mask, the
 plane, the real ObsMask file, and agreement with a slow transcription of the DTUeval-python
-protocol (METHOD.md 8.1)."""
+protocol (docs/method.md 8.1)."""
 
 from __future__ import annotations
 

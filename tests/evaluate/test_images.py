@@ -1,4 +1,4 @@
-"""Masked PSNR / SSIM against scikit-image (METHOD.md 8.3)."""
+"""Masked PSNR / SSIM against scikit-image (docs/method.md 8.3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""NeRF++ inverted-sphere background (METHOD.md 5.5): the parameterisation, compositing in
+"""NeRF++ inverted-sphere background (docs/method.md 5.5): the parameterisation, compositing in
 `render_rays`, gradients, checkpoints, and a pipeline run with ``field.background``."""
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def test_inverted_sphere_points_lie_on_the_ray_at_radius_one_over_u():
     x = o[:, None] + dist[..., None] * d[:, None]
     fin = u > 0.02
     torch.testing.assert_close(x.norm(dim=-1)[fin], (1.0 / u)[fin], rtol=1e-4, atol=0)
-    # (1e-5: the distance uses 1 / (u + 1e-6), METHOD.md 5.5)
+    # (1e-5: the distance uses 1 / (u + 1e-6), docs/method.md 5.5)
     torch.testing.assert_close((x / x.norm(dim=-1, keepdim=True))[fin], pts[..., :3][fin],
                                atol=1e-5, rtol=0)
     # u = 1/R: the sphere hit; distances grow as u falls
@@ -169,7 +169,7 @@ def test_pipeline_runs_with_background(tmp_path):
     p.run()
     model = p.model()
     assert isinstance(model.background, NeRFPlusPlusBackground)
-    assert model.config.sphere_clamp_scale is None  # METHOD.md 5.5: no clamp
+    assert model.config.sphere_clamp_scale is None  # docs/method.md 5.5: no clamp
     state = torch.load(tmp_path / "out" / "field" / "model.pt", weights_only=False)
     assert any(k.startswith("background.") for k in state["model_state_dict"])
     v = json.loads((tmp_path / "out" / "views.json").read_text())["inputs"][0]

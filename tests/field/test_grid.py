@@ -194,7 +194,7 @@ def test_outside_box_is_positive_and_growing():
     # Distance outside the box adds one-for-one along the face normal.
     x = torch.tensor([[1.0, 0.1, 0.2], [1.7, 0.1, 0.2]])
     torch.testing.assert_close(f.sdf(x)[1] - f.sdf(x)[0], torch.tensor(0.7), atol=1e-5, rtol=0)
-    # The sphere clamp (METHOD.md 5.2) makes the SDF negative past radius 3.
+    # The sphere clamp (docs/method.md 5.2) makes the SDF negative past radius 3.
     assert (f.sdf(d * 3.2) < 0).all() and (f.sdf(d * 3.2, clamp=False) > 0).all()
 
 

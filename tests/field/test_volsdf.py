@@ -1,4 +1,4 @@
-"""Positional encoding, Laplace density and the VolSDF MLP (METHOD.md 5.1-5.4)."""
+"""Positional encoding, Laplace density and the VolSDF MLP (docs/method.md 5.1-5.4)."""
 
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ def test_geometric_init_is_sphere_of_radius_bias():
     m = VolSDFField()
     net = m.sdf_net
     assert len(net.layers) == 9
-    # skip: lin3 outputs 256 - 39, lin4 sees 256; geometric-init zero columns (METHOD.md 5.2)
+    # skip: lin3 outputs 256 - 39, lin4 sees 256; geometric-init zero columns (docs/method.md 5.2)
     assert net.layers[3].weight.shape == (217, 256) and net.layers[4].weight.shape == (256, 256)
     assert (net.layers[0].weight[:, 3:] == 0).all() and (net.layers[0].weight[:, :3] != 0).any()
     w4 = net.layers[4].weight

@@ -1,4 +1,4 @@
-"""Tests for svolsdf.ibr.blend: IBR on an analytic textured plane (METHOD.md 7)."""
+"""Tests for svolsdf.ibr.blend: IBR on an analytic textured plane (docs/method.md 7)."""
 
 from __future__ import annotations
 
@@ -141,7 +141,7 @@ def test_softmax_weights_known_values():
     w, wr = view_softmax_weights(cos, torch.zeros_like(valid), IBRConfig())
     assert float(w.abs().sum()) == 0.0 and float(wr) == 1.0
 
-    # released: rendered colour scores 0.2, inconsistent sources score 0 (METHOD.md 7 step 4)
+    # released: rendered colour scores 0.2, inconsistent sources score 0 (docs/method.md 7 step 4)
     w, wr = view_softmax_weights(cos, torch.zeros_like(valid), IBRConfig.released())
     assert math.isclose(float(wr), math.exp(4) / (3 + math.exp(4)), rel_tol=1e-5)
     assert torch.allclose(w[:, 0, 0], torch.full((3,), 1 / (3 + math.exp(4))), atol=1e-6)
@@ -255,7 +255,8 @@ def test_input_checks(scene):
 
 
 def test_released_masks_and_blend_wiring(scene):
-    # METHOD.md 7 steps 4-7 written out by hand from the pieces, on a scene with partial validity
+    # docs/method.md 7 steps 4-7 written out by hand from the pieces, on a scene with partial
+    # validity
     tgt, img_t, d_t, srcs, imgs, ds = scene
     ds = ds.clone()
     ds[0, 10:30, 10:40] *= 1.05

@@ -1,4 +1,4 @@
-"""The cascade: guide depth centring stages 2-3 (METHOD.md 6.1, 2.5), outputs on disk, the
+"""The cascade: guide depth centring stages 2-3 (docs/method.md 6.1, 2.5), outputs on disk, the
 ``svolsdf mvs`` job and command."""
 
 from __future__ import annotations
@@ -149,7 +149,7 @@ def test_run_mvs_outputs(tiny_scene, tmp_path):
     s = run_mvs(MVSJobConfig(scene=tiny_scene, out=out, views=[0, 1, 2]))
     assert s["size"] == [64, 48] and s["views"] == [0, 1, 2]
     assert s["hypotheses"] == {"1": 192, "2": 32, "3": 8}
-    # the plane sweep's MVS size is 2x the working size (mvs_size, METHOD.md 9.2.2)
+    # the plane sweep's MVS size is 2x the working size (mvs_size, docs/method.md 9.2.2)
     assert s["stage_sizes"] == {"1": [32, 24], "2": [64, 48], "3": [128, 96]}
     for v in (0, 1, 2):
         for rel in (f"depth/{v}.npy", f"depth/{v}.png", f"confidence/{v}.npy",
@@ -158,7 +158,7 @@ def test_run_mvs_outputs(tiny_scene, tmp_path):
         d = np.load(out / "depth" / f"{v}.npy")
         near, far = s["depth_range"][str(v)]
         assert d.shape == (96, 128) and np.isfinite(d).all()
-        # finer stages are not clamped to the range (METHOD.md 2.5): allow their half-widths
+        # finer stages are not clamped to the range (docs/method.md 2.5): allow their half-widths
         slack = (16 + 2) * (far - near) / 192
         assert (d > near - slack).all() and (d < far + slack).all()
     pts = read_ply(out / "points.ply")["points"]
@@ -202,5 +202,5 @@ def test_cli_mvs(tiny_scene, tmp_path, capsys):
 
 
 def test_interval_matches_method_constants():
-    # DTU: Δ̄ = 506.15 / 192 = 2.6362 (METHOD.md 2.5)
+    # DTU: Δ̄ = 506.15 / 192 = 2.6362 (docs/method.md 2.5)
     assert base_interval(425.0, 425.0 + 2.65 * 191) == pytest.approx(2.6362, abs=1e-4)

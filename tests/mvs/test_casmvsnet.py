@@ -1,4 +1,5 @@
-"""CasMVSNet: checkpoint format (METHOD.md 2.1), chunked == unchunked, probabilities, backbone."""
+"""CasMVSNet: checkpoint format (docs/method.md 2.1), chunked == unchunked, probabilities,
+backbone."""
 
 from __future__ import annotations
 
@@ -221,7 +222,7 @@ def test_cost_volume_rows_equal_full_volume(model):
 
 # --------------------------------------------------------------------------- probabilities
 def test_confidence_formula_on_hand_made_volume():
-    # METHOD.md 2.4: s4_k = P_{k-1} + P_k + P_{k+1} + P_{k+2}; k* = floor(sum_k P_k k)
+    # docs/method.md 2.4: s4_k = P_{k-1} + P_k + P_{k+1} + P_{k+2}; k* = floor(sum_k P_k k)
     p = torch.tensor([0.1, 0.2, 0.4, 0.2, 0.05, 0.05, 0.0, 0.0])
     kstar = int((p * torch.arange(8.0)).sum().floor())  # 2.15 -> 2
     assert kstar == 2
@@ -243,7 +244,7 @@ def test_three_stages_probabilities_cameras_and_guide(model, scene):
     assert v1[0].depths[0].min() == pytest.approx(near)
     assert v1[0].depths[-1].max() == pytest.approx(far)
     assert ((v1[0].depth >= near) & (v1[0].depth <= far)).all()
-    # stage-1 camera: K[:2] / 4 at a quarter of the size (METHOD.md 1.3)
+    # stage-1 camera: K[:2] / 4 at a quarter of the size (docs/method.md 1.3)
     K = scene.cameras.K[0].float().clone()
     K[:2] /= 4
     torch.testing.assert_close(v1[0].cameras.K[0], K)
@@ -265,7 +266,7 @@ def test_three_stages_probabilities_cameras_and_guide(model, scene):
 
 
 def test_mvs_input_size_and_stride_cameras(scene):
-    assert mvs_input_size(768, 576) == (1536, 1152)  # METHOD.md 1.3 x2_mvsres
+    assert mvs_input_size(768, 576) == (1536, 1152)  # docs/method.md 1.3 x2_mvsres
     assert mvs_input_size(768, 576, x2_mvsres=False) == (768, 576)
     assert mvs_input_size(800, 600) == (1600, 1216)
     c = stride_cameras(scene.cameras, 2)

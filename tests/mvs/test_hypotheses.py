@@ -13,14 +13,14 @@ from svolsdf.mvs.hypotheses import (
     stage_width,
 )
 
-DTU = (425.0, 425.0 + 191 * 2.65)  # METHOD.md 1.4: [425, 931.15]
+DTU = (425.0, 425.0 + 191 * 2.65)  # docs/method.md 1.4: [425, 931.15]
 
 
 def test_stage1_linear_matches_method_formula():
     d = plane_hypotheses(*DTU, 192, 3, 4)
     assert d.shape == (192, 3, 4)
     k = torch.arange(192, dtype=torch.float64)
-    expect = DTU[0] + k * (DTU[1] - DTU[0]) / 191  # METHOD.md 2.5
+    expect = DTU[0] + k * (DTU[1] - DTU[0]) / 191  # docs/method.md 2.5
     assert torch.allclose(d[:, 1, 2].double(), expect, atol=1e-3)
     assert torch.allclose(d[1, 0, 0] - d[0, 0, 0], torch.tensor(2.65), atol=1e-3)
 
@@ -50,7 +50,7 @@ def test_guided_hypotheses_formula():
 
 def test_widths_dtu_millimetres():
     dbar = base_interval(*DTU)
-    assert dbar == pytest.approx(2.6362, abs=1e-4)  # divisor 192, METHOD.md 2.5
+    assert dbar == pytest.approx(2.6362, abs=1e-4)  # divisor 192, docs/method.md 2.5
     # released: r = 0.5 -> 42.2 mm and 10.5 mm
     assert stage_width(2, *DTU, width="released") == pytest.approx(42.18, abs=0.01)
     assert stage_width(3, *DTU, width="released") == pytest.approx(10.54, abs=0.01)

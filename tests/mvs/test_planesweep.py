@@ -1,5 +1,5 @@
 """Plane sweep: accuracy on ray-cast scenes with exact depth, volume shapes and hypotheses
-(METHOD.md 2.5), probabilities, and the building blocks (ZNCC, source aggregation, SGM)."""
+(docs/method.md 2.5), probabilities, and the building blocks (ZNCC, source aggregation, SGM)."""
 
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ def test_volume_shapes_and_hypotheses(sphere_run):
             assert (v.depths[1:] > v.depths[:-1]).all()
             # expectation lies inside each pixel's hypotheses
             assert (v.depth >= v.depths[0] - 1e-4).all() and (v.depth <= v.depths[-1] + 1e-4).all()
-    # stage 1: 192 fronto-parallel planes over [d_min, d_max] (METHOD.md 2.5)
+    # stage 1: 192 fronto-parallel planes over [d_min, d_max] (docs/method.md 2.5)
     planes = res[1][0].depths[:, 0, 0]
     assert torch.allclose(planes, torch.linspace(d_min, d_max, 192), atol=1e-5)
     assert torch.allclose(res[1][0].depths, planes[:, None, None].expand(-1, 36, 48))
@@ -111,7 +111,7 @@ def test_volume_shapes_and_hypotheses(sphere_run):
 
 @pytest.mark.parametrize("scale", [2.0, 1.5])
 def test_scale_runs_the_cascade_at_a_multiple_of_the_working_size(scale):
-    """mvs.scale (METHOD.md 9.2.2, the released x2_mvsres): stage k at scale / 2^(3-k) x the
+    """mvs.scale (docs/method.md 9.2.2, the released x2_mvsres): stage k at scale / 2^(3-k) x the
     working size, cameras resized with it (pixel-centre convention), depth still accurate."""
     scene, gt = plane_scene(48, 36, slanted=True, depth_range=RANGE)
     res = run_cascade(PlaneSweepBackbone(scale=scale), scene)
@@ -149,7 +149,8 @@ def test_guide_depth_centres_stage2():
 
 @pytest.mark.parametrize("max_sources, expected", [(2, 2), (0, 4), (9, 4)])
 def test_max_sources_caps_the_sources_in_pair_order(monkeypatch, max_sources, expected):
-    """METHOD.md 1.4: at most 4 sources, the best by pair score; <= 0 means every other view."""
+    """docs/method.md 1.4: at most 4 sources, the best by pair score; <= 0 means every other
+    view."""
     eyes = [(0.0, 0.0, -4.0), (0.7, 0.1, -3.95), (-0.6, -0.3, -3.95), (0.3, 0.6, -3.9),
             (-0.4, 0.5, -3.9)]
     plane = ((0.0, 0.0, -1.0), -0.5)

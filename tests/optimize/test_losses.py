@@ -1,4 +1,4 @@
-"""Losses (METHOD.md 4) against hand-computed values and gradient identities."""
+"""Losses (docs/method.md 4) against hand-computed values and gradient identities."""
 
 from __future__ import annotations
 

@@ -76,7 +76,7 @@ def test_guide_depth_rule():
 
     depth = torch.tensor([[[1.0, 2.0], [3.0, 4.0]]])
     opacity = torch.tensor([[[1.0, 1.0], [0.1, 1.0]]])
-    out = guide_depths(depth, opacity, [7], 2.0, "max")  # METHOD.md 6.1: the map's maximum
+    out = guide_depths(depth, opacity, [7], 2.0, "max")  # docs/method.md 6.1: the map's maximum
     assert out[7].tolist() == [[2.0, 4.0], [8.0, 8.0]]
     kept = guide_depths(depth, opacity, [7], 2.0, "none")
     assert kept[7].tolist() == [[2.0, 4.0], [6.0, 8.0]]

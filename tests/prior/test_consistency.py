@@ -1,4 +1,4 @@
-"""Soft consistency lookup (METHOD.md 3) against the slow reference and known values."""
+"""Soft consistency lookup (docs/method.md 3) against the slow reference and known values."""
 
 from __future__ import annotations
 
@@ -107,7 +107,7 @@ def test_lookup_known_value_at_pixel_centre_and_quirk_drift():
     cost, ok = prior.view_lookup(1, x)
     assert ok.item()
     assert cost.item() == pytest.approx(vols[1].prob[k, v, u].item(), abs=1e-5)
-    # the released align_corners quirk samples somewhere else (METHOD.md 3, step 3)
+    # the released align_corners quirk samples somewhere else (docs/method.md 3, step 3)
     quirk = MVSPrior(vols, norm, align_quirk=True)
     cq, _ = quirk.view_lookup(1, x)
     assert abs(cq.item() - cost.item()) > 1e-4

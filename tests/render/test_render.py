@@ -1,4 +1,4 @@
-"""Rays, samplers and volume rendering on an analytic sphere (METHOD.md 5.4)."""
+"""Rays, samplers and volume rendering on an analytic sphere (docs/method.md 5.4)."""
 
 from __future__ import annotations
 

@@ -41,7 +41,7 @@ def test_idr_scan65_headers_only(scan65):
     S = d["scale_mat_0"]
     assert s.normalization.scale == pytest.approx(S[0, 0])
     np.testing.assert_allclose(s.normalization.center.numpy(), S[:3, 3])
-    # DTU's standard depth range (METHOD.md 1.1), and all cameras see the object at that range
+    # DTU's standard depth range (docs/method.md 1.1), and all cameras see the object at that range
     assert torch.allclose(s.depth_range, torch.tensor([425.0, 425 + 2.65 * 192],
                                                       dtype=torch.float64))
     zc = s.cameras.world_to_camera(s.normalization.center[None])[:, 0, 2]

@@ -178,7 +178,8 @@ def render(
                        "instead of scene views.")] = None,
     frames: Annotated[int, typer.Option("--frames", help="Orbit frames.")] = 60,
     ibr: Annotated[bool, typer.Option(
-        "--ibr", help="Also image-based rendering (METHOD.md 7) -> OUT/renders_ibr/.")] = False,
+        "--ibr",
+        help="Also image-based rendering (docs/method.md 7) -> OUT/renders_ibr/.")] = False,
     size: Annotated[str | None, typer.Option(
         "--size", help="Render size WxH, e.g. 768x576 (default: the run's working size).")
     ] = None,

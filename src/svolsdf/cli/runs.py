@@ -84,7 +84,7 @@ def reconstruct(
     size: Annotated[str | None, typer.Option(
         "--size", help="Working size WxH (default: 768 wide, never upsampled).")] = None,
     preset_name: Annotated[str | None, typer.Option(
-        "--preset", help="fast (default: minutes on a CPU) or paper (METHOD.md constants).")
+        "--preset", help="fast (default: minutes on a CPU) or paper (docs/method.md constants).")
     ] = None,
     backbone: Annotated[str | None, typer.Option(
         "--backbone", help="MVS backbone: planesweep (default), casmvsnet, patchmatchnet.")
@@ -110,7 +110,8 @@ def reconstruct(
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
     background: Annotated[bool | None, typer.Option(
         "--background/--no-background",
-        help="NeRF++ inverted-sphere background for unbounded scenes (METHOD.md 5.5).")] = None,
+        help="NeRF++ inverted-sphere background for unbounded scenes "
+             "(docs/method.md 5.5).")] = None,
     fusion_network: Annotated[Path | None, typer.Option(
         "--fusion-network", help="Weights of a PatchmatchNet (TorchScript) to start from the "
                                  "field's depth and fuse as a further hypothesis "

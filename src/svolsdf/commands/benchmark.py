@@ -5,11 +5,11 @@ Every (scene, mode, input views) is a job (`BenchmarkJob`, `benchmark_jobs`); on
 `run_job`, runs the reconstruction pipeline into the job's own folder, ``OUT/<scene>/<mode>/``
 (``OUT/<scene>/views-<ids>/<mode>/`` with several view sets), then `evaluate_run` scores it:
 
-- geometry: the DTU protocol (METHOD.md 8.1) when ``dtu_gt`` is given and the scan number is known
-  (from the scene's name, e.g. ``scan65``, or ``scan``); otherwise the generic two-way Chamfer
+- geometry: the DTU protocol (docs/method.md 8.1) when ``dtu_gt`` is given and the scan number is
+  known (from the scene's name, e.g. ``scan65``, or ``scan``); otherwise the generic two-way Chamfer
   against the scene's ``gt_points.ply`` (synthetic scenes, `make_synthetic_scene`); otherwise
   none. The fused point cloud (``points.ply``) is scored for every mode, as in the paper.
-- images: PSNR / SSIM / LPIPS (METHOD.md 8.3) of the held-out views named in the run's
+- images: PSNR / SSIM / LPIPS (docs/method.md 8.3) of the held-out views named in the run's
   ``views.json`` (``"test"``) that have a render in ``renders/``; none when there are none.
 
 The jobs run on an executor (`svolsdf.commands.executors`): ``local``, one after another in this
@@ -106,7 +106,7 @@ class BenchmarkConfig:
     """Also write each run's report.html."""
     render: bool = True
     """Render the held-out (test) views of runs with a field, by volume rendering and IBR,
-    before scoring, so that the table has PSNR / SSIM / LPIPS (METHOD.md 7, 8.2)."""
+    before scoring, so that the table has PSNR / SSIM / LPIPS (docs/method.md 7, 8.2)."""
     render_size: tuple[int, int] | None = None
     """(W, H) of those renders; None: the working size. Ground-truth images are resized to it."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)

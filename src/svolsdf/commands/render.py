@@ -1,4 +1,5 @@
-"""Novel views of a finished run: volume rendering and image-based rendering (issue 7, METHOD.md 7).
+"""Novel views of a finished run: volume rendering and image-based rendering (issue 7,
+docs/method.md 7).
 
 ``svolsdf render OUT`` renders, for each target camera,
 
@@ -7,7 +8,7 @@
   preview) and ``<id>.npy`` (world z-depth, 0 where the opacity is below 0.5),
   ``OUT/renders/normals/<id>.png`` (camera-frame normals, OpenCV axes, (n + 1) / 2 times the
   opacity);
-- with ``ibr=True``, the image-based rendering of METHOD.md 7 (`svolsdf.ibr.ibr_render`): the
+- with ``ibr=True``, the image-based rendering of docs/method.md 7 (`svolsdf.ibr.ibr_render`): the
   input images warped by the rendered target depth and the rendered input-view depths, blended
   with the rendered colour as the fallback -> ``OUT/renders_ibr/<id>.png``.
 
@@ -16,7 +17,7 @@ inputs) or an orbit through the input views (`svolsdf.ibr.orbit_cameras`), writt
 ``OUT/renders/orbit/NNN.png`` plus ``OUT/renders/orbit.mp4`` (or ``orbit.gif`` when no ffmpeg
 backend is installed).
 
-The RGB is written as rendered: METHOD.md 8 composites onto white only inside the metrics, with
+The RGB is written as rendered: docs/method.md 8 composites onto white only inside the metrics, with
 the ground-truth masks, so nothing is composited here.
 
 Depth ranges of the target rays (unit frame): a scene view uses its own depth range from the
@@ -25,7 +26,7 @@ z-range of the field's bounding box corners (or the union of the input views' ra
 without a box); ``render_views`` further clips every ray to the field's bounding sphere.
 
 A depth pixel is "surface" when the rendered opacity sum_i w_i >= ``OPACITY_SURFACE`` (0.5); the
-IBR treats other pixels as having no depth, so the rendered colour is used there (METHOD.md 7
+IBR treats other pixels as having no depth, so the rendered colour is used there (docs/method.md 7
 step 4, "holes").
 """
 
@@ -190,7 +191,7 @@ def render_outputs(
     ibr_config=None,
     progress: bool = True,
 ) -> dict:
-    """Render novel views of a finished run (``svolsdf render``; issue 7, METHOD.md 7).
+    """Render novel views of a finished run (``svolsdf render``; issue 7, docs/method.md 7).
 
     Args:
         out: the run folder (config.yaml, views.json, field/model.pt).
@@ -198,7 +199,7 @@ def render_outputs(
             any, else the input views. Ignored when ``path`` is given.
         path: "orbit" renders ``frames`` cameras on `svolsdf.ibr.orbit_cameras` through the
             input views instead of scene views.
-        ibr: also write the image-based rendering (METHOD.md 7) to OUT/renders_ibr/.
+        ibr: also write the image-based rendering (docs/method.md 7) to OUT/renders_ibr/.
         size: (width, height) to render at (cameras resized with `Cameras.resize`); default
             the run's working size.
         frames: number of orbit frames (>= 2).

@@ -2,9 +2,9 @@
 
 One `Config` describes a whole run. `svolsdf reconstruct` maps its options onto it (and
 ``--set section.option=value`` reaches every option) and writes it as OUT/config.yaml, which can
-be passed back with ``--config`` to rerun. Presets (ARCHITECTURE.md "Presets"): ``paper``
-reproduces METHOD.md's constants; ``fast`` (the default) keeps the prior and the losses and changes
-the field, the sampling and the schedule (docs/presets.md says why).
+be passed back with ``--config`` to rerun. Presets (docs/architecture.md "Presets"): ``paper``
+reproduces docs/method.md's constants; ``fast`` (the default) keeps the prior and the losses and
+changes the field, the sampling and the schedule (docs/presets.md says why).
 """
 
 from svolsdf.config.io import (

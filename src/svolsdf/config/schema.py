@@ -34,9 +34,9 @@ def _backbone_names() -> list[str]:
     return available_backbones()
 
 
-#: DTU protocol input views (METHOD.md 1.4): the first num_view of this list.
+#: DTU protocol input views (docs/method.md 1.4): the first num_view of this list.
 DTU_TRAIN_IDS = [25, 22, 28, 40, 44, 48, 0, 8, 13]
-#: DTU views never used for testing (METHOD.md 1.4).
+#: DTU views never used for testing (docs/method.md 1.4).
 DTU_EXCLUDED_IDS = [3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 36, 37, 38, 39]
 
 
@@ -66,26 +66,26 @@ class MVSConfig:
     weights: str | None = None
     """Weights file for learned backbones."""
     ndepths: list[int] = _limited(factory=lambda: [192, 32, 8], len=3, min=2)
-    """Hypotheses per cascade stage (METHOD.md 0)."""
+    """Hypotheses per cascade stage (docs/method.md 0)."""
     width: Literal["paper", "released"] = "paper"
     """Finer-stage search width: paper (half the default CasMVSNet width) | released
-    (METHOD.md 2.5)."""
+    (docs/method.md 2.5)."""
     inverse_depth: bool = False
-    """Stage-1 planes uniform in inverse depth (unbounded scenes; METHOD.md 2.5, 9.1)."""
+    """Stage-1 planes uniform in inverse depth (unbounded scenes; docs/method.md 2.5, 9.1)."""
     max_sources: int = _limited(4, min=0)
-    """Source views per reference view in MVS, the best by the scene's pair score (METHOD.md 1.4:
-    the released code feeds at most 5 views, the reference and 4 sources); 0 = every other input
-    view. Three inputs use both others either way; with more inputs the cap keeps the MVS time
+    """Source views per reference view in MVS, the best by the scene's pair score (docs/method.md
+    1.4: the released code feeds at most 5 views, the reference and 4 sources); 0 = every other
+    input view. Three inputs use both others either way; with more inputs the cap keeps the MVS time
     linear in the number of views (`svolsdf.mvs.backbone.select_sources`)."""
     scale: float | None = _limited(None, gt=0)
     """The cascade runs at ``scale`` x the working size (stage 3 at scale x; images upsampled
-    bicubically, as the released code's x2_mvsres, METHOD.md 9.2.2), the field at the working
+    bicubically, as the released code's x2_mvsres, docs/method.md 9.2.2), the field at the working
     size. planesweep: any scale > 0; casmvsnet: 1 or 2 (its x2_mvsres); the patchmatchnet
     adapter runs at the working size. None = the backbone's own default."""
     native_images: bool = False
     """A cascade larger than the working size reads its images from the files when they are
     larger (`Scene.images_at`; a 1600x1200 photo gives stage 3 its own detail). false: the
-    working-size images upsampled, as the released code (METHOD.md 9.2.2) and the default."""
+    working-size images upsampled, as the released code (docs/method.md 9.2.2) and the default."""
     guide_network: bool = True
     """Backbones that can start from a depth map (patchmatchnet): rerun the network from the
     field's guide depth at the guided stage 2, so that the surface guides the network itself, as
@@ -98,11 +98,11 @@ class FieldConfig:
     kind: Literal["grid", "mlp"] = "grid"
     """grid (the fast preset's multi-resolution grid field) | mlp (the paper's VolSDF 8x256 MLP)."""
     mlp_depth: int = _limited(8, min=1)
-    """mlp: hidden layers of the SDF MLP (METHOD.md 5.2)."""
+    """mlp: hidden layers of the SDF MLP (docs/method.md 5.2)."""
     mlp_width: int = _limited(256, min=1)
     """mlp: hidden width of the SDF and colour MLPs."""
     background: bool = False
-    """Add the NeRF++ inverted-sphere background model (unbounded scenes, METHOD.md 5.5): the
+    """Add the NeRF++ inverted-sphere background model (unbounded scenes, docs/method.md 5.5): the
     field's sphere clamp is off and rays end at the bounding sphere, beyond which the
     background MLP (field/background.py) renders."""
     grid_resolution: int = _limited(128, min=4)
@@ -111,13 +111,13 @@ class FieldConfig:
     """grid: resolution at the start (coarse to fine)."""
     init: Literal["mvs", "sphere"] = "mvs"
     """Initial surface. mvs: signed distance of the fused stage-1 MVS depth (the grid field in
-    svolsdf mode, fast preset; field/init.py) | sphere: VolSDF's geometric init (METHOD.md 5.2;
+    svolsdf mode, fast preset; field/init.py) | sphere: VolSDF's geometric init (docs/method.md 5.2;
     the MLP field's only start, so ``kind`` mlp in svolsdf mode needs it). The volsdf mode
     always starts from the sphere (a baseline never sees MVS)."""
     sphere_radius: float = _limited(0.3, min=0.01)
-    """grid started from a sphere (volsdf mode, or init = sphere): radius of VolSDF's initial
-    sphere |x| - r (METHOD.md 5.2), unit frame, centred at the origin, in a grid over the box of
-    the bounding sphere [-1, 1]^3 (the unit frame's region of interest): only the cameras and the
+    """grid started from a sphere (volsdf mode, or init = sphere): radius of VolSDF's initial sphere
+    |x| - r (docs/method.md 5.2), unit frame, centred at the origin, in a grid over the box of the
+    bounding sphere [-1, 1]^3 (the unit frame's region of interest): only the cameras and the
     sphere, nothing from MVS. Smaller than VolSDF's 0.6 so that the surface grows outward to the
     object instead of carving a sphere that hides it."""
     sphere_start_resolution: int = _limited(16, min=4)
@@ -140,7 +140,7 @@ class TrainConfig:
     steps: int = _limited(1000, min=0)
     """Optimization steps (each draws ``rays`` rays from one input view)."""
     rays: int = _limited(512, min=1)
-    """Rays per step, from one random input view (METHOD.md 4.6)."""
+    """Rays per step, from one random input view (docs/method.md 4.6)."""
     object_ray_fraction: float = _limited(0.0, min=0, max=1)
     """Share of each step's rays drawn inside the view's object mask (dilated by
     ``object_ray_dilation`` px); the rest are uniform over the image, as released (0 = all
@@ -148,7 +148,7 @@ class TrainConfig:
     object_ray_dilation: int = _limited(12, min=0)
     """Dilation in pixels (working size) of the masks for ``object_ray_fraction``."""
     lr: float = _limited(5e-4, min=0)
-    """Adam learning rate for networks (constant, METHOD.md 4.6)."""
+    """Adam learning rate for networks (constant, docs/method.md 4.6)."""
     lr_grid: float = _limited(1e-2, min=0)
     """grid field: learning rate of the feature grids."""
     lr_sdf: float = _limited(3e-4, min=0)
@@ -158,48 +158,48 @@ class TrainConfig:
     """grid field: learning rate of the SDF grid when it starts from a sphere (volsdf mode,
     field.init = sphere): the surface has to travel, not just be refined."""
     grid_eikonal_weight: float = _limited(0.1, min=0)
-    """grid field started from a sphere: weight of an eikonal term over every cell of the SDF
-    grid (finite differences, `GridSDFField.grid_eikonal_loss`), besides METHOD.md 4.5's term at
-    sampled points, which reaches few of the nodes a travelling surface passes. Not used when
-    the grid starts from the MVS surface."""
+    """grid field started from a sphere: weight of an eikonal term over every cell of the SDF grid
+    (finite differences, `GridSDFField.grid_eikonal_loss`), besides docs/method.md 4.5's term at
+    sampled points, which reaches few of the nodes a travelling surface passes. Not used when the
+    grid starts from the MVS surface."""
     grad_clip: float = _limited(1.0, min=0)
     """Global-norm gradient clipping (0 = off)."""
     eikonal_weight: float = _limited(0.1, min=0)
-    """Weight of the eikonal loss |grad f| = 1 at sampled points (METHOD.md 4.5)."""
+    """Weight of the eikonal loss |grad f| = 1 at sampled points (docs/method.md 4.5)."""
     rgb_weight: float = _limited(1.0, min=0)
-    """Weight of the L1 colour loss of rendered against input pixels (METHOD.md 4.1)."""
+    """Weight of the L1 colour loss of rendered against input pixels (docs/method.md 4.1)."""
     mvs_weight: float = _limited(1.0, min=0)
     """Weight of the MVS prior: the GCE loss between the rendering weights and the probability
-    volume P' of the rays it supervises (METHOD.md 4.2)."""
+    volume P' of the rays it supervises (docs/method.md 4.2)."""
     sparse_weight: float = _limited(1.0, min=0)
     """Weight of the sparsity loss on the rays P' does not supervise, during the warm-up
-    (METHOD.md 4.3)."""
+    (docs/method.md 4.3)."""
     smooth_weight: float = _limited(0.0, min=0)
     """grid field: weight of the grid smoothness regularizer (not in the paper)."""
     gce_q: float = _limited(0.5, min=0, max=1)
-    """GCE exponent q (METHOD.md 4.2); 0 gives cross-entropy."""
+    """GCE exponent q (docs/method.md 4.2); 0 gives cross-entropy."""
     gce_form: Literal["paper", "released"] = "paper"
-    """paper: P'(1 - w^q)/q | released: -P' sg(w)^q log w (same gradient; METHOD.md 9.2.4)."""
+    """paper: P'(1 - w^q)/q | released: -P' sg(w)^q log w (same gradient; docs/method.md 9.2.4)."""
     sparse_norm: Literal["unsupervised", "all"] = "unsupervised"
-    """unsupervised: divide by |Q| (paper) | all: divide by all rays (released; METHOD.md 9.2.5)."""
+    """unsupervised: divide by |Q| (paper) | all: by all rays (released; docs/method.md 9.2.5)."""
     sparse_decay: bool = False
-    """Released code's linear decay of the sparsity weight over the warm-up (METHOD.md 4.3)."""
+    """Released code's linear decay of the sparsity weight over the warm-up (docs/method.md 4.3)."""
     anneal_rgb: int = _limited(200, min=0)
-    """Warm-up steps with the Gaussian-smoothed RGB target and the sparsity loss (METHOD.md 4.4)."""
+    """Warm-up steps: Gaussian-smoothed RGB target and sparsity loss (docs/method.md 4.4)."""
     warmup_mask_supervised: bool = False
-    """Released code: no RGB loss on MVS-supervised rays during the warm-up (METHOD.md 9.2.6)."""
+    """Released code: no RGB loss on MVS-supervised rays in the warm-up (docs/method.md 9.2.6)."""
     sampler: Literal["mvs", "error_bounded"] = "mvs"
-    """mvs: samples where P' and the current surface are (fast) | error_bounded (METHOD.md 5.4)."""
+    """mvs: samples near P' and the current surface (fast) | error_bounded (docs/method.md 5.4)."""
     samples_uniform: int = _limited(32, min=1)
     """mvs sampler: stratified samples along the ray."""
     samples_fine: int = _limited(48, min=0)
     """mvs sampler: importance samples from P' and the current weights."""
     beta_min: float = _limited(0.0, min=0)
-    """> 0: replaces the Laplace density's floor beta_min (METHOD.md 5.4: 1e-4); 0 keeps it."""
+    """> 0: replaces the Laplace density's floor beta_min (docs/method.md 5.4: 1e-4); 0 keeps it."""
     beta_start: float = _limited(0.0, min=0)
     """> 0: beta is not learned but annealed log-linearly from beta_start to beta_end over the
     steps (unit-frame units; fast preset: a short run cannot wait for the learned beta to
-    sharpen). 0: learnable beta (METHOD.md 5.4, the paper)."""
+    sharpen). 0: learnable beta (docs/method.md 5.4, the paper)."""
     beta_end: float = _limited(0.0025, gt=0)
     """Final beta of the anneal (unit frame; ~0.5 mm on DTU-scale scenes)."""
     checkpoint_every: int = _limited(100, min=0)
@@ -218,7 +218,7 @@ class OutputConfig:
     mesh_cull_unseen: bool = False
     """Mesh: also remove the faces no input view sees, i.e. whose centroid lies more than
     ``mesh_cull_tol`` behind the field's rendered depth in every view that contains it
-    (`svolsdf.fusion.cull.cull_unseen`). Off as released (mask culling only, METHOD.md 8.3):
+    (`svolsdf.fusion.cull.cull_unseen`). Off as released (mask culling only, docs/method.md 8.3):
     the interior of a sparse-view reconstruction is unconstrained and may hold cavities."""
     mesh_cull_tol: float = _limited(0.01, min=0)
     """Mesh: relative depth slack of ``mesh_cull_unseen``."""
@@ -228,20 +228,20 @@ class OutputConfig:
     (for printing or simulation). Parts no view sees are the field's guess, so it scores worse
     against ground truth than the culled mesh."""
     fusion_dist: float = _limited(1.0, min=0)
-    """Fusion: reprojection distance threshold in pixels (METHOD.md 6.3)."""
+    """Fusion: reprojection distance threshold in pixels (docs/method.md 6.3)."""
     fusion_rel: float = _limited(0.01, min=0)
-    """Fusion: relative depth difference threshold (METHOD.md 6.3)."""
+    """Fusion: relative depth difference threshold (docs/method.md 6.3)."""
     fusion_views: int = _limited(1, min=0)
-    """Fusion: minimum number of consistent source views (METHOD.md 6.3)."""
+    """Fusion: minimum number of consistent source views (docs/method.md 6.3)."""
     fusion_conf: float = _limited(0.0, min=0, max=1)
-    """Fusion: photometric confidence threshold (0 = off, as released; METHOD.md 9.2.9)."""
+    """Fusion: photometric confidence threshold (0 = off, as released; docs/method.md 9.2.9)."""
     fusion_surface: float = _limited(0.0, min=0)
     """Fusion: a depth within this relative difference of the optimized surface's rendered depth
     (the guide) counts as one consistent source (`FusionConfig.surface_rel_thresh`; 0 = off, as
     released). Not used without a field (mvs-only)."""
     fusion_guided_dilation: int | None = _limited(None, min=0)
     """Fusion: object-mask dilation, in pixels, for the field-guided depth maps (svolsdf mode);
-    None = the released 12 px for every depth map (METHOD.md 6.3). The unguided set
+    None = the released 12 px for every depth map (docs/method.md 6.3). The unguided set
     (``fusion_unguided``) takes ``fusion_unguided_dilation``. Near the silhouette the guided
     stages 2-3 inherit the field's errors (a surface fattened into the background), and because
     those errors form one 3D surface the multi-view check passes them
@@ -267,9 +267,9 @@ class OutputConfig:
     fusion_network_weights: str | None = None
     """Weights file of ``fusion_network``."""
     use_masks: bool = True
-    """Apply (dilated) object masks when the scene has them (METHOD.md 6.3)."""
+    """Apply (dilated) object masks when the scene has them (docs/method.md 6.3)."""
     guide_mask_dilation: int | None = _limited(None, min=0)
-    """Render the guide depth (METHOD.md 6.1) only inside the object masks dilated by this many
+    """Render the guide depth (docs/method.md 6.1) only inside the object masks dilated by this many
     pixels; the other pixels count as rendered with no surface (weight 0, so
     ``low_weight_rule`` applies). None = every pixel (released). Scenes without masks render
     every pixel."""
@@ -290,9 +290,9 @@ class OutputConfig:
     """Mesh: remove faces that lie in space an input view saw as empty, i.e. more than
     ``mesh_free_space_steps`` final depth steps in front of the depth that view observed there
     (its final depth where the fused points confirm it; `svolsdf.fusion.observe`). Every mesh
-    method; off in the paper's protocol (METHOD.md 8.3: mask culling only)."""
+    method; off in the paper's protocol (docs/method.md 8.3: mask culling only)."""
     mesh_free_space_steps: float = _limited(4.0, gt=0)
-    """Mesh: tolerance of ``mesh_free_space`` in final-stage depth steps (METHOD.md 2.5: half
+    """Mesh: tolerance of ``mesh_free_space`` in final-stage depth steps (docs/method.md 2.5: half
     the base interval, 1.3 mm on DTU)."""
     mesh_support: float = _limited(0.0, min=0)
     """Mesh: remove faces farther than this many point spacings (the median distance between
@@ -309,7 +309,7 @@ class OutputConfig:
     """Mesh (poisson): remove the surface whose sample density, in octree levels, is below
     this (0 = keep the closed surface)."""
     finer_stage_optimization: bool = False
-    """Paper option (METHOD.md 9.2.13; the released code forbids it): after stage 2, optimize
+    """Paper option (docs/method.md 9.2.13; the released code forbids it): after stage 2, optimize
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
     its depth again and centre stage 3 on it (svolsdf mode;
     `svolsdf.pipeline.finer.finer_stage_cascade`)."""
@@ -318,7 +318,7 @@ class OutputConfig:
 @dataclass
 class Config:
     preset: Literal["fast", "paper"] = "fast"
-    """fast (default; minutes on a CPU) | paper (METHOD.md constants; a GPU)."""
+    """fast (default; minutes on a CPU) | paper (docs/method.md constants; a GPU)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto | cpu | cuda."""
     threads: int = _limited(0, min=0)

@@ -261,7 +261,7 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
                    "the grid refines coarse to fine, so its start resolution must not exceed "
                    "the final one")
     elif f.mlp_depth < 4 or f.mlp_width <= 39:
-        # VolSDF's MLP (METHOD.md 5.2) feeds gamma(x) (39 values) in again at layer 4
+        # VolSDF's MLP (docs/method.md 5.2) feeds gamma(x) (39 values) in again at layer 4
         bad = ("field.mlp_depth", f.mlp_depth) if f.mlp_depth < 4 else \
             ("field.mlp_width", f.mlp_width)
         refuse("field.kind", f.kind, *bad, "the MLP's skip connection enters gamma(x) (39 "

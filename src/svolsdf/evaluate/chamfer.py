@@ -1,4 +1,4 @@
-"""Chamfer distances: the DTU protocol (METHOD.md 8.1) and a generic two-way Chamfer / F-score.
+"""Chamfer distances: the DTU protocol (docs/method.md 8.1) and a generic two-way Chamfer / F-score.
 
 The DTU protocol follows the community's DTUeval-python script step for step (the protocol the
 S-VolSDF paper reports): seeded random shuffle, greedy 0.2 mm radius downsampling, the observation
@@ -49,7 +49,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: DTU scans whose plane file is another scan's (METHOD.md 8.1: scan 82 uses Plane83).
+#: DTU scans whose plane file is another scan's (docs/method.md 8.1: scan 82 uses Plane83).
 PLANE_OVERRIDES = {82: 83}
 
 
@@ -131,7 +131,7 @@ def nn_distances(query: np.ndarray, ref: np.ndarray | cKDTree,
 
 
 def shuffle_rows(points: np.ndarray, seed: int | None) -> np.ndarray:
-    """The protocol's random shuffle (METHOD.md 8.1, step 1), as a new array.
+    """The protocol's random shuffle (docs/method.md 8.1, step 1), as a new array.
 
     Equal to ``np.random.default_rng(seed).shuffle(x, axis=0)`` on a copy (the same Fisher-Yates
     swaps, applied to the row indices), but tens of times faster on millions of rows.
@@ -148,7 +148,7 @@ def shuffle_rows(points: np.ndarray, seed: int | None) -> np.ndarray:
 
 def greedy_radius_downsample(points: np.ndarray, radius: float,
                              tree: cKDTree | None = None, chunk: int = 2_000_000) -> np.ndarray:
-    """Greedy radius downsampling in the given point order (METHOD.md 8.1, step 2).
+    """Greedy radius downsampling in the given point order (docs/method.md 8.1, step 2).
 
     Visits the points in order; a point that is still kept removes every other point within
     ``radius`` (distance <= radius). The kept set is exactly that of the sequential loop of the
@@ -232,7 +232,7 @@ def _greedy_one_pass(points: np.ndarray, radius: float, tree: cKDTree | None) ->
 
 def sample_mesh_surface(vertices: np.ndarray, faces: np.ndarray, density: float = 0.2,
                         max_batch: int = 4_000_000) -> np.ndarray:
-    """Points on a triangle mesh at a given spacing, as the DTU mesh mode does (METHOD.md 8.1).
+    """Points on a triangle mesh at a given spacing, as the DTU mesh mode does (docs/method.md 8.1).
 
     Per triangle (v0, v1, v2) with edges e1 = v1 - v0, e2 = v2 - v0 of lengths l1, l2 and
     doubled area A2 = |e1 x e2|: thr = density * sqrt(l1 l2 / A2), n_k = floor(l_k / thr), and the
@@ -406,7 +406,8 @@ def _read_ply_points(path: Path) -> np.ndarray:
 
 
 def _mean_below(d: np.ndarray, max_dist: float, default: float = float("nan")) -> float:
-    """Mean of the (N,) distances below ``max_dist`` (METHOD.md 8.1); ``default`` if none is."""
+    """Mean of the (N,) distances below ``max_dist`` (docs/method.md 8.1); ``default`` if none
+    is."""
     d = d[d < max_dist]
     return float(d.mean()) if len(d) else default
 
@@ -415,7 +416,7 @@ def obs_mask_filter(points: np.ndarray, obs: ObsMask, patch: float = 60.0
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Masks of points inside the DTU bounding box (data_in) and observed (data_in_obs).
 
-    METHOD.md 8.1: inbound is BB_min - patch <= p < BB_max + 2 * patch on all three axes; the
+    docs/method.md 8.1: inbound is BB_min - patch <= p < BB_max + 2 * patch on all three axes; the
     voxel index is round((p - BB_min) / Res) (round half to even, as numpy's ``around``); a point is
     observed when that index lies in the grid and ObsMask is true there.
 
@@ -446,7 +447,7 @@ def dtu_chamfer_arrays(points: np.ndarray, stl: np.ndarray, obs: ObsMask, plane:
                        mode: str = "pcd", faces: np.ndarray | None = None, seed: int | None = 0,
                        downsample_density: float = 0.2, patch_size: float = 60.0,
                        max_dist: float = 20.0, fscore_threshold: float | None = None) -> dict:
-    """The DTU protocol (METHOD.md 8.1) on arrays already in memory.
+    """The DTU protocol (docs/method.md 8.1) on arrays already in memory.
 
     Args:
         points: (N, 3) float prediction in DTU world mm (point cloud, or mesh vertices).
@@ -507,7 +508,7 @@ def dtu_chamfer_arrays(points: np.ndarray, stl: np.ndarray, obs: ObsMask, plane:
 
 def dtu_chamfer(points: np.ndarray, dtu_dir: str | Path, scan: int, mode: str = "pcd",
                 faces: np.ndarray | None = None, **kwargs) -> dict:
-    """DTU Chamfer of a prediction against scan ``scan``'s ground truth (METHOD.md 8.1).
+    """DTU Chamfer of a prediction against scan ``scan``'s ground truth (docs/method.md 8.1).
 
     Reads ``ObsMask/ObsMask{scan}_10.mat``, ``ObsMask/Plane{scan}.mat`` (scan 82: Plane83) and
     ``Points/stl/stl{scan:03d}_total.ply`` under ``dtu_dir`` (or ``dtu_dir/DTU_MVS_Data``).
@@ -542,7 +543,7 @@ def chamfer_fscore(pred: np.ndarray, gt: np.ndarray, threshold: float,
     """Two-way Chamfer distance and F-score between any two point clouds.
 
     accuracy = mean_p min_g |p - g|, completeness = mean_g min_p |g - p| (each over distances
-    below ``max_dist`` when given, as METHOD.md 8.1/8.2), overall = their mean;
+    below ``max_dist`` when given, as docs/method.md 8.1/8.2), overall = their mean;
     precision = fraction of prediction points within ``threshold`` of the ground truth, recall =
     fraction of ground-truth points within ``threshold`` of the prediction (all points count),
     fscore = 2 P R / (P + R) (Knapitsch et al., Tanks and Temples).

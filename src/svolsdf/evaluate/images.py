@@ -1,4 +1,4 @@
-"""Novel-view image metrics with masks, as the paper evaluates them (METHOD.md 8.3).
+"""Novel-view image metrics with masks, as the paper evaluates them (docs/method.md 8.3).
 
 - PSNR: -10 log10 of the MSE over the masked pixel-channels (background pixels excluded).
 - SSIM: both images composited onto a white background, x * m + (1 - m), then the SSIM of
@@ -6,7 +6,7 @@
   sample covariances (N / (N - 1)), per channel, averaged over the valid region (the border of
   (7 - 1) / 2 pixels is cropped) and then over channels.
   ``data_range=1.0`` is the default; ``data_range=2.0`` reproduces the released evaluation, where
-  scikit-image 0.17 took the float dtype range [-1, 1] (METHOD.md 8.3, 9.2 item 14).
+  scikit-image 0.17 took the float dtype range [-1, 1] (docs/method.md 8.3, 9.2 item 14).
 
 Images are (3, H, W) float tensors in [0, 1]; masks are (1, H, W) or (H, W), 1 = object.
 Masks that are not binary are thresholded at 0.5, as the released code does after resizing.
@@ -44,7 +44,7 @@ def _mask(mask: Tensor | None, h: int, w: int) -> Tensor | None:
 
 
 def composite_white(image: Tensor, mask: Tensor | None) -> Tensor:
-    """x * m + (1 - m): the image on a white background (METHOD.md 8.3).
+    """x * m + (1 - m): the image on a white background (docs/method.md 8.3).
 
     Args:
         image: (3, H, W) float in [0, 1].
@@ -62,7 +62,7 @@ def composite_white(image: Tensor, mask: Tensor | None) -> Tensor:
 
 def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor | None = None,
                 data_range: float = 1.0) -> float:
-    """PSNR over the masked pixel-channels (METHOD.md 8.3).
+    """PSNR over the masked pixel-channels (docs/method.md 8.3).
 
     PSNR = 10 log10(data_range^2 / MSE), MSE = sum_{c, p in mask} (pred - gt)^2 / (3 |mask|).
 
@@ -88,7 +88,7 @@ def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor | None = None,
 
 def ssim(pred: Tensor, gt: Tensor, mask: Tensor | None = None, data_range: float = 1.0,
          win_size: int = 7, k1: float = 0.01, k2: float = 0.03) -> float:
-    """Mean SSIM, images composited on white first when a mask is given (METHOD.md 8.3).
+    """Mean SSIM, images composited on white first when a mask is given (docs/method.md 8.3).
 
     SSIM = (2 mu_x mu_y + C1)(2 s_xy + C2) / ((mu_x^2 + mu_y^2 + C1)(s_x^2 + s_y^2 + C2)) with
     C1 = (K1 L)^2, C2 = (K2 L)^2, L = ``data_range``; local statistics over a uniform

@@ -3,7 +3,7 @@
 d(x, y) = sum_l mean_{h,w} w_l . (f_l(x) / |f_l(x)| - f_l(y) / |f_l(y)|)^2, where f_l are the
 backbone's ReLU activations at five depths, normalized to unit length over channels, and w_l the
 learned non-negative 1x1 "linear" heads. Inputs are RGB in [-1, 1], shifted and scaled by the
-LPIPS ScalingLayer constants first. The paper's novel-view metric uses VGG (METHOD.md 8.3).
+LPIPS ScalingLayer constants first. The paper's novel-view metric uses VGG (docs/method.md 8.3).
 
 Weights are the LPIPS v0.1 state dicts in ``shared/weights/lpips``
 (``{alexnet,vgg16}_lpips_v0.1.pth``) with torchvision-style backbone keys
@@ -169,7 +169,7 @@ class LPIPS(nn.Module):
 
 @torch.no_grad()
 def lpips_distance(pred: Tensor, gt: Tensor, model: LPIPS, mask: Tensor | None = None) -> float:
-    """LPIPS of two [0, 1] images, composited on white when a mask is given (METHOD.md 8.3).
+    """LPIPS of two [0, 1] images, composited on white when a mask is given (docs/method.md 8.3).
 
     Args:
         pred: (3, H, W) float in [0, 1].

@@ -24,15 +24,15 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
 
 and OUT/report.html (`svolsdf.evaluate.report`).
 
-Geometry: with ``dtu_gt`` the DTU protocol (METHOD.md 8.1), with ``gt_points`` the generic two-way
-Chamfer, and otherwise, for a scene written by ``svolsdf synth``, its own ground truth
+Geometry: with ``dtu_gt`` the DTU protocol (docs/method.md 8.1), with ``gt_points`` the generic
+two-way Chamfer, and otherwise, for a scene written by ``svolsdf synth``, its own ground truth
 (`svolsdf.evaluate.synthetic.synthetic_chamfer`, the benchmarks' protocol: F-score at 0.5 % and
 distances clipped at 5 % of its diagonal). Otherwise the F-score threshold defaults to 1% of the
 ground truth's bounding-box diagonal (DTU: of the STL points above the plane), a scale-free
 choice; pass ``threshold`` for a fixed one. In DTU mode precision / recall use the protocol's
 point sets (observed prediction points; STL points above the plane) with all distances counted.
 
-Images (METHOD.md 8.3): ground truth is the scene's image at the render's size (bicubic), masks
+Images (docs/method.md 8.3): ground truth is the scene's image at the render's size (bicubic), masks
 resized and thresholded at 0.5; PSNR over masked pixels, SSIM and LPIPS (VGG by default) on images
 composited onto white.
 """
@@ -87,7 +87,7 @@ class EvaluateConfig:
     lpips_weights: Path | None = None
     """LPIPS weights file or folder (default: shared/weights/lpips)."""
     ssim_data_range: float = 1.0
-    """SSIM data range; 2.0 reproduces the released code's numbers (METHOD.md 8.3)."""
+    """SSIM data range; 2.0 reproduces the released code's numbers (docs/method.md 8.3)."""
     masks: bool = True
     """Use the scene's object masks for image metrics when it has them."""
     seed: int = 0
@@ -235,7 +235,7 @@ def _synthetic_geometry(cfg: EvaluateConfig, scene_path: Path, views: list[int],
     """A `svolsdf synth` scene scores itself: `synthetic_chamfer` against the ground truth the
     input views observe, distances clipped at 5 % of its diagonal (``max_dist``), F-score at
     0.5 % (``threshold``); ``overall_dtu_rule`` leaves distances beyond the cut-off out of the
-    means (METHOD.md 8.1). The mesh is scored by its vertices, as benchmarks/fast_preset.py."""
+    means (docs/method.md 8.1). The mesh is scored by its vertices, as benchmarks/fast_preset.py."""
     from svolsdf.evaluate.synthetic import synthetic_chamfer
 
     def score(pts: np.ndarray, source: str) -> tuple[dict, dict]:

@@ -1,15 +1,15 @@
 """Geometry evaluation on synthetic scenes (``svolsdf synth``): Chamfer against the part of the
 ground-truth surface that the input views observe.
 
-DTU evaluates only where its scanner observed the object (the ObsMask, METHOD.md 8.1). A synthetic
-scene's ``gt_points.ply`` samples the whole object, including its back, which three frontal views
-never see; scoring completeness against it would measure the camera layout, not the method. The
-analogue of the ObsMask here: a ground-truth point counts when at least one input view sees it,
-i.e. it projects inside the image and its depth agrees with that view's ``gt_depth`` map within a
-few pixel footprints. Accuracy and completeness are two-way nearest-neighbour means with a
+DTU evaluates only where its scanner observed the object (the ObsMask, docs/method.md 8.1). A
+synthetic scene's ``gt_points.ply`` samples the whole object, including its back, which three
+frontal views never see; scoring completeness against it would measure the camera layout, not the
+method. The analogue of the ObsMask here: a ground-truth point counts when at least one input view
+sees it, i.e. it projects inside the image and its depth agrees with that view's ``gt_depth`` map
+within a few pixel footprints. Accuracy and completeness are two-way nearest-neighbour means with a
 cut-off, in world units (millimetres for generated scenes). By default a distance beyond the
 cut-off counts as the cut-off (clipped), so holes are paid for; ``rule="exclude"`` leaves such
-distances out of the means as the DTU and BlendedMVS evaluations do (METHOD.md 8.1, 8.2).
+distances out of the means as the DTU and BlendedMVS evaluations do (docs/method.md 8.1, 8.2).
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def _table_height(scene_dir: str | Path) -> float | None:
 def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int],
                       max_dist: float | None = None, threshold: float | None = None,
                       on_empty: str = "raise", rule: str = "clip") -> dict:
-    """Chamfer and F-score of ``points`` against the observed ground truth (METHOD.md 8.2).
+    """Chamfer and F-score of ``points`` against the observed ground truth (docs/method.md 8.2).
 
     Args:
         points: (N, 3) reconstructed world points.
@@ -104,7 +104,7 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
         threshold: F-score threshold (default 0.5% of the diagonal).
         rule: how distances beyond ``max_dist`` enter the means: "clip" (default; each counts
             as max_dist, so a hole in the reconstruction costs what a far outlier does) or
-            "exclude" (METHOD.md 8.1 / 8.2, the DTU and BlendedMVS evaluations: distances at or
+            "exclude" (docs/method.md 8.1 / 8.2, the DTU and BlendedMVS evaluations: distances at or
             above max_dist are left out of the means, so holes wider than max_dist cost
             nothing). The F-score is the same under both.
         on_empty: when no prediction lies near the object: "raise" an `InputError`, or "clip":
@@ -128,7 +128,7 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
     max_dist = 0.05 * diag if max_dist is None else max_dist
     threshold = 0.005 * diag if threshold is None else threshold
     pred = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    # the ObsMask's bounding box (METHOD.md 8.1): only predictions near the object are scored
+    # the ObsMask's bounding box (docs/method.md 8.1): only predictions near the object are scored
     lo, hi = gt.min(0) - max_dist, gt.max(0) + max_dist
     pred = pred[((pred >= lo) & (pred <= hi)).all(1)]
     table = _table_height(scene_dir)
@@ -156,7 +156,7 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
 
 def truncated_chamfer(pred: np.ndarray, gt: np.ndarray, max_dist: float, threshold: float,
                       gt_downsampled: bool = False, seed: int = 0) -> dict:
-    """The scoring core of `synthetic_chamfer`, by both rules at once (METHOD.md 8.1 / 8.2).
+    """The scoring core of `synthetic_chamfer`, by both rules at once (docs/method.md 8.1 / 8.2).
 
     Both clouds are shuffled (``seed``; ``pred`` first) and greedily downsampled at
     ``threshold / 5`` to even out densities, then: accuracy / completeness clipped at
@@ -179,7 +179,7 @@ def truncated_chamfer(pred: np.ndarray, gt: np.ndarray, max_dist: float, thresho
     from svolsdf.evaluate.chamfer import _mean_below, greedy_radius_downsample, nn_distances
 
     rng = np.random.default_rng(seed)
-    r = threshold / 5  # even out densities (METHOD.md 8.1's radius downsampling)
+    r = threshold / 5  # even out densities (docs/method.md 8.1's radius downsampling)
     pred = pred[rng.permutation(len(pred))]
     pred = pred[greedy_radius_downsample(pred, r)]
     if not gt_downsampled:

@@ -19,7 +19,7 @@ class SphereSDF(SurfaceModel):
     Args:
         radius: sphere radius r.
         center: (3,) sphere centre (default origin).
-        beta: Laplace scale (METHOD.md 5.4).
+        beta: Laplace scale (docs/method.md 5.4).
         colour: (3,) rgb returned everywhere.
     """
 
@@ -47,7 +47,7 @@ class SphereSDF(SurfaceModel):
         return self.rgb.expand(x.shape[0], 3)
 
     def density(self, sdf: Tensor, beta: Tensor | None = None) -> Tensor:
-        """Laplace density (METHOD.md 5.4) with the fixed beta unless overridden."""
+        """Laplace density (docs/method.md 5.4) with the fixed beta unless overridden."""
         return laplace_density(sdf, self.beta_value if beta is None else beta)
 
     @property

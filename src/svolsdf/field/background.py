@@ -1,4 +1,4 @@
-"""NeRF++ inverted-sphere background for unbounded scenes (METHOD.md 5.5).
+"""NeRF++ inverted-sphere background for unbounded scenes (docs/method.md 5.5).
 
 Points outside the bounding sphere |x| = R are parameterised by their inverse radius
 u = 1/r in [0, 1/R] and the unit direction where the ray meets the sphere of radius r, mapped
@@ -22,7 +22,7 @@ __all__ = ["BackgroundConfig", "inverted_sphere_points", "NeRFColourNetwork",
 
 @dataclass
 class BackgroundConfig:
-    """Background model constants (METHOD.md 5.5)."""
+    """Background model constants (docs/method.md 5.5)."""
 
     n_samples: int = 32
     """Inverse-radius samples per ray."""
@@ -46,7 +46,7 @@ class BackgroundConfig:
 
 def inverted_sphere_points(origins: Tensor, dirs: Tensor, u: Tensor, radius: float
                            ) -> tuple[Tensor, Tensor]:
-    """NeRF++ background points and their ray distances (METHOD.md 5.5).
+    """NeRF++ background points and their ray distances (docs/method.md 5.5).
 
     p_s = o + d_s d on |x| = R; p_m = o - (o.d) d; p_s is rotated about o x p_s by
     asin(|p_m|/R) - asin(|p_m| u) (Rodrigues), normalised and concatenated with u. The ray
@@ -81,7 +81,8 @@ def inverted_sphere_points(origins: Tensor, dirs: Tensor, u: Tensor, radius: flo
 
 
 class NeRFColourNetwork(nn.Module):
-    """"nerf"-mode colour network: [gamma_L(dir), feature] -> 128 -> 3, sigmoid (METHOD.md 5.5)."""
+    """"nerf"-mode colour network: [gamma_L(dir), feature] -> 128 -> 3, sigmoid
+    (docs/method.md 5.5)."""
 
     def __init__(self, feature_dim: int = 256, d_hidden: int = 128, multires_view: int = 4):
         super().__init__()
@@ -96,7 +97,7 @@ class NeRFColourNetwork(nn.Module):
 
 
 class NeRFPlusPlusBackground(nn.Module):
-    """Background radiance field outside the bounding sphere (METHOD.md 5.5).
+    """Background radiance field outside the bounding sphere (docs/method.md 5.5).
 
     Call as ``background(rays, training) -> (rgb (R, 3), sum_k w_k t_k (R,), sum_k w_k (R,))``;
     :func:`svolsdf.render.volume.render_rays` composites it with the foreground transmittance.

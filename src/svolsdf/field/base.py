@@ -1,4 +1,4 @@
-"""`SurfaceModel`: the interface every surface representation implements (ARCHITECTURE.md)."""
+"""`SurfaceModel`: the interface every surface representation implements (docs/architecture.md)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ class SurfaceModel(nn.Module):
     Subclasses: the paper's VolSDF MLP (`svolsdf.field.volsdf`) and the fast grid field.
     """
 
-    #: bounding-sphere radius of the unit frame (METHOD.md 5.2)
+    #: bounding-sphere radius of the unit frame (docs/method.md 5.2)
     radius: float = 3.0
 
     def sdf(self, x: Tensor) -> Tensor:
@@ -26,7 +26,7 @@ class SurfaceModel(nn.Module):
         """x: (N, 3) -> sdf (N,), gradient (N, 3), feature (N, F).
 
         ``clamp=False`` asks for the raw field without the bounding-sphere clamp (the eikonal
-        loss uses it, METHOD.md 4.5); models without a clamp ignore it. The gradient must be
+        loss uses it, docs/method.md 4.5); models without a clamp ignore it. The gradient must be
         returned even when called under ``torch.no_grad()`` (render/ relies on it).
         """
         raise NotImplementedError
@@ -36,7 +36,7 @@ class SurfaceModel(nn.Module):
         raise NotImplementedError
 
     def density(self, sdf: Tensor, beta: Tensor | None = None) -> Tensor:
-        """sdf: (...) -> sigma (...) >= 0 (Laplace density, METHOD.md 5.4)."""
+        """sdf: (...) -> sigma (...) >= 0 (Laplace density, docs/method.md 5.4)."""
         raise NotImplementedError
 
     @property

@@ -1,6 +1,6 @@
-"""Laplace density of VolSDF (METHOD.md 5.4, paper Eq. 2).
+"""Laplace density of VolSDF (docs/method.md 5.4, paper Eq. 2).
 
-Sign conventions (METHOD.md 5.4 and 9.2.7):
+Sign conventions (docs/method.md 5.4 and 9.2.7):
 
 - Ours (and the released VolSDF / S-VolSDF code): the SDF s is > 0 outside and < 0 inside, and
   sigma(s) = alpha * Psi_beta(-s), with Psi_beta the CDF of a zero-mean Laplace distribution of
@@ -27,7 +27,7 @@ __all__ = ["laplace_density", "LaplaceDensity"]
 
 
 def laplace_density(sdf: Tensor, beta: Tensor | float) -> Tensor:
-    """sigma(s) = (1/beta) (1/2 + 1/2 sign(s) (exp(-|s|/beta) - 1))   (METHOD.md 5.4).
+    """sigma(s) = (1/beta) (1/2 + 1/2 sign(s) (exp(-|s|/beta) - 1))   (docs/method.md 5.4).
 
     Args:
         sdf: (...) signed distances, > 0 outside.
@@ -44,7 +44,7 @@ def laplace_density(sdf: Tensor, beta: Tensor | float) -> Tensor:
 class LaplaceDensity(nn.Module):
     """Laplace density with a learnable scale: beta = |beta_param| + beta_min, alpha = 1/beta.
 
-    METHOD.md 5.4: beta_param initialised to 0.1, beta_min = 1e-4; only beta is learnable.
+    docs/method.md 5.4: beta_param initialised to 0.1, beta_min = 1e-4; only beta is learnable.
     """
 
     def __init__(self, beta_init: float = 0.1, beta_min: float = 1e-4):

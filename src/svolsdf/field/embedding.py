@@ -1,4 +1,4 @@
-"""Positional encoding gamma(x) (METHOD.md 5.1; NeRF/IDR ``embedder.py``)."""
+"""Positional encoding gamma(x) (docs/method.md 5.1; NeRF/IDR ``embedder.py``)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ __all__ = ["positional_encoding", "PositionalEncoding"]
 
 
 def positional_encoding(x: Tensor, multires: int) -> Tensor:
-    """gamma(x) = [x, sin(2^0 x), cos(2^0 x), ..., sin(2^(L-1) x), cos(2^(L-1) x)] (METHOD.md 5.1).
+    """gamma(x) = [x, sin(2^0 x), cos(2^0 x), ..., sin(2^(L-1) x), cos(2^(L-1) x)]
+    (docs/method.md 5.1).
 
     Frequencies are log-spaced 2^0 .. 2^(L-1) with L = ``multires``; per frequency the sin block
     (d values) comes before the cos block (d values), so the output has d + 2 d L channels and its

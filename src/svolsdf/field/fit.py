@@ -2,10 +2,10 @@
 field (issue 28; not in the paper).
 
 S-VolSDF's optimized surface guides MVS stages 2-3, whose depth is finer than the surface that
-guided them (METHOD.md 6.1-6.3): the fused points are more accurate than the field's zero level,
-so a mesh marched from the field is less accurate than ``points.ply``. This module closes the loop
-in the other direction: the SDF grid is refined so that its zero level passes through the fused
-points, while it stays a signed distance (eikonal, METHOD.md 4.5) and smooth where no point
+guided them (docs/method.md 6.1-6.3): the fused points are more accurate than the field's zero
+level, so a mesh marched from the field is less accurate than ``points.ply``. This module closes the
+loop in the other direction: the SDF grid is refined so that its zero level passes through the fused
+points, while it stays a signed distance (eikonal, docs/method.md 4.5) and smooth where no point
 constrains it (`GridSDFField.smoothness_loss`).
 
 Per step, on ``batch`` fused points p and the same points jittered along the field's normal:

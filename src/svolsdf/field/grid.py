@@ -4,13 +4,13 @@ Design (measured by ``benchmarks/field_speed.py``; ``benchmarks/results/field_sp
 
 - Geometry is an explicit dense SDF grid over an axis-aligned box of the unit frame, interpolated
   trilinearly (``grid_sample`` semantics, align_corners=True) and initialised to a sphere SDF
-  |x - c| - r, like VolSDF's geometric init (METHOD.md 5.2). Its spatial gradient is computed in
-  closed form from the 8 gathered corners (`grid_ops.trilinear_with_grad`): on 50k points with an
+  |x - c| - r, like VolSDF's geometric init (docs/method.md 5.2). Its spatial gradient is computed
+  in closed form from the 8 gathered corners (`grid_ops.trilinear_with_grad`): on 50k points with an
   eikonal term this measured ~3.5x faster than autograd through ``grid_sample`` with
   create_graph and ~13x faster than central finite differences at half a cell, and it is exact.
 - Appearance comes from a multi-level dense feature grid (levels at fixed fractions of the SDF
   resolution) feeding a small MLP with the view-direction encoding and the normal, like IDR's
-  rendering network (METHOD.md 5.3) but 2x64 wide. The levels are read by `trilinear_sample`
+  rendering network (docs/method.md 5.3) but 2x64 wide. The levels are read by `trilinear_sample`
   (a corner gather; ~2x faster than the single-threaded ``grid_sample`` 3-D CPU kernel with its
   backward, benchmarks/results/train_step_speed.md).
 - Optionally (``sdf_residual``) the same features feed a second small MLP whose output is added to
@@ -20,8 +20,8 @@ Design (measured by ``benchmarks/field_speed.py``; ``benchmarks/results/field_sp
 - Coarse-to-fine: `upsample` resamples every grid; the caller rebuilds its optimizer from
   `param_groups`. `smoothness_loss` (a Laplacian on the SDF grid) is the regulariser sparse views
   need, `feature_tv_loss` smooths the colour features.
-- Density: VolSDF's Laplace density (METHOD.md 5.4, `svolsdf.field.density`), with a learnable beta
-  and a settable floor `beta_min` that `beta_schedule` can anneal.
+- Density: VolSDF's Laplace density (docs/method.md 5.4, `svolsdf.field.density`), with a learnable
+  beta and a settable floor `beta_min` that `beta_schedule` can anneal.
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ class GridFieldConfig:
     """Number of hidden layers of the colour (and residual) MLP."""
 
     view_multires: int = 1
-    """Positional-encoding frequencies of the view direction (METHOD.md 5.3 uses 1)."""
+    """Positional-encoding frequencies of the view direction (docs/method.md 5.3 uses 1)."""
 
     sdf_residual: bool = False
     """Add a feature-MLP residual to the grid SDF (more expressive, ~2-3x slower per step)."""
@@ -87,16 +87,17 @@ class GridFieldConfig:
     """Centre c of the initial sphere; None = the box centre."""
 
     beta_init: float = 0.1
-    """Initial value of the learnable Laplace beta parameter (METHOD.md 5.4)."""
+    """Initial value of the learnable Laplace beta parameter (docs/method.md 5.4)."""
 
     beta_min: float = 1e-4
-    """Floor added to |beta_param| (METHOD.md 5.4); settable later for annealing."""
+    """Floor added to |beta_param| (docs/method.md 5.4); settable later for annealing."""
 
     sphere_clamp_scale: float | None = 20.0
-    """sdf <- min(sdf, scale (radius - |x|)) as in METHOD.md 5.2 (DTU: 20); None disables it."""
+    """sdf <- min(sdf, scale (radius - |x|)) as in docs/method.md 5.2 (DTU: 20); None disables
+    it."""
 
     radius: float = 3.0
-    """Bounding-sphere radius R of the unit frame for the clamp (METHOD.md 5.2)."""
+    """Bounding-sphere radius R of the unit frame for the clamp (docs/method.md 5.2)."""
 
 
 def beta_schedule(step: int, total_steps: int, start: float, end: float) -> float:
@@ -207,7 +208,8 @@ class GridSDFField(SurfaceModel):
         return torch.stack([xx, yy, zz], dim=-1)
 
     def _sphere_grid(self, shape: tuple[int, int, int]) -> Tensor:
-        """(1, Z, Y, X) sphere SDF |x - c| - r at the nodes (METHOD.md 5.2's geometric init)."""
+        """(1, Z, Y, X) sphere SDF |x - c| - r at the nodes (docs/method.md 5.2's geometric
+        init)."""
         cfg = self.config
         c = (
             self.bounds.mean(0)
@@ -300,7 +302,7 @@ class GridSDFField(SurfaceModel):
 
     def grid_eikonal_loss(self) -> Tensor:
         """() mean over all cells of (|grad f| - 1)^2, grad f by forward differences of the SDF
-        grid (the eikonal constraint of METHOD.md 4.5 on every node, not only at samples)."""
+        grid (the eikonal constraint of docs/method.md 4.5 on every node, not only at samples)."""
         g = self.sdf_grid[0]
         cs = self.cell_size  # (x, y, z)
         base = g[:-1, :-1, :-1]
@@ -352,7 +354,7 @@ class GridSDFField(SurfaceModel):
         return sdf, grad, p
 
     def _clamp(self, x: Tensor, sdf: Tensor, grad: Tensor | None) -> tuple[Tensor, Tensor | None]:
-        """sdf <- min(sdf, s (R - |x|)) (METHOD.md 5.2) and the matching gradient."""
+        """sdf <- min(sdf, s (R - |x|)) (docs/method.md 5.2) and the matching gradient."""
         s = self.config.sphere_clamp_scale
         if s is None:
             return sdf, grad
@@ -368,8 +370,8 @@ class GridSDFField(SurfaceModel):
     def sdf(self, x: Tensor, clamp: bool = True) -> Tensor:
         """x: (N, 3) unit-frame points -> (N,) signed distances (> 0 outside).
 
-        ``clamp`` applies the bounding-sphere clamp (METHOD.md 5.2); the eikonal term uses the
-        raw field (clamp=False, METHOD.md 4.5).
+        ``clamp`` applies the bounding-sphere clamp (docs/method.md 5.2); the eikonal term uses the
+        raw field (clamp=False, docs/method.md 4.5).
         """
         self._check_points(x)
         sdf, _, p = self._grid_sdf(x, with_grad=False)
@@ -410,8 +412,8 @@ class GridSDFField(SurfaceModel):
         """x, view_dir, normal: (N, 3), feature: (N, feature_dim) -> rgb (N, 3) in [0, 1].
 
         MLP([feature, gamma_1(view_dir), normal / |normal|]) with a sigmoid output, an IDR-style
-        rendering network (METHOD.md 5.3) narrowed to `hidden_width`. ``x`` is not an input (the
-        features already encode position); it is checked for shape only.
+        rendering network (docs/method.md 5.3) narrowed to `hidden_width`. ``x`` is not an input
+        (the features already encode position); it is checked for shape only.
         """
         self._check_points(x)
         n = x.shape[0]
@@ -432,7 +434,7 @@ class GridSDFField(SurfaceModel):
         return torch.sigmoid(self.colour_net(h))
 
     def density(self, sdf: Tensor, beta: Tensor | None = None) -> Tensor:
-        """sdf: (...) -> sigma (...) >= 0, VolSDF's Laplace density (METHOD.md 5.4).
+        """sdf: (...) -> sigma (...) >= 0, VolSDF's Laplace density (docs/method.md 5.4).
 
         ``beta`` (scalar or broadcastable) overrides the learned one.
         """
@@ -440,7 +442,7 @@ class GridSDFField(SurfaceModel):
 
     @property
     def beta(self) -> Tensor:
-        """() current Laplace scale beta = |beta_param| + beta_min (METHOD.md 5.4)."""
+        """() current Laplace scale beta = |beta_param| + beta_min (docs/method.md 5.4)."""
         return self.laplace.get_beta()
 
     @property

@@ -1,13 +1,13 @@
 """Initialise the fast preset's SDF grid from the stage-1 MVS depth (not in the paper).
 
-The paper starts VolSDF from a sphere (geometric init, METHOD.md 5.2) and needs tens of
+The paper starts VolSDF from a sphere (geometric init, docs/method.md 5.2) and needs tens of
 thousands of steps to carve it. On a CPU the `fast` preset cannot afford that, and MVS already
 knows roughly where the surface is. So, before the S-VolSDF losses run, the SDF grid is set to a
 signed distance built from the stage-1 depth maps:
 
-1. Each view's expected depth (METHOD.md 2.4) is kept where it is geometrically consistent with
-   at least one other view (the fusion test of METHOD.md 6.3, at the stage-1 resolution) and, when
-   the scene has them, inside the (dilated) object mask. With ``unverified_weight`` w > 0 (the
+1. Each view's expected depth (docs/method.md 2.4) is kept where it is geometrically consistent with
+   at least one other view (the fusion test of docs/method.md 6.3, at the stage-1 resolution) and,
+   when the scene has them, inside the (dilated) object mask. With ``unverified_weight`` w > 0 (the
    fast preset) and masks, the depths inside the mask that fail the test still vote, with w times
    their confidence (without masks they would be mostly background): a part
    of the object that only one view sees has no consistent depth, and without its own votes it
@@ -21,7 +21,7 @@ signed distance built from the stage-1 depth maps:
    else outside.
 3. Only the sign of the fused value is kept; the grid becomes the Euclidean signed distance to
    that sign change (scipy.ndimage.distance_transform_edt on both sides, at the grid spacing), so
-   the initial field already meets the eikonal constraint |grad f| = 1 (METHOD.md 4.5).
+   the initial field already meets the eikonal constraint |grad f| = 1 (docs/method.md 4.5).
 
 The losses then refine this surface exactly as they would refine the sphere.
 """
@@ -51,7 +51,7 @@ def consistent_depths(volumes: list[ProbabilityVolume], masks: Tensor | None = N
     Args:
         volumes: V stage-1 `ProbabilityVolume` (depth (H, W) world z-depth, confidence, cameras).
         masks: optional (V, 1, Hm, Wm) object masks in [0, 1] of the same views.
-        min_views: consistent source views a pixel needs (METHOD.md 6.3).
+        min_views: consistent source views a pixel needs (docs/method.md 6.3).
         unverified_weight: 0 removes the pixels that fail the test; w > 0 keeps those inside
             the (dilated) mask with weight w * confidence. Needs ``masks``: without them the
             unconfirmed depths are mostly background, which would vote for surfaces in empty

@@ -1,6 +1,6 @@
 """The paper's surface model: VolSDF's SDF MLP, Laplace density and IDR colour network.
 
-METHOD.md 5.1-5.4 (``ImplicitNetwork``, ``RenderingNetwork`` mode "idr", ``LaplaceDensity``).
+docs/method.md 5.1-5.4 (``ImplicitNetwork``, ``RenderingNetwork`` mode "idr", ``LaplaceDensity``).
 The SDF is > 0 outside; see :mod:`svolsdf.field.density` for the density's sign convention.
 """
 
@@ -22,7 +22,7 @@ __all__ = ["VolSDFFieldConfig", "SDFNetwork", "IDRRenderingNetwork", "VolSDFFiel
 
 @dataclass
 class VolSDFFieldConfig:
-    """Constants of the paper preset's field (METHOD.md 5.2-5.4)."""
+    """Constants of the paper preset's field (docs/method.md 5.2-5.4)."""
 
     n_layers: int = 8
     """Number of hidden layers of width ``d_hidden`` in the SDF MLP (paper: 8)."""
@@ -35,7 +35,7 @@ class VolSDFFieldConfig:
     feature_dim: int = 256
     """Size of the geometry feature passed to the colour network (paper: 256)."""
     geometric_init: bool = True
-    """IDR geometric initialisation so that the SDF starts as ~ |x| - bias (METHOD.md 5.2)."""
+    """IDR geometric initialisation so that the SDF starts as ~ |x| - bias (docs/method.md 5.2)."""
     bias: float = 0.6
     """Radius of the initial sphere of the geometric init (paper: 0.6)."""
     softplus_beta: float = 100.0
@@ -68,7 +68,7 @@ def _maybe_wn(lin: nn.Linear, on: bool) -> nn.Module:
 
 
 class SDFNetwork(nn.Module):
-    """IDR/VolSDF ``ImplicitNetwork`` (METHOD.md 5.2): gamma(x) -> [sdf, feature].
+    """IDR/VolSDF ``ImplicitNetwork`` (docs/method.md 5.2): gamma(x) -> [sdf, feature].
 
     Layer widths [d_emb, H x n_layers, 1 + F]; a layer in ``skip_in`` takes
     concat(h, gamma(x)) / sqrt(2), so the layer before it outputs H - d_emb channels.
@@ -114,7 +114,7 @@ class SDFNetwork(nn.Module):
         self.act = nn.Softplus(beta=softplus_beta)
 
     def _geometric_init(self, lin, i, dims, out_dim, d_emb, d_in, multires, bias):
-        """METHOD.md 5.2 (IDR, Atzmon & Lipman SAL): the network starts as ~ |x| - bias."""
+        """docs/method.md 5.2 (IDR, Atzmon & Lipman SAL): the network starts as ~ |x| - bias."""
         with torch.no_grad():
             std = math.sqrt(2.0) / math.sqrt(out_dim)
             if i == self.num_linear - 1:
@@ -146,7 +146,7 @@ class SDFNetwork(nn.Module):
 
 
 class IDRRenderingNetwork(nn.Module):
-    """IDR colour network, mode "idr" (METHOD.md 5.3).
+    """IDR colour network, mode "idr" (docs/method.md 5.3).
 
     Input [x (3), gamma_L(view_dir) (3 + 6L), grad sdf (3, unnormalised), feature (F)]
     (271 channels for L = 1, F = 256) -> ReLU MLP -> sigmoid rgb.
@@ -181,7 +181,7 @@ class IDRRenderingNetwork(nn.Module):
 
 
 class VolSDFField(SurfaceModel):
-    """The paper preset's :class:`SurfaceModel` (METHOD.md 5.2-5.4).
+    """The paper preset's :class:`SurfaceModel` (docs/method.md 5.2-5.4).
 
     Example:
         >>> m = VolSDFField(VolSDFFieldConfig(n_layers=2, d_hidden=64, skip_in=()))
@@ -213,7 +213,7 @@ class VolSDFField(SurfaceModel):
             raise ValueError(f"VolSDFField: points must be (N, 3), got {tuple(x.shape)}")
 
     def _clamp(self, sdf: Tensor, x: Tensor) -> Tensor:
-        """sdf <- min(sdf, sphere_scale (R - |x|))  (METHOD.md 5.2)."""
+        """sdf <- min(sdf, sphere_scale (R - |x|))  (docs/method.md 5.2)."""
         if not self.config.sphere_clamp:
             return sdf
         return torch.minimum(sdf, self.config.sphere_scale * (self.radius - x.norm(dim=-1)))
@@ -237,7 +237,7 @@ class VolSDFField(SurfaceModel):
         The gradient is taken by autograd even under ``torch.no_grad()`` (grad mode is enabled
         locally). With ``create_graph=True`` (training) the gradient stays differentiable, as
         the eikonal loss and the colour network's normal input need; otherwise it is detached.
-        ``clamp=False`` gives the raw MLP SDF, which the eikonal loss uses (METHOD.md 4.5).
+        ``clamp=False`` gives the raw MLP SDF, which the eikonal loss uses (docs/method.md 4.5).
         """
         self._check(x)
         with torch.enable_grad():
@@ -255,11 +255,11 @@ class VolSDFField(SurfaceModel):
     # ------------------------------------------------------------------ appearance
     def colour(self, x: Tensor, view_dir: Tensor, normal: Tensor, feature: Tensor) -> Tensor:
         """x, view_dir (ray direction), normal (unnormalised grad sdf): (N, 3), feature (N, F)
-        -> rgb (N, 3) in (0, 1)  (METHOD.md 5.3)."""
+        -> rgb (N, 3) in (0, 1)  (docs/method.md 5.3)."""
         return self.colour_net(x, view_dir, normal, feature)
 
     def density(self, sdf: Tensor, beta: Tensor | None = None) -> Tensor:
-        """sdf: (...) -> sigma (...) (METHOD.md 5.4); ``beta`` overrides the learned scale."""
+        """sdf: (...) -> sigma (...) (docs/method.md 5.4); ``beta`` overrides the learned scale."""
         return self.laplace(sdf, beta)
 
     @property

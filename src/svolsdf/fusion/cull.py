@@ -83,7 +83,7 @@ def cull_by_masks(
         vertices: (V, 3) world points; faces: (F, 3).
         cameras: `Cameras` with V views.
         masks: (V, 1, Hm, Wm) or (V, Hm, Wm) object masks (any resolution; 1 = object).
-        dilation: disk radius in mask pixels (METHOD.md 6.3 uses 12).
+        dilation: disk radius in mask pixels (docs/method.md 6.3 uses 12).
         mode: "any" removes a face outside the mask in any view that sees it (strict);
             "all" removes it only if it is outside in every view that sees it.
 
@@ -128,7 +128,7 @@ def cull_unseen(
     the field's rendered depths of the input views (OUT/field/render_depth), so what remains is
     the surface the views observe; parts hidden from every view, such as cavities inside the
     object that nothing constrains, go. A mask-free twin of the DTU evaluations' culling
-    (METHOD.md 8.3) for surfaces occluded rather than outside the masks.
+    (docs/method.md 8.3) for surfaces occluded rather than outside the masks.
 
     Args:
         vertices: (V, 3) world points; faces: (F, 3).
@@ -181,7 +181,7 @@ def mesh_vertex_depths(vertices: torch.Tensor, cameras, scale: float = 0.5) -> t
 
 
 def mask_cull_dilation(width: int) -> int:
-    """Mask dilation (px) of the mesh culling at an image ``width``: METHOD.md 6.3's 12 px at
+    """Mask dilation (px) of the mesh culling at an image ``width``: docs/method.md 6.3's 12 px at
     1600 wide, scaled, at least 2."""
     return max(2, round(12 * width / 1600))
 
@@ -198,7 +198,7 @@ def cull_to_views(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Keep what the input views can judge: faces inside some view's frustum, with ``masks``
     inside the dilated object mask of every view that sees them (the mesh culling of the DTU
-    evaluations, METHOD.md 8.3), with ``largest`` the largest component, and with ``unseen``
+    evaluations, docs/method.md 8.3), with ``largest`` the largest component, and with ``unseen``
     only faces some view sees (`cull_unseen`).
 
     Visibility comes after the largest component: culling splits the surface where no view
@@ -215,7 +215,7 @@ def cull_to_views(
             depth), "mesh" (the mesh's own vertex z-buffer, `mesh_vertex_depths`), or None (not
             available: a warning, and hidden faces are kept).
         rel_tol: `cull_unseen`'s relative depth slack.
-        largest: keep only the largest connected component (METHOD.md 8.3, for a field's
+        largest: keep only the largest connected component (docs/method.md 8.3, for a field's
             zero level, whose other components are floaters); False keeps every part.
 
     Returns:

@@ -1,13 +1,13 @@
 """Geometric-consistency filtering of depth maps and their fusion into a coloured point cloud.
 
-Implements METHOD.md 6.3 (the released ``runner.py::filter_depth`` and
+Implements docs/method.md 6.3 (the released ``runner.py::filter_depth`` and
 ``helpers/utils.py::check_geometric_consistency``), vectorized in torch:
 
 1. Each view is the reference once; every other view is a source.
 2. A reference pixel is consistent with a source if its depth, carried to the source, sampled
    there (bilinear) and carried back, lands within ``dist_thresh`` pixels of where it started and
    within a relative depth difference ``rel_thresh`` (`svolsdf.geometry.reproject`).
-3. Optionally (not in METHOD.md; the fast preset's ``output.fusion_surface``), a pixel whose
+3. Optionally (not in docs/method.md; the fast preset's ``output.fusion_surface``), a pixel whose
    depth lies on the optimized surface (its rendered depth in the reference view, within a
    relative tolerance) counts as one more consistent source; not for a depth map that is the
    surface's own depth.
@@ -60,7 +60,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class FusionConfig:
-    """Depth-map filtering and fusion (METHOD.md 6.3)."""
+    """Depth-map filtering and fusion (docs/method.md 6.3)."""
 
     dist_thresh: float = 1.0
     """Largest reprojection distance, in pixels of the reference depth map, for a source to count
@@ -76,7 +76,7 @@ class FusionConfig:
 
     conf_thresh: float = 0.0
     """Photometric filter: keep pixels whose confidence is strictly greater than this. The default
-    0 reproduces the released code, where conf > 0 removes (almost) nothing (METHOD.md 9.2.9);
+    0 reproduces the released code, where conf > 0 removes (almost) nothing (docs/method.md 9.2.9);
     the paper's probability-based check needs a positive value, e.g. 0.3 for conf1*conf2*conf3.
     Ignored when no confidences are given."""
 
@@ -86,7 +86,7 @@ class FusionConfig:
 
     mask_dilation: int = 12
     """Radius in pixels of the disk the masks are dilated with, at the mask's native resolution,
-    before they are resized to the depth resolution (METHOD.md 6.3)."""
+    before they are resized to the depth resolution (docs/method.md 6.3)."""
 
     primary_mask_dilation: int | None = None
     """Dilation radius for the references of ``depths`` (the first hypothesis) when it should
@@ -181,7 +181,7 @@ def fuse_depth_maps(
     extra_confidences: dict[str, dict[int, Tensor]] | None = None,
     device: torch.device | str | None = None,
 ) -> FusedPoints:
-    """Filter every depth map against the others and fuse the survivors (METHOD.md 6.3).
+    """Filter every depth map against the others and fuse the survivors (docs/method.md 6.3).
 
     Each view is the reference once with all other views as sources. A pixel survives if
     ``#consistent >= cfg.min_consistent`` (geometric), ``conf > cfg.conf_thresh`` (photometric,
@@ -191,7 +191,7 @@ def fuse_depth_maps(
     reference camera into world coordinates (the cameras' units).
 
     With ``alt_depths`` every view has a second depth hypothesis (the pipeline's unguided MVS
-    stages 2-3, `OutputConfig.fusion_unguided`; an extension of METHOD.md 6.3). Each hypothesis
+    stages 2-3, `OutputConfig.fusion_unguided`; an extension of docs/method.md 6.3). Each hypothesis
     of each view is a reference in turn; a source view is consistent when either of its
     hypotheses agrees (it still counts once, and its reprojected depth is the first hypothesis
     that agrees, ``depths`` before ``alt_depths``). The points of both are returned, the
@@ -361,7 +361,7 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         dil = dilate_mask(masks[ref], radius)
         inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
         keep &= inside
-    fused = (d_sum / (1 + count).double()).float()  # METHOD.md 6.3, "Fused depth"
+    fused = (d_sum / (1 + count).double()).float()  # docs/method.md 6.3, "Fused depth"
 
     uv = cam_ref.pixel_grid(device=d_ref.device, dtype=torch.float64).reshape(1, -1, 2)
     cam64 = cam_ref.to(device=d_ref.device, dtype=torch.float64)

@@ -1,7 +1,7 @@
 """Mesh extraction from an SDF and mesh cleaning: marching cubes, world transform, largest
 component, vertex colours, writing (culling by the input views: `svolsdf.fusion.cull`).
 
-METHOD.md 8.3, "Mesh export": marching cubes at resolution 512 of the SDF in the unit frame,
+docs/method.md 8.3, "Mesh export": marching cubes at resolution 512 of the SDF in the unit frame,
 mapped to world coordinates by the normalization (``scale_mat``), keeping the largest component.
 
 Meshes are (vertices (V, 3) float32, faces (F, 3) int64) torch tensors on the CPU. Faces are
@@ -165,7 +165,7 @@ def extract_mesh(
     dtype: torch.dtype = torch.float32,
     progress: bool = False,
 ) -> tuple[Tensor, Tensor]:
-    """Marching cubes of an SDF on a regular grid in the unit frame (METHOD.md 8.3).
+    """Marching cubes of an SDF on a regular grid in the unit frame (docs/method.md 8.3).
 
     The grid has ``resolution`` points per axis spanning ``bounds`` (both ends included). The SDF
     is evaluated under ``torch.no_grad`` in chunks of ``chunk`` points (memory: the grid's
@@ -264,7 +264,7 @@ def submesh(vertices: Tensor, faces: Tensor, keep_faces: Tensor) -> tuple[Tensor
 def largest_component(vertices: Tensor, faces: Tensor, return_index: bool = False):
     """The connected component (faces sharing vertices) with the largest surface area.
 
-    As VolSDF's mesh export (METHOD.md 8.3: "the largest component is kept"), which splits the
+    As VolSDF's mesh export (docs/method.md 8.3: "the largest component is kept"), which splits the
     mesh and keeps the component of largest area.
 
     Args:
@@ -347,7 +347,7 @@ def model_colour_fn(model) -> Callable[[Tensor, Tensor], Tensor]:
     """A ``colour_fn`` for `colors_from_fn` from a `SurfaceModel` (unit frame).
 
     The colour network sees each vertex along its inward normal (view direction = -normal), with
-    the SDF gradient as its normal input and the SDF feature (ARCHITECTURE.md, `SurfaceModel`).
+    the SDF gradient as its normal input and the SDF feature (docs/architecture.md, `SurfaceModel`).
     Gradients are computed (the field's normal may need autograd) but not kept.
     """
 

@@ -1,4 +1,4 @@
-"""A reconstruction's mesh: the zero level of the field (marching cubes, METHOD.md 8.3), the
+"""A reconstruction's mesh: the zero level of the field (marching cubes, docs/method.md 8.3), the
 screened Poisson surface of the fused points, or the TSDF of the observed final depth, each
 culled to what the input views can judge (`svolsdf.fusion.cull.cull_to_views`), then, as
 options, to what they did not see as empty and to what the fused points support

@@ -6,7 +6,7 @@ The standard visibility argument of MVS meshing (the free-space constraint behin
 depth-map fusion, e.g. Curless and Levoy 1996, Merrell et al. 2007): a view that observed a
 surface at depth d along a pixel's ray saw empty space in front of it, so a mesh face lying
 clearly in front of d along that ray is not there. Only depths that the fused points confirm
-count as observed (a pixel whose depth survived the multi-view filter, METHOD.md 6.3), so an
+count as observed (a pixel whose depth survived the multi-view filter, docs/method.md 6.3), so an
 outlier of one depth map carves nothing.
 
 Depth maps are (H, W) float z-depth in world units, 0 where there is none; points are (N, 3)
@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 def final_depth_step(depth_range: Tensor, width: str = "paper", stage: int = 3) -> Tensor:
     """(V,) depth step of the cascade's final stage per view: r Δ̄, Δ̄ = (d_max - d_min) / 192
-    (METHOD.md 2.5; DTU: 0.5 x 2.64 = 1.32 mm).
+    (docs/method.md 2.5; DTU: 0.5 x 2.64 = 1.32 mm).
 
     Args:
         depth_range: (V, 2) [near, far] z-depth per view, world units (`Scene.depth_range`).

@@ -1,5 +1,5 @@
 """Object-mask helpers: dilation with a disk and resizing to a depth map's resolution, as
-METHOD.md 6.3's evaluation mask does.
+docs/method.md 6.3's evaluation mask does.
 
 Fusion, the field's initialisation from MVS depth, mesh culling and the pipeline's ray selection
 all dilate masks, so the helpers live below those stages, not in one stage's folder.
@@ -19,7 +19,7 @@ __all__ = [
 
 
 def dilate_mask(mask: Tensor, radius: int) -> Tensor:
-    """Binary dilation with a disk of ``radius`` pixels (METHOD.md 6.3, "Evaluation mask").
+    """Binary dilation with a disk of ``radius`` pixels (docs/method.md 6.3, "Evaluation mask").
 
     Equal to ``scipy.ndimage.binary_dilation`` with ``skimage.morphology.disk(radius)`` (pixels
     with dx^2 + dy^2 <= radius^2), computed with a Euclidean distance transform so the cost does
@@ -43,7 +43,7 @@ def dilate_mask(mask: Tensor, radius: int) -> Tensor:
 
 
 def mask_to_depth_resolution(mask: Tensor, height: int, width: int) -> Tensor:
-    """Resize a binary mask to the depth resolution: bilinear, then > 0 (METHOD.md 6.3).
+    """Resize a binary mask to the depth resolution: bilinear, then > 0 (docs/method.md 6.3).
 
     Args:
         mask: (H, W) bool or float.

@@ -1,6 +1,6 @@
 """Forward-backward reprojection check of a depth map against another view's depth map.
 
-Implements the geometric check of METHOD.md 6.3 (the released
+Implements the geometric check of docs/method.md 6.3 (the released
 ``helpers/utils.py::check_geometric_consistency``), vectorized in torch: a reference pixel is
 consistent with a source if its depth, carried to the source, sampled there (bilinear) and
 carried back, lands within ``dist_thresh`` pixels of where it started and within a relative
@@ -13,7 +13,7 @@ Depth is z-depth in the cameras' world units; pixel centres sit at integer coord
 (`svolsdf.scene.cameras`).
 
 ``check_geometric_consistency_reference`` is a slow per-pixel twin of the vectorized check, kept
-for the tests (STYLE.md habit 5).
+for the tests (docs/style.md habit 5).
 """
 
 from __future__ import annotations
@@ -59,10 +59,10 @@ def check_geometric_consistency(
 ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
     """Forward-backward depth consistency of a reference depth map against one source.
 
-    METHOD.md 6.3, "Geometric check, per source": back-project every reference pixel (u, v) with
-    its depth d, project into the source at (x_s, y_s), sample the source depth there bilinearly,
-    back-project that source point and reproject it into the reference at (u', v') with z-depth
-    d'. The pixel is consistent if ||(u', v') - (u, v)|| < dist_thresh and
+    docs/method.md 6.3, "Geometric check, per source": back-project every reference pixel (u, v)
+    with its depth d, project into the source at (x_s, y_s), sample the source depth there
+    bilinearly, back-project that source point and reproject it into the reference at (u', v') with
+    z-depth d'. The pixel is consistent if ||(u', v') - (u, v)|| < dist_thresh and
     |d' - d| / d < rel_thresh.
 
     The bilinear sample counts as valid only if every source pixel with a non-zero bilinear weight

@@ -1,4 +1,5 @@
-"""Image-based rendering with Laplacian-pyramid blending (METHOD.md 7) and orbit camera paths."""
+"""Image-based rendering with Laplacian-pyramid blending (docs/method.md 7) and orbit camera
+paths."""
 
 from svolsdf.ibr.blend import (
     IBRConfig,

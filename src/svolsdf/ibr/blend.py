@@ -1,10 +1,11 @@
-"""Image-based rendering: warp the input views to a target by depth and blend them (METHOD.md 7).
+"""Image-based rendering: warp the input views to a target by depth and blend them
+(docs/method.md 7).
 
 For a target camera with a rendered z-depth map and a rendered (fallback) colour image, and V
 source views with their images and rendered depths:
 
-1. Geometric consistency of the target depth against each source depth (METHOD.md 7 step 1, the
-   METHOD.md 6.3 procedure at 2 px / 1 %), through
+1. Geometric consistency of the target depth against each source depth (docs/method.md 7 step 1, the
+   docs/method.md 6.3 procedure at 2 px / 1 %), through
    `svolsdf.geometry.reproject.check_geometric_consistency`.
 2. Warped colour c_j: each source image sampled where the target pixels project (step 2).
 3. View-direction cosine cos_j = <d_t, d_j> between the unit rays from the target and from
@@ -13,7 +14,7 @@ source views with their images and rendered depths:
 5. Filled candidates and blend masks (steps 5-6), then a 4-level Laplacian-pyramid blend of the
    candidates and the rendered colour (step 7).
 
-Paper vs released code (METHOD.md 7 and 9.2.11). The paper states only: softmax over the
+Paper vs released code (docs/method.md 7 and 9.2.11). The paper states only: softmax over the
 view-direction cosine at temperature 20, the rendered colour as the fallback, and 4-level
 Laplacian blending. `IBRConfig()` implements that reading:
 
@@ -22,7 +23,7 @@ Laplacian blending. `IBRConfig()` implements that reading:
 - candidate j is the warped colour where source j is consistent and the rendered colour
   elsewhere; blend masks M_j = W_j, M_render = 1 - sum_j W_j.
 
-`IBRConfig.released()` reproduces the released ``simple_ibr.py`` (METHOD.md 7 steps 1-7): the
+`IBRConfig.released()` reproduces the released ``simple_ibr.py`` (docs/method.md 7 steps 1-7): the
 rendered colour is a fourth softmax candidate with constant score 0.2 and inconsistent sources
 score 0 (not excluded), candidates are filled as img'_j = c_j W_j + rendered (1 - W_j), masks
 are M_j = erode_5x5(W_j > 0.2) W_j and M_render = W_render + 0.01, and colours are warped
@@ -66,20 +67,20 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class IBRConfig:
-    """Image-based rendering with Laplacian-pyramid blending (METHOD.md 7).
+    """Image-based rendering with Laplacian-pyramid blending (docs/method.md 7).
 
     The defaults follow the paper; `IBRConfig.released` gives the released ``simple_ibr.py``.
     """
 
     dist_thresh: float = 2.0
     """Geometric check: largest forward-backward reprojection distance, in target pixels
-    (METHOD.md 7 step 1; the released value, the paper gives none)."""
+    (docs/method.md 7 step 1; the released value, the paper gives none)."""
 
     rel_thresh: float = 0.01
-    """Geometric check: largest relative depth difference |d' - d| / d (METHOD.md 7 step 1)."""
+    """Geometric check: largest relative depth difference |d' - d| / d (docs/method.md 7 step 1)."""
 
     temperature: float = 20.0
-    """Softmax temperature: weights are softmax(temperature * cos) (METHOD.md 7 step 4)."""
+    """Softmax temperature: weights are softmax(temperature * cos) (docs/method.md 7 step 4)."""
 
     fallback: Literal["holes", "softmax"] = "holes"
     """How the rendered colour enters the weights. "holes" (paper): only where no source is
@@ -93,14 +94,14 @@ class IBRConfig:
     fill: Literal["replace", "weighted"] = "replace"
     """How each source candidate is completed before the pyramid blend. "replace" (ours, the
     paper is silent): the warped colour where the source is consistent, the rendered colour
-    elsewhere. "weighted" (released, METHOD.md 7 step 5): c_j W_j + rendered (1 - W_j)."""
+    elsewhere. "weighted" (released, docs/method.md 7 step 5): c_j W_j + rendered (1 - W_j)."""
 
     colour_interp: Literal["bilinear", "bicubic"] = "bilinear"
     """Interpolation of the source colours at the warped positions (released: bicubic, like
     ``cv2.remap(INTER_CUBIC)``; torch's bicubic uses the same a = -0.75 kernel)."""
 
     mask_threshold: float = 0.0
-    """Blend mask of source j: erode(W_j > mask_threshold) * W_j (released: 0.2; METHOD.md 7
+    """Blend mask of source j: erode(W_j > mask_threshold) * W_j (released: 0.2; docs/method.md 7
     step 6). With 0 and no erosion the mask is W_j itself."""
 
     mask_erosion: int = 0
@@ -111,14 +112,15 @@ class IBRConfig:
     """Added to the rendered colour's blend mask before normalization (released: 0.01)."""
 
     pyramid_levels: int = 4
-    """Number of Laplacian-pyramid levels (METHOD.md 7 step 7: 4); 1 = plain per-pixel blend."""
+    """Number of Laplacian-pyramid levels (docs/method.md 7 step 7: 4); 1 = plain per-pixel
+    blend."""
 
     clip: bool = True
-    """Clip the blended image to [0, 1] (METHOD.md 7 step 7)."""
+    """Clip the blended image to [0, 1] (docs/method.md 7 step 7)."""
 
     @classmethod
     def released(cls, **overrides) -> IBRConfig:
-        """The released ``simple_ibr.py`` settings (METHOD.md 7 and 9.2.11), for reproducing
+        """The released ``simple_ibr.py`` settings (docs/method.md 7 and 9.2.11), for reproducing
         its numbers."""
         base = cls(
             fallback="softmax",
@@ -151,7 +153,7 @@ class IBRResult(NamedTuple):
     """The result of `ibr_render`; H x W is the target camera's size, V the number of sources.
 
     Attributes:
-        rgb: (3, H, W) float, the Laplacian-blended image in [0, 1] (METHOD.md 7 step 7).
+        rgb: (3, H, W) float, the Laplacian-blended image in [0, 1] (docs/method.md 7 step 7).
         composite: (3, H, W) float, the same blend without the pyramid (sum_j M_j img'_j).
         weights: (V, H, W) float, softmax weights W_j of the sources.
         weight_sum: (H, W) float, sum_j W_j: the share of the colour taken from the sources
@@ -196,7 +198,7 @@ def warp_sources(
     src_depths: Tensor,
     cfg: IBRConfig | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Warp every source image to the target by the target depth (METHOD.md 7 steps 1-3).
+    """Warp every source image to the target by the target depth (docs/method.md 7 steps 1-3).
 
     Args:
         target_cam: `Cameras` with one view, size W x H.
@@ -245,7 +247,7 @@ def warp_sources(
         valid[j] = m.to(dev)
     valid &= ok_t[None] & (z_s.reshape(V, H, W) > 0)
 
-    # METHOD.md 7 step 3: the released code samples the source ray-direction map at (x_s, y_s);
+    # docs/method.md 7 step 3: the released code samples the source ray-direction map at (x_s, y_s);
     # the ray through that point is the ray to x itself, computed here exactly.
     d_tgt = F.normalize(x - tcam.centers[0], dim=-1)  # (HW, 3)
     d_src = F.normalize(x[None] - scams.centers[:, None], dim=-1)  # (V, HW, 3)
@@ -257,7 +259,7 @@ def warp_sources(
 def view_softmax_weights(
     cos: Tensor, valid: Tensor, cfg: IBRConfig | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Per-pixel blending weights from the view-direction cosines (METHOD.md 7 step 4).
+    """Per-pixel blending weights from the view-direction cosines (docs/method.md 7 step 4).
 
     ``cfg.fallback == "holes"`` (paper):
         W_j = m_j exp(T cos_j) / sum_k m_k exp(T cos_k), W_render = 0 where some m_k = 1;
@@ -298,7 +300,7 @@ def view_softmax_weights(
 def fill_candidates(
     colours: Tensor, valid: Tensor, W: Tensor, rendered: Tensor, cfg: IBRConfig | None = None
 ) -> Tensor:
-    """Complete each warped source with the rendered colour (METHOD.md 7 step 5).
+    """Complete each warped source with the rendered colour (docs/method.md 7 step 5).
 
     "replace": img'_j = c_j where m_j, rendered elsewhere. "weighted" (released):
     img'_j = c_j W_j + rendered (1 - W_j).
@@ -352,7 +354,8 @@ def _pad_to_multiple(x: Tensor, k: int) -> tuple[Tensor, int, int]:
 
 
 def laplacian_blend(images: Tensor, masks: Tensor, levels: int = 4) -> Tensor:
-    """Multi-band (Laplacian-pyramid) blend of N images with per-pixel masks (METHOD.md 7 step 7).
+    """Multi-band (Laplacian-pyramid) blend of N images with per-pixel masks (docs/method.md 7 step
+    7).
 
     Gaussian pyramids G_0..G_{L-1} of each image (``kornia`` ``pyrdown``); Laplacian stack
     [G_{L-1}, G_{L-2} - up(G_{L-1}), ..., G_0 - up(G_1)]; the masks' Gaussian pyramids weight
@@ -435,9 +438,9 @@ def ibr_render(
     src_depths: Tensor,
     cfg: IBRConfig | None = None,
 ) -> IBRResult:
-    """Image-based rendering of one target view from V source views (METHOD.md 7).
+    """Image-based rendering of one target view from V source views (docs/method.md 7).
 
-    Steps 1-7 of METHOD.md 7: geometric consistency of the target depth against each source
+    Steps 1-7 of docs/method.md 7: geometric consistency of the target depth against each source
     depth (``cfg.dist_thresh`` px, ``cfg.rel_thresh``), warped colours, view-direction cosines,
     softmax weights at temperature ``cfg.temperature`` with the rendered colour as the fallback
     (`view_softmax_weights`), filled candidates (`fill_candidates`), blend masks, and a
@@ -473,7 +476,7 @@ def ibr_render(
     W, W_r = view_softmax_weights(cos, valid, cfg)
     cands = fill_candidates(colours, valid, W, rendered, cfg)
 
-    # METHOD.md 7 step 6: M_j = erode(W_j > thr) W_j, M_render = W_render + bias, normalized.
+    # docs/method.md 7 step 6: M_j = erode(W_j > thr) W_j, M_render = W_render + bias, normalized.
     m_src = erode(W > cfg.mask_threshold, cfg.mask_erosion).to(dt) * W
     m_r = W_r + cfg.fallback_mask_bias
     masks = torch.cat([m_src, m_r[None]], dim=0)

@@ -124,7 +124,7 @@ def read_mask(path: str | Path) -> Tensor:
 
     Foreground is where the alpha channel (if the file has one) or else the brightest colour
     channel is > 127 of 255 (DTU/IDR masks are RGB 0/255; BlendedMVS masks keep it in alpha,
-    METHOD.md 1.1).
+    docs/method.md 1.1).
 
     Args:
         path: mask image file.
@@ -146,7 +146,7 @@ def read_mask(path: str | Path) -> Tensor:
 
 
 def resize_image(image: Tensor, width: int, height: int) -> Tensor:
-    """Bicubic resize (antialiased when shrinking), as METHOD.md 1.3 resizes inputs.
+    """Bicubic resize (antialiased when shrinking), as docs/method.md 1.3 resizes inputs.
 
     Args:
         image: (C, H, W) or (N, C, H, W) float in [0, 1].

@@ -4,8 +4,8 @@ Files are written atomically: the data go to a uniquely named temporary file in 
 which then replaces ``path`` with :func:`os.replace`, so a killed run never leaves a half-written
 file behind, and a failed write (a full disk) removes it and names ``path``.
 
-Conventions: coordinates are float32 in the writer's world units (ARCHITECTURE.md "Conventions":
-DTU millimetres); colours are uchar RGB; binary little-endian PLY.
+Conventions: coordinates are float32 in the writer's world units (docs/architecture.md
+"Conventions": DTU millimetres); colours are uchar RGB; binary little-endian PLY.
 """
 
 from __future__ import annotations

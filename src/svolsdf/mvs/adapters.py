@@ -2,7 +2,8 @@
 
 A network that predicts one depth d̂ and a confidence c in [0, 1] per pixel (PatchmatchNet and its
 kind) has no probability volume. `DepthConfidenceAdapter` makes one on each stage's hypotheses
-(METHOD.md 2.5) as a discretized Laplacian centred on d̂ whose scale grows as the confidence drops:
+(docs/method.md 2.5) as a discretized Laplacian centred on d̂ whose scale grows as the confidence
+drops:
 
     b = Δ · (b_min + (1 - c) (b_max - b_min))
 
@@ -14,7 +15,7 @@ depth axis into bins with edges e_0 = -inf, e_k = (d_{k-1} + d_k)/2, e_D = +inf,
 
 so the probabilities sum to 1 exactly, stay finite for any b (no exp underflow to 0/0), and a d̂
 outside the hypothesis range puts its mass on the nearest end bin (the open outer bins). The
-volume's depth and confidence are then the expectation and the 4-bin sum (METHOD.md 2.4), like
+volume's depth and confidence are then the expectation and the 4-bin sum (docs/method.md 2.4), like
 every backbone's.
 
 The network runs once per reference view (at the scene's working size, or ``net_size``); each stage
@@ -22,7 +23,7 @@ only rebuilds the distribution on its own hypotheses, centred on the guide depth
 stage's depth at stages 2-3 like the cascade.
 
 A network that can start from a depth map (``can_start_from_depth``: PatchmatchNet) is also run a
-second time when stage 2 gets a guide depth (the optimized surface's rendered depth, METHOD.md
+second time when stage 2 gets a guide depth (the optimized surface's rendered depth, docs/method.md
 6.1), starting from that guide instead of its own initialisation (``AdapterConfig.guide_init``).
 That is this family's form of S-VolSDF's guidance: the surface replaces the network's coarse
 estimate, as it replaces CasMVSNet's stage-1 depth. Stages 2 and 3 of that cascade then centre
@@ -139,13 +140,13 @@ class AdapterConfig:
     """Options of a depth + confidence adapter."""
 
     ndepths: tuple[int, int, int] = STAGE_DEPTHS
-    """Hypotheses per stage (METHOD.md 0)."""
+    """Hypotheses per stage (docs/method.md 0)."""
     width_mode: str = "paper"
     """Finer-stage search width, "paper" or "released" (`svolsdf.mvs.hypotheses`)."""
     inverse_depth: bool = False
-    """Stage-1 planes uniform in inverse depth (METHOD.md 2.5)."""
+    """Stage-1 planes uniform in inverse depth (docs/method.md 2.5)."""
     max_sources: int = MAX_SOURCES
-    """Source views per reference, the best by pair score (`select_sources`, METHOD.md 1.4: at
+    """Source views per reference, the best by pair score (`select_sources`, docs/method.md 1.4: at
     most 4, as released); <= 0: every other loaded view."""
     b_min: float = 0.5
     """Laplacian scale at confidence 1, in hypothesis intervals."""
@@ -265,7 +266,7 @@ class DepthConfidenceAdapter(MVSBackbone):
         """Stage ``k``'s volumes (see `MVSBackbone.stage`) around the network's depth.
 
         Hypotheses: stage 1 planes over the depth range; stages 2-3 centred on
-        ``guide_depth[view]`` or ``prev[view].depth`` (METHOD.md 2.5). Probabilities:
+        ``guide_depth[view]`` or ``prev[view].depth`` (docs/method.md 2.5). Probabilities:
         :func:`laplacian_prob` with scale from the confidence (module docstring), on the
         network's prediction: the guided one (`AdapterConfig.guide_init`) when this stage has a
         guide, or when ``prev[view]`` is a volume this adapter made from the guided one; else

@@ -1,19 +1,19 @@
 """The `MVSBackbone` protocol, the backbone registry, and helpers shared by all backbones.
 
 A backbone turns a `Scene` into per-view `ProbabilityVolume`s, one cascade stage at a time
-(ARCHITECTURE.md "Interfaces"). Every view of the scene is the reference once; its sources are the
-other views of the scene, ordered by ``scene.source_views`` (METHOD.md 1.4).
+(docs/architecture.md "Interfaces"). Every view of the scene is the reference once; its sources are
+the other views of the scene, ordered by ``scene.source_views`` (docs/method.md 1.4).
 
 Stage k (1-based, of ``num_stages`` = 3) works at 1 / 2^(3 - k) of the backbone's MVS size
-(stage 1 at 1/4, stage 2 at 1/2, stage 3 at full size), like CasMVSNet (METHOD.md 1.3, 2.5). The
-MVS size is a multiple of the scene's working size (`mvs_size`): 2x for the plane sweep and for
-CasMVSNet (x2_mvsres), as the released code runs (METHOD.md 9.2.2).
+(stage 1 at 1/4, stage 2 at 1/2, stage 3 at full size), like CasMVSNet (docs/method.md 1.3, 2.5).
+The MVS size is a multiple of the scene's working size (`mvs_size`): 2x for the plane sweep and for
+CasMVSNet (x2_mvsres), as the released code runs (docs/method.md 9.2.2).
 
 Backbones are created by name with :func:`get_backbone`; the built-in names are resolved lazily
 (no import work happens until a backbone is requested):
 
 - ``planesweep``: `svolsdf.mvs.planesweep.PlaneSweepBackbone` (training-free, the default)
-- ``casmvsnet``: `svolsdf.mvs.casmvsnet.CasMVSNetBackbone` (METHOD.md 2; needs ``weights``)
+- ``casmvsnet``: `svolsdf.mvs.casmvsnet.CasMVSNetBackbone` (docs/method.md 2; needs ``weights``)
 - ``patchmatchnet``: `svolsdf.mvs.adapters.PatchmatchNetBackbone` (TorchScript weights)
 
 Other backbones can be added with :func:`register_backbone`.
@@ -118,8 +118,8 @@ class MVSBackbone(ABC):
             scene: the views (images (V,3,H,W), cameras, depth ranges) at the working size.
             ref_ids: view ids to use as reference, default all of ``scene.view_ids``.
             guide_depth: view id -> (H', W') z-depth (world units, any size) that centres this
-                stage's hypotheses instead of the previous stage's depth (METHOD.md 6.1). Ignored
-                at stage 1.
+                stage's hypotheses instead of the previous stage's depth (docs/method.md 6.1).
+                Ignored at stage 1.
             prev: view id -> the previous stage's volume of that view; required at k > 1 for views
                 without a guide depth.
 
@@ -225,13 +225,13 @@ def stage_size(k: int, width: int, height: int, num_stages: int = NUM_STAGES) ->
 
 
 def stage_cameras(cameras: Cameras, k: int, num_stages: int = NUM_STAGES) -> Cameras:
-    """Cameras resized to stage ``k``'s size (METHOD.md 1.3; c' = s (c + 0.5) - 0.5)."""
+    """Cameras resized to stage ``k``'s size (docs/method.md 1.3; c' = s (c + 0.5) - 0.5)."""
     W, H = stage_size(k, cameras.width, cameras.height, num_stages)
     return cameras.resize(W, H)
 
 
 def expected_depth(prob: Tensor, depths: Tensor) -> Tensor:
-    """Soft depth regression sum_k P_k d_k (METHOD.md 2.4).
+    """Soft depth regression sum_k P_k d_k (docs/method.md 2.4).
 
     Args:
         prob: (..., D, H, W) probabilities over D.
@@ -244,8 +244,8 @@ def expected_depth(prob: Tensor, depths: Tensor) -> Tensor:
 
 
 def with_expected_depth(volumes: list[ProbabilityVolume]) -> list[ProbabilityVolume]:
-    """Copies of ``volumes`` whose depth (H, W) is the regression sum_k P_k d_k (METHOD.md 2.4),
-    whatever estimate the backbone stored.
+    """Copies of ``volumes`` whose depth (H, W) is the regression sum_k P_k d_k
+    (docs/method.md 2.4), whatever estimate the backbone stored.
 
     The field stage (box, SDF initialisation, the ablations' MVS depth) uses this depth: the
     plane sweep stores the main-mode depth (`PlaneSweepConfig.depth_radius`), which centres its
@@ -283,7 +283,7 @@ def mode_depth(prob: Tensor, depths: Tensor, radius: int = 2) -> Tensor:
 
 
 def photometric_confidence(prob: Tensor) -> Tensor:
-    """CasMVSNet's 4-bin photometric confidence (METHOD.md 2.4).
+    """CasMVSNet's 4-bin photometric confidence (docs/method.md 2.4).
 
     s4_k = sum_{j=k-1}^{k+2} P_j (zero padded), k* = floor(sum_k P_k k) clamped to [0, D-1],
     conf = s4_{k*}.
@@ -315,8 +315,8 @@ def volume_from_prob(
 ) -> ProbabilityVolume:
     """Assemble a `ProbabilityVolume` from (D, H, W) probabilities and hypotheses.
 
-    depth = expectation (METHOD.md 2.4), or with ``depth_radius`` r the expectation over the
-    2r+1 hypotheses around the argmax (`mode_depth`); confidence = 4-bin sum (METHOD.md 2.4).
+    depth = expectation (docs/method.md 2.4), or with ``depth_radius`` r the expectation over the
+    2r+1 hypotheses around the argmax (`mode_depth`); confidence = 4-bin sum (docs/method.md 2.4).
     """
     depth = (expected_depth(prob, depths) if depth_radius is None
              else mode_depth(prob, depths, depth_radius))
@@ -332,13 +332,13 @@ def volume_from_prob(
     )
 
 
-#: Source views per reference (METHOD.md 1.4: the released code feeds at most 5 views).
+#: Source views per reference (docs/method.md 1.4: the released code feeds at most 5 views).
 MAX_SOURCES = 4
 
 
 def select_sources(scene: Scene, ref_id: int, max_sources: int = MAX_SOURCES) -> list[int]:
     """Source view ids of reference ``ref_id`` among the loaded views: `Scene.source_views`
-    order (pair score first, METHOD.md 1.4), at most ``max_sources`` of them (<= 0: all).
+    order (pair score first, docs/method.md 1.4), at most ``max_sources`` of them (<= 0: all).
 
     The released code builds each reference's MVS input from at most 5 views (the reference and
     4 sources), so with 3 input views every other view is a source, as here; with more inputs the
@@ -360,7 +360,8 @@ def check_depth_ranges(scene: Scene, ref_ids: list[int] | None = None) -> None:
 
 
 def upsample_depth(depth: Tensor, width: int, height: int) -> Tensor:
-    """Bilinearly resize (H, W) depth to (height, width), align_corners=False (METHOD.md 2.5)."""
+    """Bilinearly resize (H, W) depth to (height, width), align_corners=False
+    (docs/method.md 2.5)."""
     if depth.shape == (height, width):
         return depth
     return F.interpolate(

@@ -1,6 +1,6 @@
 """Running the cascade (stages 1..3) for a set of views, and writing its outputs.
 
-METHOD.md 0 and 6.1: stage 1 runs on the images; an optional guide depth per view (e.g. the
+docs/method.md 0 and 6.1: stage 1 runs on the images; an optional guide depth per view (e.g. the
 optimized surface's rendered depth) replaces stage 1's depth as the centre of stage 2's hypotheses;
 stage 3 is centred on stage 2's depth.
 """
@@ -40,7 +40,7 @@ def run_cascade(
         backbone: an `MVSBackbone`.
         scene: the scene at the working size.
         guide_depth: view id -> (H', W') z-depth centring stage 2 instead of stage 1's depth
-            (METHOD.md 6.1; the first listed stage > 1 if 2 is not listed). Stage 1 still runs
+            (docs/method.md 6.1; the first listed stage > 1 if 2 is not listed). Stage 1 still runs
             when listed in ``stages`` (its volumes are the
             prior), but its depth is not used to centre stage 2 for views with a guide.
         stages: increasing stage numbers; a stage > 1 needs the stage before it, a guide depth,
@@ -69,7 +69,7 @@ def run_cascade(
 
 def combined_confidence(volumes: list[ProbabilityVolume], width: int, height: int) -> Tensor:
     """Product of the stages' confidences, each bilinearly resized to (height, width)
-    (METHOD.md 6.2).
+    (docs/method.md 6.2).
 
     Args:
         volumes: one view's volumes of the stages run.
@@ -98,7 +98,7 @@ def save_cascade(result: dict[int, list[ProbabilityVolume]], out_dir: Path | str
 
     Files: ``mvs/stage{k}/{view_id}.npz`` (`ProbabilityVolume.save`, compressed) for every stage
     when ``volumes``; for the last stage run: ``depth/{view_id}.npy`` (z-depth, world units,
-    float32, at its size), ``confidence/{view_id}.npy`` (product over stages, METHOD.md 6.2)
+    float32, at its size), ``confidence/{view_id}.npy`` (product over stages, docs/method.md 6.2)
     and, when ``picture`` is given, ``depth/{view_id}.png`` written by
     ``picture(depth (H,W) ndarray, path)``.
 
@@ -150,7 +150,7 @@ def run_and_save_cascade(
         backbone, scene, stages, guide_depth, prev: as `run_cascade`, for every view of ``scene``.
         out_dir, picture, volumes: as `save_cascade`.
         earlier: stage -> volumes of stages before ``stages`` (e.g. stage 1), which enter each
-            view's combined confidence (METHOD.md 6.2) and, with ``volumes``, are saved too.
+            view's combined confidence (docs/method.md 6.2) and, with ``volumes``, are saved too.
 
     Returns:
         view id -> (H, W) float32 depth of the last stage, on the CPU.

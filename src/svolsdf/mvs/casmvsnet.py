@@ -1,14 +1,14 @@
-"""CasMVSNet (METHOD.md 2): FPN features, variance cost volume, 3D U-Net, softmax, regression.
+"""CasMVSNet (docs/method.md 2): FPN features, variance cost volume, 3D U-Net, softmax, regression.
 
 The modules' ``state_dict()`` keys and shapes are exactly those of the official alibaba
-cascade-stereo DTU model (METHOD.md 2.1), so its checkpoint loads with ``strict=True``:
+cascade-stereo DTU model (docs/method.md 2.1), so its checkpoint loads with ``strict=True``:
 ``feature.conv0.{0,1}.{conv.weight, bn.*}``, ``feature.conv1.{0,1,2}.*``,
 ``feature.conv2.{0,1,2}.*``,
 ``feature.out1.weight``, ``feature.inner{1,2}.{weight,bias}``, ``feature.out{2,3}.weight``,
 ``cost_regularization.{0,1,2}.{conv0..conv6, conv7, conv9, conv11}.{conv.weight, bn.*}`` and
 ``cost_regularization.{i}.prob.weight``. There is no refine net and no other parameter.
 
-Memory. At the paper's MVS resolution (1152x1536 network input, METHOD.md 1.3 and 9.2 item 2)
+Memory. At the paper's MVS resolution (1152x1536 network input, docs/method.md 1.3 and 9.2 item 2)
 the stage-1 variance volume alone is 32 x 192 x 288 x 384 floats (2.7 GB), and the 3D U-Net's
 8-channel full-resolution activations are 0.7 GB each. :meth:`CasMVSNet.regularize` therefore
 never builds the cost volume whole: it streams every 3D convolution of the U-Net over rows of the
@@ -19,7 +19,7 @@ two 8-channel full-size activations plus the chunk budget (``chunk_mb``).
 
 Cameras. The stage-k feature map has stride s = 2^(3-k) in the network input. Its pixel i sits on
 input pixel s*i (stride-2 convolutions with symmetric padding centre output i on input 2i), so
-stage cameras divide K's first two rows by s, as the released code does (METHOD.md 1.3 step 3).
+stage cameras divide K's first two rows by s, as the released code does (docs/method.md 1.3 step 3).
 Image resizes before the network (working size -> x2 MVS size) follow our pixel-centre convention
 (`Cameras.resize`).
 
@@ -87,15 +87,15 @@ log = logging.getLogger(__name__)
 def mvs_input_size(width: int, height: int, x2_mvsres: bool = True) -> tuple[int, int]:
     """Network input (W, H): the working size, doubled with ``x2_mvsres``, rounded to 32.
 
-    METHOD.md 1.3: 576x768 -> 1152x1536 with x2_mvsres; multiples of 32 (METHOD.md 2.4 needs
-    H/4 and D divisible by 8).
+    docs/method.md 1.3: 576x768 -> 1152x1536 with x2_mvsres; multiples of 32 (docs/method.md 2.4
+    needs H/4 and D divisible by 8).
     """
     s = 2 if x2_mvsres else 1
     return max(32, round(s * width / 32) * 32), max(32, round(s * height / 32) * 32)
 
 
 def stride_cameras(cameras: Cameras, stride: int) -> Cameras:
-    """Cameras of a feature map with ``stride``: K[:2] / stride, size / stride (METHOD.md 1.3).
+    """Cameras of a feature map with ``stride``: K[:2] / stride, size / stride (docs/method.md 1.3).
 
     Feature pixel i sits on input pixel stride*i (see the module docstring).
     """
@@ -106,28 +106,29 @@ def stride_cameras(cameras: Cameras, stride: int) -> Cameras:
 
 @dataclass
 class CasMVSNetConfig:
-    """Options of the CasMVSNet backbone (METHOD.md 0 and 2)."""
+    """Options of the CasMVSNet backbone (docs/method.md 0 and 2)."""
 
     ndepths: tuple[int, int, int] = STAGE_DEPTHS
-    """Hypotheses per stage (METHOD.md 0: 192, 32, 8). Each must be divisible by 8."""
+    """Hypotheses per stage (docs/method.md 0: 192, 32, 8). Each must be divisible by 8."""
     width_mode: str = "released"
     """Finer-stage search width: "released" (r = 0.5, 0.5, what the checkpoint was run with in
     the released S-VolSDF code) or "paper" ("half the default width"); see
     `svolsdf.mvs.hypotheses`."""
     x2_mvsres: bool = True
-    """Run the network on the working-size images upsampled 2x (METHOD.md 1.3, 9.2 item 2); the
+    """Run the network on the working-size images upsampled 2x (docs/method.md 1.3, 9.2 item 2); the
     stage-3 volume is then at twice the working size."""
     native_images: bool = False
     """With ``x2_mvsres``, read the images from their files when those are larger than the
     working size (`Scene.images_at`), instead of upsampling the working-size images as the
-    released code does (METHOD.md 9.2.2)."""
+    released code does (docs/method.md 9.2.2)."""
     inverse_depth: bool = False
-    """Stage-1 planes uniform in inverse depth (METHOD.md 2.5, 9.1)."""
+    """Stage-1 planes uniform in inverse depth (docs/method.md 2.5, 9.1)."""
     max_sources: int = MAX_SOURCES
-    """Source views per reference, the best by pair score (`select_sources`, METHOD.md 1.4: at
+    """Source views per reference, the best by pair score (`select_sources`, docs/method.md 1.4: at
     most 4, as released); <= 0: every other loaded view."""
     align_corners_quirk: bool = True
-    """Reproduce CasMVSNet's warping normalization (METHOD.md 2.3), which the checkpoint expects."""
+    """Reproduce CasMVSNet's warping normalization (docs/method.md 2.3), which the checkpoint
+    expects."""
     chunk_mb: float | None = 512.0
     """Memory budget in MB of one row chunk of the cost volume / 3D U-Net; None: unchunked."""
     device: str = "cpu"
@@ -136,7 +137,7 @@ class CasMVSNetConfig:
 
 @register_backbone("casmvsnet")
 class CasMVSNetBackbone(MVSBackbone):
-    """CasMVSNet as an `MVSBackbone`: stage-by-stage probability volumes (METHOD.md 2).
+    """CasMVSNet as an `MVSBackbone`: stage-by-stage probability volumes (docs/method.md 2).
 
     Stage k's volume lives at 1/2^(3-k) of the network input size (``mvs_input_size``; with
     ``x2_mvsres`` stage 3 is at twice the scene's working size, stage 1 at half). Its camera is
@@ -204,7 +205,7 @@ class CasMVSNetBackbone(MVSBackbone):
 
         Stage 1: ``ndepths[0]`` planes over each view's depth range. Stages 2-3: hypotheses centred
         on ``guide_depth[view]`` or else ``prev[view].depth``, bilinearly upsampled to the network
-        input size and resized to the stage (METHOD.md 2.5), interval r * Δ̄ with r from
+        input size and resized to the stage (docs/method.md 2.5), interval r * Δ̄ with r from
         ``width_mode``.
         """
         if k not in (1, 2, 3):
@@ -227,7 +228,8 @@ class CasMVSNetBackbone(MVSBackbone):
             else:
                 centre = _guide(vid, k, guide_depth, prev)
                 centre = upsample_depth(centre.to(projs.device), cams.width, cams.height)
-                if s > 1:  # METHOD.md 2.5 step 3 (trilinear resize; along D it is the identity)
+                # docs/method.md 2.5 step 3 (trilinear resize; along D it is the identity)
+                if s > 1:
                     centre = F.interpolate(centre[None, None], size=(Hk, Wk), mode="bilinear",
                                            align_corners=False)[0, 0]
                 r = interval_ratio(k, self.config.width_mode)

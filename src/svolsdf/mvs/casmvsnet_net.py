@@ -1,8 +1,8 @@
-"""The CasMVSNet network (METHOD.md 2): FPN features, variance cost volume, 3D U-Net, softmax,
+"""The CasMVSNet network (docs/method.md 2): FPN features, variance cost volume, 3D U-Net, softmax,
 and the loader of the official checkpoint.
 
 `svolsdf.mvs.casmvsnet` wraps it as an `MVSBackbone`; its module docstring gives the checkpoint's
-key layout (METHOD.md 2.1), how :meth:`CasMVSNet.regularize` streams the cost volume and the
+key layout (docs/method.md 2.1), how :meth:`CasMVSNet.regularize` streams the cost volume and the
 U-Net over rows to bound memory, and the stage cameras.
 """
 
@@ -28,14 +28,14 @@ __all__ = [
     "STAGE_CHANNELS",
 ]
 
-#: feature channels per stage (METHOD.md 2.2) and the U-Net base channels (METHOD.md 2.4)
+#: feature channels per stage (docs/method.md 2.2) and the U-Net base channels (docs/method.md 2.4)
 STAGE_CHANNELS: tuple[int, int, int] = (32, 16, 8)
 REG_BASE = 8
 
 
 # --------------------------------------------------------------------------- modules
 class ConvBnReLU(nn.Module):
-    """conv (no bias) + BatchNorm (momentum 0.1) + ReLU (METHOD.md 2.2, 2.4).
+    """conv (no bias) + BatchNorm (momentum 0.1) + ReLU (docs/method.md 2.2, 2.4).
 
     The child names ``conv`` and ``bn`` are cascade-stereo's ``Conv2d``/``Conv3d``/``Deconv3d``.
     """
@@ -75,7 +75,7 @@ def _deconv3d(cin: int, cout: int) -> ConvBnReLU:
 
 
 class FeatureNet(nn.Module):
-    """The FPN feature net with base channels 8 (METHOD.md 2.2).
+    """The FPN feature net with base channels 8 (docs/method.md 2.2).
 
     Input RGB in [0, 1], no mean/std normalization. Output features per stage:
     (B, 32, H/4, W/4), (B, 16, H/2, W/2), (B, 8, H, W).
@@ -103,7 +103,7 @@ class FeatureNet(nn.Module):
         c1 = self.conv1(c0)
         intra = self.conv2(c1)
         f1 = self.out1(intra)
-        # METHOD.md 2.2: nearest 2x upsampling of the coarser intra feature + lateral 1x1 conv.
+        # docs/method.md 2.2: nearest 2x upsampling of the coarser intra feature + lateral 1x1 conv.
         intra = F.interpolate(intra, scale_factor=2.0, mode="nearest") + self.inner1(c1)
         f2 = self.out2(intra)
         intra = F.interpolate(intra, scale_factor=2.0, mode="nearest") + self.inner2(c0)
@@ -112,7 +112,7 @@ class FeatureNet(nn.Module):
 
 
 class CostRegNet(nn.Module):
-    """The 3D U-Net cost regularization (METHOD.md 2.4): (B, C, D, H, W) -> (B, 1, D, H, W).
+    """The 3D U-Net cost regularization (docs/method.md 2.4): (B, C, D, H, W) -> (B, 1, D, H, W).
 
     D, H and W must be divisible by 8.
     """
@@ -177,7 +177,7 @@ def _check_divisible(x: Tensor) -> None:
     if x.ndim != 5 or any(s % 8 for s in x.shape[2:]):
         raise ValueError(
             f"CostRegNet needs a (B, C, D, H, W) volume with D, H, W divisible by 8 "
-            f"(METHOD.md 2.4), got {tuple(x.shape)}"
+            f"(docs/method.md 2.4), got {tuple(x.shape)}"
         )
 
 
@@ -235,7 +235,8 @@ def _stream_conv(layer: nn.Module, x: Tensor, stride: int, chunk_bytes: int) -> 
 
 
 def _stream_deconv_add(layer: ConvBnReLU, x: Tensor, skip: Tensor, chunk_bytes: int) -> None:
-    """skip += layer(x) for a transposed `ConvBnReLU`, in row chunks (METHOD.md 2.4 decoder)."""
+    """skip += layer(x) for a transposed `ConvBnReLU`, in row chunks (docs/method.md 2.4
+    decoder)."""
     B, C, D, H, W = x.shape
     Ho = skip.shape[-2]
     per_row = 4.0 * B * (C * D * W + 3 * skip.shape[1] * skip.shape[2] * skip.shape[4])
@@ -247,7 +248,7 @@ def _stream_deconv_add(layer: ConvBnReLU, x: Tensor, skip: Tensor, chunk_bytes: 
 class CasMVSNet(nn.Module):
     """``CascadeMVSNet(refine=False, share_cr=False, cr_base_chs=[8,8,8], arch_mode="fpn")``.
 
-    Parameter names follow cascade-stereo (METHOD.md 2.1). The hypothesis counts do not change
+    Parameter names follow cascade-stereo (docs/method.md 2.1). The hypothesis counts do not change
     any parameter shape. Use in eval mode (BatchNorm with running statistics), as released.
     """
 
@@ -260,7 +261,7 @@ class CasMVSNet(nn.Module):
 
     @torch.no_grad()
     def features(self, images: Tensor) -> list[Tensor]:
-        """Per-stage features of each view, one view at a time (METHOD.md 2.2).
+        """Per-stage features of each view, one view at a time (docs/method.md 2.2).
 
         Args:
             images: (V, 3, H, W) RGB in [0, 1], H and W multiples of 32.
@@ -282,7 +283,7 @@ class CasMVSNet(nn.Module):
     ) -> Tensor:
         """Variance cost volume C = mean_v F_v^2 - (mean_v F_v)^2 of reference rows [a, b).
 
-        METHOD.md 2.4; source features are warped by `homo_warp` (METHOD.md 2.3) with the
+        docs/method.md 2.4; source features are warped by `homo_warp` (docs/method.md 2.3) with the
         reference camera cropped to the rows, so the result equals rows [a, b) of the full volume.
 
         Args:
@@ -325,10 +326,10 @@ class CasMVSNet(nn.Module):
             depths: (D, H, W) hypotheses; D, H, W divisible by 8.
             chunk_mb: memory budget per chunk in MB; None builds the volume whole and runs the
                 U-Net unchunked (the reference the chunked path is tested against).
-            align_corners_quirk: CasMVSNet's warping normalization (METHOD.md 2.3).
+            align_corners_quirk: CasMVSNet's warping normalization (docs/method.md 2.3).
 
         Returns:
-            (D, H, W) regularized cost (softmax over D gives the probability, METHOD.md 2.4).
+            (D, H, W) regularized cost (softmax over D gives the probability, docs/method.md 2.4).
         """
         if self.training:
             raise RuntimeError("CasMVSNet runs in eval mode (BatchNorm running statistics)")
@@ -361,7 +362,7 @@ class CasMVSNet(nn.Module):
         self, k: int, feats: Tensor, projs: Tensor, depths: Tensor,
         chunk_mb: float | None = 512.0, align_corners_quirk: bool = True,
     ) -> Tensor:
-        """``DepthNet`` of stage ``k`` up to the probability volume (METHOD.md 2.4).
+        """``DepthNet`` of stage ``k`` up to the probability volume (docs/method.md 2.4).
 
         Args: as :meth:`regularize`.
 
@@ -379,7 +380,7 @@ def _expected_shapes() -> dict[str, tuple[int, ...]]:
 
 
 def load_casmvsnet(path, device=None) -> CasMVSNet:
-    """Load the official cascade-stereo checkpoint format (METHOD.md 2.1), in eval mode.
+    """Load the official cascade-stereo checkpoint format (docs/method.md 2.1), in eval mode.
 
     ``torch.load(path)['model']`` loaded with ``strict=True``; a DataParallel ``module.`` prefix is
     stripped. A bare state dict with CasMVSNet keys is accepted too.
@@ -404,7 +405,7 @@ def load_casmvsnet(path, device=None) -> CasMVSNet:
         found = list(ckpt)[:8] if isinstance(ckpt, dict) else type(ckpt).__name__
         raise InputError(
             f"{path}: expected a checkpoint dict with a 'model' state dict "
-            f"(torch.load(path)['model'], METHOD.md 2.1); found {found}"
+            f"(torch.load(path)['model'], docs/method.md 2.1); found {found}"
         )
     if sd and all(str(k).startswith("module.") for k in sd):
         sd = {k[len("module."):]: v for k, v in sd.items()}
@@ -425,7 +426,7 @@ def load_casmvsnet(path, device=None) -> CasMVSNet:
         if wrong:
             parts.append(f"{len(wrong)} keys with wrong shapes ({_few(wrong)})")
         raise InputError(
-            f"{path}: not the cascade-stereo CasMVSNet architecture (METHOD.md 2.1): "
+            f"{path}: not the cascade-stereo CasMVSNet architecture (docs/method.md 2.1): "
             + "; ".join(parts)
         )
     model = CasMVSNet()

@@ -1,7 +1,7 @@
-"""Depth hypotheses per cascade stage (METHOD.md 2.5).
+"""Depth hypotheses per cascade stage (docs/method.md 2.5).
 
 Notation: d_min, d_max are the view's depth range (z-depth, world units) and the base interval is
-Δ̄ = (d_max - d_min) / 192 (METHOD.md 2.5: the divisor is 192, not 191; for DTU with
+Δ̄ = (d_max - d_min) / 192 (docs/method.md 2.5: the divisor is 192, not 191; for DTU with
 d_min = 425, d_max = 931.15, Δ̄ = 2.6362 mm).
 
 Stage 1: D planes, linear d_k = d_min + k (d_max - d_min)/(D - 1), or uniform in inverse depth
@@ -10,7 +10,7 @@ d_k = 1 / ((1 - t_k)/d_min + t_k/d_max), t_k = k/(D - 1).
 Stages 2 and 3: per pixel, centred on a guide depth d: lower = d - (D/2) r Δ̄,
 upper = d + (D/2) r Δ̄, D values spaced (upper - lower)/(D - 1); the total width is D r Δ̄.
 
-Widths (METHOD.md 2.5 and 9.2 item 1), with counts (192, 32, 8):
+Widths (docs/method.md 2.5 and 9.2 item 1), with counts (192, 32, 8):
 
 - ``width="paper"`` (default): the paper's "half of the default search width in finer stages".
   The default CasMVSNet widths are 48·4Δ̄ = 192Δ̄ (stage 1), 32·2Δ̄ = 64Δ̄ (stage 2) and
@@ -38,10 +38,10 @@ __all__ = [
     "stage_hypotheses",
 ]
 
-#: hypothesis counts per stage (METHOD.md 0, 2.5)
+#: hypothesis counts per stage (docs/method.md 0, 2.5)
 STAGE_DEPTHS: tuple[int, int, int] = (192, 32, 8)
 
-#: interval ratio r per stage for each width option (METHOD.md 2.5, 9.2 item 1)
+#: interval ratio r per stage for each width option (docs/method.md 2.5, 9.2 item 1)
 WIDTHS: dict[str, tuple[float, float, float]] = {
     "paper": (1.0, 1.0, 0.5),
     "released": (1.0, 0.5, 0.5),
@@ -49,7 +49,7 @@ WIDTHS: dict[str, tuple[float, float, float]] = {
 
 
 def base_interval(d_min: float | Tensor, d_max: float | Tensor) -> float | Tensor:
-    """Δ̄ = (d_max - d_min) / 192 (METHOD.md 2.5)."""
+    """Δ̄ = (d_max - d_min) / 192 (docs/method.md 2.5)."""
     return (d_max - d_min) / 192.0
 
 
@@ -81,7 +81,7 @@ def plane_hypotheses(
     device=None,
     dtype=torch.float32,
 ) -> Tensor:
-    """Stage-1 fronto-parallel planes across [d_min, d_max] (METHOD.md 1.4, 2.5).
+    """Stage-1 fronto-parallel planes across [d_min, d_max] (docs/method.md 1.4, 2.5).
 
     Linear: d_k = d_min + k (d_max - d_min)/(D - 1). Inverse: d_k = 1/((1 - t_k)/d_min + t_k/d_max)
     with t_k = k/(D - 1).
@@ -107,7 +107,7 @@ def plane_hypotheses(
 
 
 def guided_hypotheses(guide: Tensor, num_depths: int, interval: float | Tensor) -> Tensor:
-    """Per-pixel hypotheses centred on a guide depth (METHOD.md 2.5, stages 2 and 3).
+    """Per-pixel hypotheses centred on a guide depth (docs/method.md 2.5, stages 2 and 3).
 
     lower = d - (D/2)·interval, upper = d + (D/2)·interval, D values spaced (upper - lower)/(D - 1).
     There is no clamping (as released); callers that need positive depths clamp the guide.
@@ -151,7 +151,8 @@ def stage_hypotheses(
         guide: (H, W) guide z-depth, required at stages 2 and 3.
         num_depths: D, default ``STAGE_DEPTHS[stage - 1]``.
         width_mode: "paper" or "released" (module docstring).
-        inverse: inverse-depth spacing at stage 1 (stages 2-3 are always linear, METHOD.md 2.5).
+        inverse: inverse-depth spacing at stage 1 (stages 2-3 are always linear,
+        docs/method.md 2.5).
 
     Returns:
         (D, H, W) hypotheses.

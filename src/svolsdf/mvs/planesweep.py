@@ -1,11 +1,11 @@
 """A training-free plane-sweep backbone: the default `MVSBackbone`.
 
 Per reference view and stage k (1/4, 1/2 and full MVS size for k = 1, 2, 3; 192, 32 and 8
-hypotheses, METHOD.md 2.5; the MVS size is ``scale`` = 2 x the working size, as the released code
-runs CasMVSNet on images upsampled 2x, METHOD.md 9.2.2):
+hypotheses, docs/method.md 2.5; the MVS size is ``scale`` = 2 x the working size, as the released
+code runs CasMVSNet on images upsampled 2x, docs/method.md 9.2.2):
 
 1. Hypotheses (`svolsdf.mvs.hypotheses`): planes over the view's depth range at stage 1, per-pixel
-   ranges centred on the upsampled previous depth (or a guide depth, METHOD.md 6.1) later.
+   ranges centred on the upsampled previous depth (or a guide depth, docs/method.md 6.1) later.
 2. Matching cost per source view: 1 - ZNCC of the reference and the warped source image
    (`svolsdf.mvs.warping.homo_warp`, per-pixel homographies) over a square window on grayscale,
    and on the image gradients (``gradient_weight``). ZNCC is invariant to per-window gain and
@@ -16,14 +16,14 @@ runs CasMVSNet on images upsampled 2x, METHOD.md 9.2.2):
 4. Cost aggregation: an edge-aware guided filter (He et al. 2013) of every cost slice, guided by
    the reference image, so the support follows intensity edges of real objects instead of
    bleeding across depth discontinuities; ``filter="box"`` is the plain box baseline.
-5. Probabilities: softmax over D of -cost / T (METHOD.md 2.4 replaces the network's regularized
+5. Probabilities: softmax over D of -cost / T (docs/method.md 2.4 replaces the network's regularized
    cost by -cost / T). T is calibrated from the cost statistics of each volume (``temperature``
    None): with g the median over pixels of (median_D cost - min_D cost), T = g / (ln D + m),
    ``m = temperature_margin``. At a typical pixel the D/2 hypotheses at the median cost then keep
    about D/2 · e^-(ln D + m) = e^-m / 2 of the mass (m = 4: ~1 %), so the distribution is peaked
    where the matching is distinctive and spread where it is not.
-6. depth = expectation over the main mode (``depth_radius``; the full expectation of METHOD.md
-   2.4 with None), confidence = 4-bin sum (METHOD.md 2.4).
+6. depth = expectation over the main mode (``depth_radius``; the full expectation of docs/method.md
+   2.4 with None), confidence = 4-bin sum (docs/method.md 2.4).
 
 Everything is vectorized in torch; warps, windows and filters are computed in chunks over depth.
 """
@@ -74,14 +74,14 @@ class PlaneSweepConfig:
     """Configuration of the plane-sweep backbone."""
 
     num_depths: tuple[int, int, int] = (192, 32, 8)
-    """Hypotheses per stage (METHOD.md 2.5)."""
+    """Hypotheses per stage (docs/method.md 2.5)."""
     width: str = "paper"
     """Finer-stage search width: "paper" (half the CasMVSNet default) or "released" (r = 0.5);
     see `svolsdf.mvs.hypotheses`."""
     inverse_depth: bool = False
     """Space stage-1 planes uniformly in inverse depth (unbounded scenes)."""
     max_sources: int = MAX_SOURCES
-    """Source views per reference, the best by pair score (`select_sources`, METHOD.md 1.4: at
+    """Source views per reference, the best by pair score (`select_sources`, docs/method.md 1.4: at
     most 4, as released); <= 0: every other loaded view."""
     window: tuple[int, int, int] = (5, 5, 5)
     """ZNCC window side (odd, pixels at the stage's resolution) per stage."""
@@ -123,7 +123,7 @@ class PlaneSweepConfig:
     depth_radius: int | None = 2
     """Depth estimate per pixel: the probability-weighted mean over the 2r+1 hypotheses around
     the most likely one (`svolsdf.mvs.backbone.mode_depth`); None = the full expectation of
-    METHOD.md 2.4. A training-free cost often has a second, wrong match on textureless or
+    docs/method.md 2.4. A training-free cost often has a second, wrong match on textureless or
     repeated surfaces; the full expectation then lands between the two, on no surface, and the
     next stage searches around that."""
     min_depth_ratio: float = 0.05
@@ -131,14 +131,14 @@ class PlaneSweepConfig:
     scale: float = 2.0
     """The stages run at ``scale`` x the working size (stage 3 at scale x, stage 1 at scale / 4
     x); images are resized from the working size (bicubic when upsampling, as the released
-    code's x2_mvsres, METHOD.md 9.2.2) and the volumes, depth maps and fused points follow.
+    code's x2_mvsres, docs/method.md 9.2.2) and the volumes, depth maps and fused points follow.
     2 against 1 on six synthetic scenes (768x576, 3 views): the backbone alone's points Chamfer
     up to 20 % lower (1 % higher on one scene), the fast preset's 9-26 % lower, for ~2.5 min
     more per three-view run (benchmarks/results/fast_preset.md, session-17 notes)."""
     native_images: bool = False
     """Stages larger than the working size read the images again from their files when those are
     larger (`Scene.images_at`): a 1600x1200 DTU photo gives stage 3 its own detail at 1536x1152.
-    False: the working-size images upsampled, as the released code (METHOD.md 9.2.2); the two
+    False: the working-size images upsampled, as the released code (docs/method.md 9.2.2); the two
     score the same on dtu_scan65 (`svolsdf.config.MVSConfig.native_images`)."""
     extra: dict = field(default_factory=dict)
     """Unused; room for experiments without changing the signature."""
@@ -423,7 +423,8 @@ class PlaneSweepBackbone(MVSBackbone):
         if any(c[:2] != key[:2] for c in self._cache):  # another scene: forget the old one
             self._cache = {}
         imgs = scene.images.float().to(self.device)
-        if W > scene.width or H > scene.height:  # files, or bicubic upsampling (METHOD.md 9.2.2)
+        # the files, or bicubic upsampling (docs/method.md 9.2.2)
+        if W > scene.width or H > scene.height:
             imgs = scene.images_at(W, H, from_files=self.cfg.native_images).to(self.device)
         elif (W, H) != (scene.width, scene.height):
             imgs = F.interpolate(imgs, size=(H, W), mode="bilinear", align_corners=False,

@@ -1,17 +1,17 @@
 """The ``svolsdf mvs`` job: the MVS cascade alone on a scene, with its outputs on disk.
 
 `run_mvs` loads the scene at the working size, runs stages 1-3 of a backbone with every input view
-as the reference once (METHOD.md 0, 2.5; no field, so stage 2 is centred on stage 1's depth),
+as the reference once (docs/method.md 0, 2.5; no field, so stage 2 is centred on stage 1's depth),
 and writes under ``out``::
 
     mvs/stage{1,2,3}/<view id>.npz   compressed `ProbabilityVolume`s (prob as float16)
     depth/<view id>.npy              stage-3 z-depth, world units, float32 (H, W), MVS size (the
                                      backbone's scale x the working size: 2x for the plane
-                                     sweep and CasMVSNet, METHOD.md 9.2.2)
+                                     sweep and CasMVSNet, docs/method.md 9.2.2)
     depth/<view id>.png              the same, colour-coded
-    confidence/<view id>.npy         conf1 * conf2 * conf3 at the MVS size (METHOD.md 6.2)
+    confidence/<view id>.npy         conf1 * conf2 * conf3 at the MVS size (docs/method.md 6.2)
     confidence/<view id>.png         the same as a grey picture
-    points.ply                       MVS-only fused point cloud (METHOD.md 6.3, released settings)
+    points.ply                       MVS-only fused point cloud (docs/method.md 6.3, as released)
     mvs.json                         backbone, views, size, depth ranges, timings, fusion stats
 
 Depth range: the scene's per-view range (from the file, a dataset rule, or the object sphere; see
@@ -57,7 +57,7 @@ class MVSJobConfig:
     """Weights file for casmvsnet / patchmatchnet (patchmatchnet defaults to ../shared)."""
     size: tuple[int, int] | None = None
     """Working (W, H); None: `svolsdf.scene.size.working_size`, the rule of svolsdf reconstruct
-    (at most 768 wide, sides multiples of 8; METHOD.md 1.3)."""
+    (at most 768 wide, sides multiples of 8; docs/method.md 1.3)."""
     depth_range: tuple[float, float] | None = None
     """(near, far) z-depth in world units for every view; None: the scene's ranges."""
     fuse: bool = True
@@ -175,7 +175,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
 
 
 def _fuse(scene: Scene, files: dict, path: Path, device: str = "cpu") -> dict:
-    """Fuse the stage-3 depth maps (METHOD.md 6.3) into ``path`` on ``device``; returns the
+    """Fuse the stage-3 depth maps (docs/method.md 6.3) into ``path`` on ``device``; returns the
     stats."""
     from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
     from svolsdf.io.ply import write_points_ply

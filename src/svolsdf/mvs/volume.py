@@ -17,20 +17,20 @@ class ProbabilityVolume:
     """Per-pixel depth hypotheses and their probabilities for one reference view and stage.
 
     Stage 1's fronto-parallel planes and stages 2-3's per-pixel ranges share this type
-    (ARCHITECTURE.md "Interfaces").
+    (docs/architecture.md "Interfaces").
 
     Attributes:
         depths: (D, H, W) hypothesis z-depths in world units, increasing along D.
         prob: (D, H, W) probabilities, summing to 1 over D.
         depth: (H, W) the backbone's depth estimate: the expectation sum_k prob_k * depths_k
-            (METHOD.md 2.4), or for the plane sweep by default the expectation around the most
+            (docs/method.md 2.4), or for the plane sweep by default the expectation around the most
             likely hypothesis (`svolsdf.mvs.backbone.mode_depth`).
-        confidence: (H, W) photometric confidence in [0, 1] (METHOD.md 2.4, 4-bin sum).
+        confidence: (H, W) photometric confidence in [0, 1] (docs/method.md 2.4, 4-bin sum).
         cameras: the reference camera (1 view) at the volume's resolution (W, H).
         view_id: the reference view id.
         stage: cascade stage, 1-based.
         inverse_depth: True when stage-1 planes are spaced uniformly in inverse depth
-            (METHOD.md 2.5); the soft-consistency lookup (METHOD.md 3, step 6) follows it.
+            (docs/method.md 2.5); the soft-consistency lookup (docs/method.md 3, step 6) follows it.
     """
 
     depths: Tensor

@@ -1,14 +1,14 @@
 """Differentiable homography warping of source features onto reference depth hypotheses.
 
-METHOD.md 2.3: with P = [K·E_3x4; 0 0 0 1] for each view (`Cameras.proj`), M = P_src·P_ref⁻¹ with
-rotation part R_m and translation t_m. A reference pixel (x, y) (integer pixel centres) at
+docs/method.md 2.3: with P = [K·E_3x4; 0 0 0 1] for each view (`Cameras.proj`), M = P_src·P_ref⁻¹
+with rotation part R_m and translation t_m. A reference pixel (x, y) (integer pixel centres) at
 hypothesis depth d maps to q = R_m·[x, y, 1]ᵀ·d + t_m, (u, v) = (q₁/q₃, q₂/q₃) in the source.
 
 Sampling: bilinear, zero padding. Our default normalizes û = 2u/(W - 1) - 1 and samples with
 ``align_corners=True``, so source pixel centre u lands exactly on column u. With
-``align_corners_quirk=True`` it reproduces CasMVSNet (METHOD.md 2.3): û = u/((W - 1)/2) - 1 sampled
-with ``align_corners=False`` (a sub-pixel shift of up to half a pixel towards the image centre
-that the released checkpoint was trained with).
+``align_corners_quirk=True`` it reproduces CasMVSNet (docs/method.md 2.3): û = u/((W - 1)/2) - 1
+sampled with ``align_corners=False`` (a sub-pixel shift of up to half a pixel towards the image
+centre that the released checkpoint was trained with).
 
 Hypotheses are per pixel (B, D, H, W), so stage-1 planes are a special case.
 """
@@ -29,7 +29,7 @@ def _check(name: str, t: Tensor, ndim: int) -> None:
 
 def project_hypotheses(src_proj: Tensor, ref_proj: Tensor, depths: Tensor,
                        eps: float = 1e-6) -> tuple[Tensor, Tensor]:
-    """Source pixel coordinates of every reference pixel at every hypothesis (METHOD.md 2.3).
+    """Source pixel coordinates of every reference pixel at every hypothesis (docs/method.md 2.3).
 
     Args:
         src_proj: (B, 4, 4) source projection [K E; 0 0 0 1] at the source feature's size.
@@ -70,7 +70,7 @@ def homo_warp(
     align_corners_quirk: bool = False,
     padding_mode: str = "zeros",
 ) -> tuple[Tensor, Tensor]:
-    """Warp source features onto the reference view's depth hypotheses (METHOD.md 2.3).
+    """Warp source features onto the reference view's depth hypotheses (docs/method.md 2.3).
 
     Differentiable with respect to ``src_feat`` and ``depths``.
 

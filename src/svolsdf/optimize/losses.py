@@ -1,7 +1,7 @@
-"""Losses of S-VolSDF (METHOD.md 4), as pure functions of tensors.
+"""Losses of S-VolSDF (docs/method.md 4), as pure functions of tensors.
 
-R rays, S samples per ray. ``p_prime`` is the soft-consistency label P' (METHOD.md 3) at the same
-samples whose rendering weights ``w`` are the prediction (METHOD.md 4.1).
+R rays, S samples per ray. ``p_prime`` is the soft-consistency label P' (docs/method.md 3) at the
+same samples whose rendering weights ``w`` are the prediction (docs/method.md 4.1).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def gce_weight_loss(
     form: str = "paper",
     thresh: float = 1e-3,
 ) -> Tensor:
-    """Generalized cross-entropy between rendering weights and the label P' (METHOD.md 4.2).
+    """Generalized cross-entropy between rendering weights and the label P' (docs/method.md 4.2).
 
     Per ray r (mask m_r = 1[sum_k P'_rk > thresh]; the mean runs over all R rays, masked rays
     counting as zeros):
@@ -47,7 +47,7 @@ def gce_weight_loss(
     - form "paper" (S-VolSDF Eq. for GCE, the default):
         l_r = m_r * sum_k P'_rk (1 - (w_rk + 1e-8)^q) / q   (the 1e-8 keeps the gradient finite
         at w = 0)
-    - form "released" (the reference code's gradient-equivalent surrogate; METHOD.md 9.2.4):
+    - form "released" (the reference code's gradient-equivalent surrogate; docs/method.md 9.2.4):
         l_r = m_r * sum_k -P'_rk sg(w_rk)^q log(w_rk + 1e-8)
       whose gradient -P' w^q / (w + 1e-8) equals the paper's -P' w^(q-1) (up to the 1e-8);
       the code writes q = 1 as -P' w (same gradient, that value).
@@ -77,7 +77,7 @@ def gce_weight_loss(
         per = -p * torch.log(w + _LOG_EPS)
     elif form == "paper":
         # w + eps: d(w^q)/dw is infinite at w = 0 (every empty sample), which would make the
-        # step's gradient NaN; eps = the released form's 1e-8 (METHOD.md 9.2.4). Negatives are
+        # step's gradient NaN; eps = the released form's 1e-8 (docs/method.md 9.2.4). Negatives are
         # rounded to 0 with the gradient passed straight through: at exactly w = 0, clamp_min's
         # own gradient depends on the torch version (1 up to 2.13, 0 from 2.14: pytorch/pytorch
         # issue 195931; tests/optimize/test_losses.py caught it), and without it the loss cannot
@@ -94,7 +94,7 @@ def gce_weight_loss(
 def sparse_loss(
     depth: Tensor, p_prime: Tensor, thresh: float = 1e-3, normalize: str = "unsupervised"
 ) -> Tensor:
-    """Sparsity loss on rays without MVS support (METHOD.md 4.3).
+    """Sparsity loss on rays without MVS support (docs/method.md 4.3).
 
     Q = {r : sum_k P'_rk < thresh};  L = (1/N) sum_{r in Q} 1 / (d_r + 1e-3), with
     N = |Q| for ``normalize="unsupervised"`` (the paper, default; 0 when Q is empty) or N = R
@@ -122,14 +122,14 @@ def sparse_loss(
 
 
 def eikonal_loss(grad: Tensor) -> Tensor:
-    """L_eik = mean_i (||grad_i|| - 1)^2 (METHOD.md 4.5).  grad: (N, 3) -> ()."""
+    """L_eik = mean_i (||grad_i|| - 1)^2 (docs/method.md 4.5).  grad: (N, 3) -> ()."""
     if grad.ndim != 2 or grad.shape[-1] != 3:
         raise ValueError(f"eikonal_loss: grad must be (N, 3), got {tuple(grad.shape)}")
     return ((grad.norm(dim=-1) - 1.0) ** 2).mean()
 
 
 def rgb_l1_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
-    """L1 colour loss (METHOD.md 4.4).
+    """L1 colour loss (docs/method.md 4.4).
 
     Without a mask: mean over rays and channels of |c_hat - c|. With a mask m (R,):
     (1/R) sum_r m_r * mean_c |c_hat_rc - c_rc| (masked rays count as zeros in the mean, as in the
@@ -152,7 +152,7 @@ def rgb_l1_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Ten
 
 
 def sparse_weight_at(step: int, w0: float, anneal: int = 200, decay: str = "linear") -> float:
-    """Weight of the sparsity loss at ``step`` (METHOD.md 4.3, 4.6).
+    """Weight of the sparsity loss at ``step`` (docs/method.md 4.3, 4.6).
 
     "linear" (released code): w0 (1 - step / anneal) for step < anneal, else 0.
     "constant" (the paper's wording): w0 for step < anneal, else 0.
@@ -167,7 +167,7 @@ def sparse_weight_at(step: int, w0: float, anneal: int = 200, decay: str = "line
 
 
 def warmup_rgb_target(images: Tensor, kernel: int = 31, sigma: float = 90.0) -> Tensor:
-    """Heavily smoothed images for the RGB warm-up (METHOD.md 4.4).
+    """Heavily smoothed images for the RGB warm-up (docs/method.md 4.4).
 
     A kernel x kernel Gaussian of std ``sigma`` (31, 90: practically a box blur) with reflect-101
     borders (OpenCV's default in the released ``cv2.GaussianBlur``).
@@ -187,7 +187,7 @@ def warmup_rgb_target(images: Tensor, kernel: int = 31, sigma: float = 90.0) -> 
 
 
 def warmup_ray_mask(p_prime: Tensor, rule: str = "released", thresh: float = 1e-8) -> Tensor:
-    """Which rays get the (smoothed) RGB loss during warm-up (METHOD.md 4.4, 9.2.6).
+    """Which rays get the (smoothed) RGB loss during warm-up (docs/method.md 4.4, 9.2.6).
 
     "released": only rays with sum_k P'_rk < thresh (1e-8); MVS-supervised rays get no RGB loss.
     "all": every ray (the paper's description).

@@ -1,8 +1,9 @@
-"""The S-VolSDF optimization loop (METHOD.md 4): RGB + eikonal + GCE weight loss + sparsity loss.
+"""The S-VolSDF optimization loop (docs/method.md 4): RGB + eikonal + GCE weight loss + sparsity
+loss.
 
-One step (METHOD.md 4.6): one random input view, ``rays`` random pixels, samples along the rays
-(error-bounded sampler, METHOD.md 5.4, or the MVS-guided sampler of the fast preset), volume
-rendering, the soft-consistency label P' at the same samples (METHOD.md 3), the losses of
+One step (docs/method.md 4.6): one random input view, ``rays`` random pixels, samples along the rays
+(error-bounded sampler, docs/method.md 5.4, or the MVS-guided sampler of the fast preset), volume
+rendering, the soft-consistency label P' at the same samples (docs/method.md 3), the losses of
 `svolsdf.optimize.losses`, Adam, global-norm clipping and a NaN-safe update. Checkpoints every N
 steps make a killed run resume where it stopped.
 """
@@ -108,7 +109,7 @@ class Trainer:
                             "ray is drawn uniformly", (count == 0).nonzero()[:, 0].tolist())
         self.smoothed = None
         if cfg.mode == "svolsdf" and cfg.sparse_weight > 0 and cfg.anneal_rgb > 0:
-            # METHOD.md 4.4: heavily smoothed targets for the first anneal_rgb steps
+            # docs/method.md 4.4: heavily smoothed targets for the first anneal_rgb steps
             self.smoothed = L.warmup_rgb_target(self.images)
         self.grid_schedule = sorted(grid_schedule or [])
         self.step = 0
@@ -118,7 +119,7 @@ class Trainer:
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self._build_optimizer()
         self.history: list[dict] = []
-        # METHOD.md 4.5: the eikonal term uses the raw field, without the sphere clamp (for
+        # docs/method.md 4.5: the eikonal term uses the raw field, without the sphere clamp (for
         # fields whose sdf_and_grad can switch it off); decided once, not every step
         import inspect
 
@@ -140,7 +141,7 @@ class Trainer:
                 groups.append({"params": [sdf], "lr": lr, "name": "sdf"})
         else:
             groups = [{"params": list(self.model.parameters()), "lr": self.cfg.lr}]
-        # METHOD.md 4.6: Adam, default betas, constant learning rate. The fused kernel does the
+        # docs/method.md 4.6: Adam, default betas, constant learning rate. The fused kernel does the
         # same update in one pass per tensor: on the fast preset's dense grids (~11 M
         # parameters) it measured ~6x faster than the per-tensor loop on the CPU, 1.36x on a
         # whole step (benchmarks/results/train_step_speed.md).
@@ -158,7 +159,7 @@ class Trainer:
 
     # ------------------------------------------------------------------ rays
     def sample_rays(self, n: int) -> tuple[RayBundle, Tensor, Tensor]:
-        """n random pixels of one random view (METHOD.md 4.6), drawn on the device.
+        """n random pixels of one random view (docs/method.md 4.6), drawn on the device.
 
         Returns:
             rays (R,), pixel index (R,) long into H*W, view index (1,) long (a 1-element
@@ -181,7 +182,7 @@ class Trainer:
     def make_rays(self, t: int | Tensor, uv: Tensor) -> RayBundle:
         """Rays of view t (an int or a (1,) long tensor) through pixels uv (R, 2), clipped to
         the view's depth range (only the near bound with a background model: the foreground
-        then ends at the bounding sphere, METHOD.md 5.5)."""
+        then ends at the bounding sphere, docs/method.md 5.5)."""
         radius = float(getattr(self.model, "radius", 3.0))
         R = uv.shape[0]
         view = (torch.full((R,), t, device=self.device) if isinstance(t, int)
@@ -198,12 +199,12 @@ class Trainer:
 
     @property
     def background(self):
-        """The model's background (``model.background``, METHOD.md 5.5) or None."""
+        """The model's background (``model.background``, docs/method.md 5.5) or None."""
         return getattr(self.model, "background", None)
 
     # ------------------------------------------------------------------ one step
     def losses(self) -> dict[str, Tensor]:
-        """One batch -> dict of loss terms and "total" (METHOD.md 4.6)."""
+        """One batch -> dict of loss terms and "total" (docs/method.md 4.6)."""
         cfg = self.cfg
         model = self.model
         rays, pix, t = self.sample_rays(cfg.rays)
@@ -213,7 +214,7 @@ class Trainer:
         target = self.images[t].reshape(3, -1)[:, pix].T  # (R, 3)
         terms: dict[str, Tensor] = {}
 
-        # labels P' (METHOD.md 3) or an ablation's replacement
+        # labels P' (docs/method.md 3) or an ablation's replacement
         p_label = None
         if cfg.mode == "svolsdf":
             if cfg.ablation in ("mse", "no-prob-volume"):
@@ -222,11 +223,11 @@ class Trainer:
                     p_label = L.onehot_label(out.z, mvs_d, rays.cos)
             else:
                 p_ref, p_src, _ = self.prior.lookup(out.points, rays.view)
-                p_label = p_ref * p_src  # P' = P_ref * sum_j P_src^j (METHOD.md 3)
+                p_label = p_ref * p_src  # P' = P_ref * sum_j P_src^j (docs/method.md 3)
 
         warm = self.smoothed is not None and self.step < cfg.anneal_rgb
         if warm:
-            # METHOD.md 4.4: smoothed target during the warm-up
+            # docs/method.md 4.4: smoothed target during the warm-up
             tgt = self.smoothed[t].reshape(3, -1)[:, pix].T
             mask = None
             if p_label is not None:
@@ -236,7 +237,7 @@ class Trainer:
         else:
             terms["rgb"] = L.rgb_l1_loss(out.rgb, target)
 
-        # eikonal (METHOD.md 4.5): R uniform points in the box + one sample per ray
+        # eikonal (docs/method.md 4.5): R uniform points in the box + one sample per ray
         lo, hi = self._eikonal_box()
         u = torch.rand(R, 3, device=self.device) * (hi - lo) + lo
         _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp)
@@ -256,7 +257,7 @@ class Trainer:
             if p_label is not None and cfg.sparse_weight > 0 and self.step < cfg.anneal_rgb:
                 w_sp = L.sparse_weight_at(self.step, cfg.sparse_weight, cfg.anneal_rgb,
                                           "linear" if cfg.sparse_decay else "constant")
-                # depth over the foreground and the T_bg-scaled background (METHOD.md 5.5)
+                # depth over the foreground and the T_bg-scaled background (docs/method.md 5.5)
                 terms["sparse"] = L.sparse_loss(out.depth_all, p_label, normalize=cfg.sparse_norm)
                 total = total + w_sp * terms["sparse"]
         if cfg.grid_eikonal_weight > 0 and hasattr(model, "grid_eikonal_loss") \
@@ -306,7 +307,7 @@ class Trainer:
         return {k: v.detach() for k, v in terms.items()}
 
     def _safe_clip(self, params: list[Tensor]) -> None:
-        """NaN-safe update (METHOD.md 4.6 / 9.2.8): zero every gradient if any is non-finite,
+        """NaN-safe update (docs/method.md 4.6 / 9.2.8): zero every gradient if any is non-finite,
         else clip their global norm to ``grad_clip`` (if > 0).
 
         The global norm is non-finite exactly when some gradient is (or when finite gradients

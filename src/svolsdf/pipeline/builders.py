@@ -92,7 +92,7 @@ def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
         from svolsdf.field.grid import GridFieldConfig, GridSDFField
 
         if grid_from_sphere(cfg):
-            # VolSDF's start (METHOD.md 5.2): a sphere at the origin in the box of the
+            # VolSDF's start (docs/method.md 5.2): a sphere at the origin in the box of the
             # bounding sphere; nothing from MVS
             box = torch.tensor([[-1.0] * 3, [1.0] * 3])
             res, radius, centre = f.sphere_start_resolution, f.sphere_radius, (0.0,) * 3
@@ -102,7 +102,7 @@ def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
             res, radius = f.grid_start_resolution, float(0.35 * ext)
             centre = tuple(((box[0] + box[1]) / 2).tolist())
         gcfg = GridFieldConfig(resolution=res, init_radius=radius, init_centre=centre,
-                               # METHOD.md 5.5: no sphere clamp under a background model
+                               # docs/method.md 5.5: no sphere clamp under a background model
                                sphere_clamp_scale=None if f.background else 20.0)
         model = GridSDFField(box, gcfg)
     elif f.kind == "mlp":
@@ -116,12 +116,12 @@ def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
     if f.background:
         attach_background(model, f.kind)
     if cfg.train.beta_min > 0 and hasattr(model, "laplace"):
-        model.laplace.beta_min = float(cfg.train.beta_min)  # METHOD.md 5.4's floor
+        model.laplace.beta_min = float(cfg.train.beta_min)  # docs/method.md 5.4's floor
     return model
 
 
 def attach_background(model, kind: str) -> None:
-    """``model.background``: the NeRF++ inverted-sphere background (METHOD.md 5.5).
+    """``model.background``: the NeRF++ inverted-sphere background (docs/method.md 5.5).
 
     A submodule of the field, so it moves with ``model.to(device)``, is saved in its
     state_dict (keys ``background.net.*``, ``background.colour_net.*``), trained by the

@@ -1,4 +1,4 @@
-"""The paper's optional optimization at the finer MVS stages (METHOD.md 9.2.13)."""
+"""The paper's optional optimization at the finer MVS stages (docs/method.md 9.2.13)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ log = logging.getLogger("svolsdf.pipeline")
 
 
 def finer_stage_cascade(p, guide: dict[int, torch.Tensor]) -> dict:
-    """The paper's optional optimization at the finer stages (METHOD.md 9.2.13; the released
+    """The paper's optional optimization at the finer stages (docs/method.md 9.2.13; the released
     code forbids it): stage 2 runs centred on the rendered depth, the field is optimized
     further against the soft-consistency prior of the stage-2 volumes, its depth is rendered
     again, and stage 3 runs centred on that depth.

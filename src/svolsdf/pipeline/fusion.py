@@ -86,7 +86,7 @@ def fuse(p, path: Path) -> tuple[int, dict]:
     if guide_is_depth and depths is not None and o.low_weight_rule == "max":
         from svolsdf.render.views import max_rule_filled
 
-        # the pixels METHOD.md 6.1 filled with the map's maximum depth are no surface of the
+        # the pixels docs/method.md 6.1 filled with the map's maximum depth are no surface of the
         # field (they only centre MVS in svolsdf mode): no depth
         depths = {v: torch.where(max_rule_filled(d), torch.zeros_like(d), d)
                   for v, d in depths.items()}

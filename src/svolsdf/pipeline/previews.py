@@ -20,7 +20,7 @@ def field_psnr(scene: Scene, views: list[int], rgb: torch.Tensor, pixels: torch.
     """Log the field's PSNR on its own input views; returns it for timing.json (issue 28).
 
     A field that only copies MVS scores well on the points and badly here; a field that
-    explains the photos scores > 20 dB. Masked as the paper's PSNR (METHOD.md 8.3): inside the
+    explains the photos scores > 20 dB. Masked as the paper's PSNR (docs/method.md 8.3): inside the
     object masks when the scene has them (rendered pixels only), else over every pixel.
 
     Args:

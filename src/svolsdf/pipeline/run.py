@@ -196,7 +196,7 @@ class Run:
         self._volumes1 = volumes
 
     def regressed_volumes1(self) -> list[ProbabilityVolume] | None:
-        """The stage-1 volumes with depth = sum_k P_k d_k, the regression of METHOD.md 2.4
+        """The stage-1 volumes with depth = sum_k P_k d_k, the regression of docs/method.md 2.4
         (`svolsdf.mvs.backbone.with_expected_depth`), computed once."""
         if self._volumes1 is None:
             return None

@@ -1,7 +1,7 @@
 """The run folder as one object: every path of a run, the stage state (OUT/stages.json), the
 folder lock, OUT/log, OUT/timing.json, and atomic saves.
 
-Layout (ARCHITECTURE.md "Data flow"; `svolsdf.pipeline` writes it):
+Layout (docs/architecture.md "Data flow"; `svolsdf.pipeline` writes it):
 
 - ``config.yaml``, ``views.json`` (inputs, test views, working size, scene), ``stages.json``
   (stage -> key of the config it finished under; "provenance": stage -> the key of its inputs

@@ -1,16 +1,16 @@
 """The reconstruction pipeline: every stage in order, each result kept on disk, with resume.
 
-Stages (ARCHITECTURE.md "Data flow"; METHOD.md 0 and 6):
+Stages (docs/architecture.md "Data flow"; docs/method.md 0 and 6):
 
 1. ``mvs1``: stage-1 probability volumes of the input views (OUT/mvs/stage1/<id>.npz).
 2. ``field``: the S-VolSDF optimization (OUT/field/model.pt; checkpoints in OUT/field/).
 3. ``guide``: rendered z-depth of the input views, which replaces the stage-1 depth
-   (METHOD.md 6.1; OUT/field/render_depth/<id>.npy).
+   (docs/method.md 6.1; OUT/field/render_depth/<id>.npy).
 4. ``mvs23``: stages 2 and 3 centred on that depth (OUT/mvs/stage{2,3}, OUT/depth/<id>.npy).
 5. ``unguided`` (``output.fusion_unguided``, the fast preset's; not in the paper): stages 2 and 3
    centred on the stage-1 depth, as the backbone alone runs them (OUT/unguided/depth/<id>.npy);
    fusion takes them as every view's second depth hypothesis.
-6. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, METHOD.md 6.3).
+6. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, docs/method.md 6.3).
 7. ``mesh``: marching cubes of the SDF (OUT/mesh.ply).
 
 A stage is skipped on a rerun when its marker in OUT/stages.json carries the same config hash
@@ -383,7 +383,7 @@ class Pipeline(Run):
 
     # ------------------------------------------------------------------ guide depth
     def stage_guide(self) -> dict[int, torch.Tensor] | None:
-        """World z-depth maps that replace the stage-1 depth (METHOD.md 6.1), or None."""
+        """World z-depth maps that replace the stage-1 depth (docs/method.md 6.1), or None."""
         if self.cfg.train.mode == "mvs-only":
             return None
         files = self.dir.view_files(self.dir.render_depth_dir(), self.views)
@@ -406,7 +406,7 @@ class Pipeline(Run):
         return guide
 
     def _rendered_guide(self, previews: bool = False) -> dict[int, torch.Tensor]:
-        """The field's rendered z-depth (world) of each input view, with METHOD.md 6.1's rule
+        """The field's rendered z-depth (world) of each input view, with docs/method.md 6.1's rule
         for pixels of accumulated weight < 0.2 (`svolsdf.render.views.guide_depths`)."""
         from svolsdf.pipeline.previews import field_psnr, write_previews
         from svolsdf.render.views import guide_depths
@@ -480,7 +480,7 @@ class Pipeline(Run):
     def stage_unguided(self) -> dict[int, torch.Tensor] | None:
         """MVS stages 2-3 centred on the stage-1 depth, the backbone alone's cascade
         (`OutputConfig.fusion_unguided`): OUT/unguided/{depth,confidence}/<view>.npy, confidence
-        the product over stages 1-3 (METHOD.md 6.2). None when the option does not apply."""
+        the product over stages 1-3 (docs/method.md 6.2). None when the option does not apply."""
         if not options.wants_unguided(self.cfg):
             return None
         udir = self.dir.unguided_dir

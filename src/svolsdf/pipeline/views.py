@@ -17,7 +17,7 @@ def _is_dtu49(scene: Scene) -> bool:
 
 
 def default_views(scene: Scene, n: int = 3) -> list[int]:
-    """Input views: DTU's protocol (METHOD.md 1.4) on DTU scans, else a central view and its
+    """Input views: DTU's protocol (docs/method.md 1.4) on DTU scans, else a central view and its
     n - 1 best source views (by the scene's pairs)."""
     if _is_dtu49(scene):
         return DTU_TRAIN_IDS[:n]

@@ -1,4 +1,4 @@
-"""Soft consistency: P'(x) = P_ref(x) * sum_{j != ref} P_src^j(x) at 3D points (METHOD.md 3).
+"""Soft consistency: P'(x) = P_ref(x) * sum_{j != ref} P_src^j(x) at 3D points (docs/method.md 3).
 
 The stage-1 probability volumes are looked up at the samples of VolSDF rays only (the released
 code never builds a consistency-weighted volume). No gradients flow through this module.
@@ -18,14 +18,15 @@ from svolsdf.scene.scene import Normalization
 
 __all__ = ["PriorView", "MVSPrior", "consistency_depth", "p_prime", "lookup_reference"]
 
-#: validity thresholds of METHOD.md 3 (steps 4 and 7)
+#: validity thresholds of docs/method.md 3 (steps 4 and 7)
 _MIN_Z = 1e-5
 _UV_LIMIT = 1.001
 _Z_LIMIT = 1.01
 
 
 def p_prime(p_ref: Tensor, p_src_sum: Tensor) -> Tensor:
-    """P' = P_ref * sum_j P_src^j (METHOD.md 3, "consistency-weighted label"); (...) -> (...)."""
+    """P' = P_ref * sum_j P_src^j (docs/method.md 3, "consistency-weighted label"); (...) ->
+    (...)."""
     return p_ref * p_src_sum
 
 
@@ -40,7 +41,7 @@ class PriorView:
         K: (3, 3) intrinsics used to project (the volume's own, or the quirk image's).
         w2c: (4, 4) unit-frame world-to-camera.
         norm_size: (W_n, H_n) image size whose pixel range [0, W_n - 1] maps onto [-1, 1].
-        inverse_depth: hypotheses uniform in inverse depth (METHOD.md 3, step 6).
+        inverse_depth: hypotheses uniform in inverse depth (docs/method.md 3, step 6).
     """
 
     prob: Tensor
@@ -57,7 +58,7 @@ def _unit_view(vol: ProbabilityVolume, norm: Normalization, align_quirk: bool,
     D, H, W = vol.prob.shape
     cams: Cameras = vol.cameras.transformed(norm.center, norm.scale)
     if align_quirk:
-        # METHOD.md 3 step 3: pixels at the VolSDF image size (2x the stage-1 volume),
+        # docs/method.md 3 step 3: pixels at the VolSDF image size (2x the stage-1 volume),
         # normalised with align_corners=True onto the smaller volume.
         Wi, Hi = quirk_image_size or (2 * W, 2 * H)
         cams = cams.resize(Wi, Hi)
@@ -101,13 +102,13 @@ def _depth_coord(view: PriorView, z: Tensor, near: Tensor, far: Tensor) -> Tenso
 
 
 class MVSPrior:
-    """Soft-consistency lookup into one stage-1 volume per input view (METHOD.md 3).
+    """Soft-consistency lookup into one stage-1 volume per input view (docs/method.md 3).
 
     Args:
         volumes: one :class:`ProbabilityVolume` per input view, in the order of the ray
             ``ref_view`` indices (the optimization's view order).
         normalization: the scene's world <-> unit similarity.
-        align_quirk: reproduce the released code's sampling (METHOD.md 3 step 3): pixel
+        align_quirk: reproduce the released code's sampling (docs/method.md 3 step 3): pixel
             coordinates at ``quirk_image_size`` (default twice the volume's size), normalised
             with align_corners=True onto the volume, which drifts by up to half a cell. Default
             False: pixel centres of the volume's own camera map exactly onto its cells.
@@ -171,7 +172,7 @@ class MVSPrior:
 
     @torch.no_grad()
     def lookup(self, points: Tensor, ref_view: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """P_ref, sum of P_src and validity at ray samples (METHOD.md 3, steps 1-9).
+        """P_ref, sum of P_src and validity at ray samples (docs/method.md 3, steps 1-9).
 
         For each view i, the points are projected into its volume; the ray's own view gives
         P_ref, the others add to P_src_sum and OR their validity into ``valid``. P_ref is set to
@@ -300,7 +301,7 @@ def lookup_reference(prior: MVSPrior, points: Tensor, ref_view: Tensor
 def consistency_depth(volumes: list[ProbabilityVolume], norm: Normalization
                       ) -> dict[int, Tensor]:
     """The expected depth under the consistency-weighted stage-1 volume P_ref * sum P_src
-    (METHOD.md 3, 9.2.3) at each input view's hypotheses: the guide depth of the ablation
+    (docs/method.md 3, 9.2.3) at each input view's hypotheses: the guide depth of the ablation
     "soft-consistency-only".
 
     Args:

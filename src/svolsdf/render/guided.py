@@ -1,12 +1,12 @@
 """A sampler that uses what MVS already knows (the `fast` preset; not in the paper).
 
-The error-bounded sampler (METHOD.md 5.4) spends 128+ SDF evaluations per ray and up to five
+The error-bounded sampler (docs/method.md 5.4) spends 128+ SDF evaluations per ray and up to five
 iterations finding the surface. The fast preset instead places samples where the soft-consistency
-label P' (METHOD.md 3) and the current surface say the surface is:
+label P' (docs/method.md 3) and the current surface say the surface is:
 
 1. ``n_coarse`` stratified probe distances on [near, far] (no gradients).
 2. At the probes: P' from the MVS prior (rays of input views only) and the current rendering
-   weights w from the field's Laplace density (METHOD.md 5.4 compositing), with beta widened to
+   weights w from the field's Laplace density (docs/method.md 5.4 compositing), with beta widened to
    at least the probe spacing so that a sharp surface between two probes is still found.
 3. pdf = mix * P'/sum(P') + (1 - mix) * w/sum(w) + floor / n, per ray; a ray without MVS support
    (sum P' < ``thresh``) uses only the field's weights.
@@ -45,7 +45,7 @@ class GuidedSamplerConfig:
     floor: float = 0.02
     """Uniform share added to the pdf so no interval is starved."""
     thresh: float = 1e-3
-    """A ray is MVS-supported when sum_k P'_k > thresh (METHOD.md 4.2)."""
+    """A ray is MVS-supported when sum_k P'_k > thresh (docs/method.md 4.2)."""
     probe_beta: float = 1.0
     """The probe weights use beta >= probe_beta x the probe spacing (module docstring)."""
 
@@ -80,7 +80,7 @@ class MVSGuidedSampler:
         deltas = torch.cat([zc[:, 1:] - zc[:, :-1], torch.full_like(zc[:, :1], 1e10)], -1)
         # probe weights with beta widened to the probe spacing: a sharp surface (beta << spacing)
         # between two probes would otherwise get no mass and no fine samples (the reason
-        # VolSDF's sampler raises beta until its error bound holds, METHOD.md 5.4)
+        # VolSDF's sampler raises beta until its error bound holds, docs/method.md 5.4)
         spacing = ((rays.far - rays.near) / cfg.n_coarse)[:, None]
         beta_probe = torch.maximum(torch.as_tensor(model.beta).detach(), cfg.probe_beta * spacing)
         w, _ = composite(model.density(sdf, beta=beta_probe), deltas)
@@ -89,7 +89,7 @@ class MVSGuidedSampler:
         pdf = w_n
         if self.prior is not None and (training or self.use_prior_at_eval):
             p_ref, p_src, _ = self.prior.lookup(pts, rays.view)
-            pp = (p_ref * p_src)[:, :-1]  # P' (METHOD.md 3)
+            pp = (p_ref * p_src)[:, :-1]  # P' (docs/method.md 3)
             s = pp.sum(-1, keepdim=True)
             supported = s > cfg.thresh
             pp_n = pp / s.clamp_min(1e-12)
@@ -100,7 +100,7 @@ class MVSGuidedSampler:
         z, _ = torch.sort(torch.cat([zu, zf], dim=-1), dim=-1)
         if getattr(model, "background", None) is not None:
             # render_rays takes the last entry as the far bound where the background starts
-            # (METHOD.md 5.5), as with the error-bounded sampler's final set
+            # (docs/method.md 5.5), as with the error-bounded sampler's final set
             z = torch.cat([z, rays.far[:, None]], dim=-1)
         eik = torch.randint(z.shape[1], (R,), device=z.device)
         return SamplerOutput(z, eik)

@@ -1,7 +1,7 @@
-"""Rays of the unit frame (METHOD.md 1.2, 5.4).
+"""Rays of the unit frame (docs/method.md 1.2, 5.4).
 
 Ray distance (``z`` along a unit direction) exists only inside ``render/``; everything leaving it is
-z-depth (ARCHITECTURE.md "Conventions"): z-depth = cos * ray distance, with ``cos`` the
+z-depth (docs/architecture.md "Conventions"): z-depth = cos * ray distance, with ``cos`` the
 z-component of the unit camera-frame direction.
 """
 
@@ -98,11 +98,11 @@ def rays_from_cameras(
         view: (R,) long view index per ray, or one int for all rays.
         uv: (R, 2) pixel coordinates; default every pixel centre of that one view, row-major
             (then ``view`` must be an int).
-        radius: bounding-sphere radius (METHOD.md 5.2: 3).
-        near: the smallest start distance (METHOD.md 0: near = 1e-4).
+        radius: bounding-sphere radius (docs/method.md 5.2: 3).
+        near: the smallest start distance (docs/method.md 0: near = 1e-4).
         near_mode: "fixed" (near, the paper) or "sphere" (max(near, sphere entry)).
         far_mode: "sphere" (the far sphere intersection, default) or "fixed" (2 * radius, as
-            VolSDF on DTU, METHOD.md 5.4).
+            VolSDF on DTU, docs/method.md 5.4).
 
     Returns:
         RayBundle of R rays.

@@ -1,4 +1,4 @@
-"""Ray samplers: uniform, inverse-CDF, and VolSDF's error-bounded sampler (METHOD.md 5.4).
+"""Ray samplers: uniform, inverse-CDF, and VolSDF's error-bounded sampler (docs/method.md 5.4).
 
 All functions are vectorised over rays; only the sampler's outer iterations and the 10-step
 bisection are Python loops. Distances are along unit ray directions (ray distance, not z-depth).
@@ -29,7 +29,7 @@ __all__ = [
 
 
 def uniform_sampler(near: Tensor, far: Tensor, n: int, stratified: bool = False) -> Tensor:
-    """n samples on [near, far] per ray (METHOD.md 5.4 step 1).
+    """n samples on [near, far] per ray (docs/method.md 5.4 step 1).
 
     Deterministic: linspace(near, far, n). Stratified (training): each sample is drawn uniformly
     in [mid_{i-1}, mid_i] between the linspace midpoints, with half-cells at the two ends.
@@ -56,7 +56,8 @@ def uniform_sampler(near: Tensor, far: Tensor, n: int, stratified: bool = False)
 
 
 def sample_pdf(bins: Tensor, weights: Tensor, n: int, det: bool) -> Tensor:
-    """Inverse-CDF sampling of a piecewise-constant pdf over intervals (METHOD.md 5.4, 3.7-3.8).
+    """Inverse-CDF sampling of a piecewise-constant pdf over intervals (docs/method.md 5.4,
+    3.7-3.8).
 
     pdf_i = weights_i / sum(weights) on [bins_i, bins_{i+1}]; u = linspace(0, 1, n) when ``det``,
     else u ~ U[0, 1). Each u is mapped linearly inside the interval whose CDF bracket contains it
@@ -97,7 +98,8 @@ def sample_pdf(bins: Tensor, weights: Tensor, n: int, det: bool) -> Tensor:
 
 
 def interval_min_distance(z: Tensor, sdf: Tensor) -> Tensor:
-    """d*_i: a lower bound of |SDF| on [z_i, z_{i+1}] for a 1-Lipschitz SDF (METHOD.md 5.4, 3.2).
+    """d*_i: a lower bound of |SDF| on [z_i, z_{i+1}] for a 1-Lipschitz SDF (docs/method.md 5.4,
+    3.2).
 
     With a = delta_i, b = |s_i|, c = |s_{i+1}|: d* = b if a^2 + b^2 <= c^2; c if a^2 + c^2 <= b^2;
     else 2 Area(a, b, c) / a (Heron) if b + c > a; else 0. d* = 0 unless sign(s_i) = sign(s_{i+1}).
@@ -133,7 +135,7 @@ def _free_energy_prefix(model: SurfaceModel, sdf: Tensor, dists: Tensor, beta) -
 def opacity_error_bound(
     model: SurfaceModel, sdf: Tensor, z: Tensor, d_star: Tensor, beta: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """VolSDF's opacity error bound (METHOD.md 5.4 step 3.3, paper VolSDF Thm. 1 / Lemma 2).
+    """VolSDF's opacity error bound (docs/method.md 5.4 step 3.3, paper VolSDF Thm. 1 / Lemma 2).
 
     bound_i = (min(exp(sum_{k<=i} delta_k^2 exp(-d*_k/beta) / (4 beta^2)), 1e6) - 1)
               * exp(-sum_{k<i} delta_k sigma_beta(s_k)),    E(beta) = max_i bound_i.
@@ -154,7 +156,7 @@ def opacity_error_bound(
 
 
 def _weights(model: SurfaceModel, sdf: Tensor, z: Tensor, beta: Tensor) -> Tensor:
-    """(R, N) rendering weights with sigma_beta and a last delta of 1e10 (METHOD.md 5.4)."""
+    """(R, N) rendering weights with sigma_beta and a last delta of 1e10 (docs/method.md 5.4)."""
     dists = torch.cat([z[:, 1:] - z[:, :-1], torch.full_like(z[:, :1], 1e10)], dim=-1)
     fe = dists * model.density(sdf, beta=beta)
     shifted = torch.cat([torch.zeros_like(fe[:, :1]), fe[:, :-1]], dim=-1)
@@ -163,7 +165,7 @@ def _weights(model: SurfaceModel, sdf: Tensor, z: Tensor, beta: Tensor) -> Tenso
 
 @dataclass
 class ErrorBoundSamplerConfig:
-    """VolSDF ``ErrorBoundSampler`` constants (METHOD.md 5.4)."""
+    """VolSDF ``ErrorBoundSampler`` constants (docs/method.md 5.4)."""
 
     n_samples: int = 64
     """Final samples drawn from the beta-weights."""
@@ -178,7 +180,7 @@ class ErrorBoundSamplerConfig:
     max_total_iters: int = 5
     """Refinement iterations when rendering (eval)."""
     max_total_iters_train: int = 1
-    """Refinement iterations in training (the released code's ``fast=1``, METHOD.md 4.6)."""
+    """Refinement iterations in training (the released code's ``fast=1``, docs/method.md 4.6)."""
     add_tiny: float = 0.0
     """Added to the bound pdf before resampling (DTU 0, BlendedMVS 1e-6)."""
 
@@ -189,9 +191,9 @@ class SamplerOutput:
 
     Attributes:
         z: (R, S) sorted final distances (S = n_samples + 2 + n_samples_extra = 98).
-        eik_index: (R,) long, a random index into z per ray (the eikonal sample, METHOD.md 5.5).
-        z_eval: (R, N) the refined sample set the bound was computed on (error-bound only).
-        sdf_eval: (R, N) SDF at z_eval (no grad; error-bound only).
+        eik_index: (R,) long, a random index into z per ray (the eikonal sample,
+        docs/method.md 5.5). z_eval: (R, N) the refined sample set the bound was computed on
+        (error-bound only). sdf_eval: (R, N) SDF at z_eval (no grad; error-bound only).
         beta: (R,) per-ray beta from the line search (<= model beta means converged).
         beta0: () the model's beta (detached).
         iters: iterations run.
@@ -219,7 +221,7 @@ def error_bound_sample(
     config: ErrorBoundSamplerConfig | None = None,
     training: bool | None = None,
 ) -> SamplerOutput:
-    """VolSDF's error-bounded sampler (METHOD.md 5.4, steps 1-5).
+    """VolSDF's error-bounded sampler (docs/method.md 5.4, steps 1-5).
 
     1. n_samples_eval uniform samples on [near, far] (stratified in training).
     2. beta+ = sqrt(sum_i delta_i^2 / (4 log(1 + eps))).
@@ -235,7 +237,7 @@ def error_bound_sample(
     5. One random eikonal index per ray.
 
     In training the convergence test is not evaluated (all ``max_total_iters_train``
-    iterations run; 1 in the paper, METHOD.md 4.6), so the step has no device-host
+    iterations run; 1 in the paper, docs/method.md 4.6), so the step has no device-host
     synchronisation.
 
     Args:

@@ -1,5 +1,5 @@
 """A fitted field rendered for whole cameras (guide depth, novel views, previews), and the
-guide-depth rule of METHOD.md 6.1 for pixels the field barely covers.
+guide-depth rule of docs/method.md 6.1 for pixels the field barely covers.
 
 Depths here are unit-frame z-depths unless a function says world; the renderer works in ray
 distance inside (`svolsdf.render.volume`).
@@ -28,7 +28,7 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
     on two cores (benchmarks/results/train_step_speed.md, session-13 notes).
 
     Args:
-        model: the `SurfaceModel` (put in eval mode here); its ``background`` (METHOD.md 5.5)
+        model: the `SurfaceModel` (put in eval mode here); its ``background`` (docs/method.md 5.5)
             when it has one.
         sampler: ``sampler(model, rays, training=False)`` -> samples with ``z`` (R, S).
         cameras_unit: V unit-frame cameras of size (W, H).
@@ -54,7 +54,7 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
         rays = rays_from_cameras(cams, t, radius=float(getattr(model, "radius", 3.0)))
         if near_far is not None:
             rays.near = torch.maximum(rays.near, near_far[t, 0] / rays.cos)
-            # with a background the foreground ends at the sphere (METHOD.md 5.5)
+            # with a background the foreground ends at the sphere (docs/method.md 5.5)
             far = rays.far if background is not None else torch.minimum(
                 rays.far, near_far[t, 1] / rays.cos)
             rays.far = torch.maximum(far, rays.near + 1e-3)
@@ -101,14 +101,14 @@ def guide_pixels(masks: torch.Tensor | None, dilation: int | None) -> torch.Tens
 def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int], scale: float,
                  rule: str, volumes: list[ProbabilityVolume] | None = None
                  ) -> dict[int, torch.Tensor]:
-    """The guide z-depth (world) of each input view from its rendering, with METHOD.md 6.1's
+    """The guide z-depth (world) of each input view from its rendering, with docs/method.md 6.1's
     rule for pixels of accumulated weight < 0.2.
 
     Args:
         depth: (V, H, W) rendered unit-frame z-depth; opacity: (V, H, W) sum of the weights.
         view_ids: the V views' ids.
         scale: the normalization's scale (unit -> world).
-        rule: `OutputConfig.low_weight_rule`: "max" (the map's maximum depth, METHOD.md 6.1),
+        rule: `OutputConfig.low_weight_rule`: "max" (the map's maximum depth, docs/method.md 6.1),
             "mvs" (the stage-1 MVS depth of ``volumes``) or anything else (kept as rendered).
         volumes: the V stage-1 volumes with their regressed depth, for "mvs" (None: kept).
 
@@ -120,7 +120,7 @@ def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int]
         d = depth[i] * scale
         low = opacity[i] < 0.2
         if rule == "max":
-            # METHOD.md 6.1: pixels with sum w < 0.2 get the map's maximum depth
+            # docs/method.md 6.1: pixels with sum w < 0.2 get the map's maximum depth
             d = torch.where(low, d[~low].max() if (~low).any() else d.max(), d)
         elif rule == "mvs" and volumes is not None:
             m = volumes[i].depth[None, None]
@@ -132,7 +132,7 @@ def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int]
 
 def max_rule_filled(guide: torch.Tensor) -> torch.Tensor:
     """(H, W) bool: the pixels of a guide made with `guide_depths`' "max" rule that hold its
-    fill, the map's maximum depth (METHOD.md 6.1: accumulated weight < 0.2, or not rendered),
+    fill, the map's maximum depth (docs/method.md 6.1: accumulated weight < 0.2, or not rendered),
     not a depth of the field's surface. The fill is the largest depth of the covered pixels, so
     the few covered pixels at exactly that depth are counted too; a map without a finite
     positive depth is all fill.

@@ -1,4 +1,4 @@
-"""Volume rendering of a :class:`SurfaceModel` along rays (METHOD.md 5.4, 5.5).
+"""Volume rendering of a :class:`SurfaceModel` along rays (docs/method.md 5.4, 5.5).
 
 Generic over any SurfaceModel (the paper MLP, grid fields, analytic test models) and over any
 sampler returning sorted distances ``z`` (R, S). No Python loops over rays or samples.
@@ -34,7 +34,7 @@ class RenderOutput:
         points: (R, S, 3) sample positions.
         grad: (R, S, 3) d sdf / dx at the samples (differentiable when ``create_graph``).
         z: (R, S) sample distances along the rays (ray distance).
-        depth_all: (R,) z-depth including the background (= depth without one); METHOD.md 5.5.
+        depth_all: (R,) z-depth including the background (= depth without one); docs/method.md 5.5.
         bg_transmittance: (R,) transmittance left after the foreground (zeros without background
             unless the last interval is bounded).
     """
@@ -53,7 +53,7 @@ class RenderOutput:
 
 
 def composite(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
-    """Alpha compositing (METHOD.md 5.4).
+    """Alpha compositing (docs/method.md 5.4).
 
     alpha_i = 1 - exp(-sigma_i delta_i), T_i = exp(-sum_{j<i} sigma_j delta_j), w_i = alpha_i T_i.
 
@@ -79,11 +79,11 @@ def render_rays(
     create_graph: bool | None = None,
     colour_min_weight: float = 0.0,
 ) -> RenderOutput:
-    """Render R rays at sample distances z (METHOD.md 5.4; background 5.5).
+    """Render R rays at sample distances z (docs/method.md 5.4; background 5.5).
 
     delta_i = z_{i+1} - z_i with the last delta 1e10, or, when ``bounded_last`` or with a
     ``background``, the last entry of z is the far bound: it is not a sample, and the last delta
-    is z_max - z_{S-1} (METHOD.md 5.5). rgb = sum_i w_i c_i (+ T_bg * rgb_bg);
+    is z_max - z_{S-1} (docs/method.md 5.5). rgb = sum_i w_i c_i (+ T_bg * rgb_bg);
     depth = cos * sum_i w_i z_i / (sum_i w_i + 1e-8).
 
     Args:

@@ -1,11 +1,11 @@
 """Pinhole cameras in the OpenCV convention.
 
-Conventions (ARCHITECTURE.md, "Conventions"; written once here and kept everywhere):
+Conventions (docs/architecture.md, "Conventions"; written once here and kept everywhere):
 
 - Axes: x right, y down, z forward (OpenCV). Extrinsics are world-to-camera 4x4 matrices.
 - Pixel centres sit at integer coordinates: pixel (u, v) = (column, row) covers
   [u - 0.5, u + 0.5] x [v - 0.5, v + 0.5]. DTU and MVSNet calibrations assume this; so does
-  METHOD.md 1.2 ("pixels are integer coordinates (u, v) with no +0.5").
+  docs/method.md 1.2 ("pixels are integer coordinates (u, v) with no +0.5").
 - Resizing an image by s (per axis) scales the focal lengths (and skew) by s and maps the
   principal point as c' = s (c + 0.5) - 0.5, so that the image borders stay where they are.
 - Depth is z-depth in the camera frame (world units unless said otherwise).
@@ -24,7 +24,7 @@ __all__ = ["Cameras", "decompose_projection"]
 def decompose_projection(P: Tensor) -> tuple[Tensor, Tensor]:
     """Split a projection matrix P = K [R | t] into K and the world-to-camera matrix.
 
-    Same result as OpenCV's ``decomposeProjectionMatrix`` followed by METHOD.md 1.2's
+    Same result as OpenCV's ``decomposeProjectionMatrix`` followed by docs/method.md 1.2's
     normalization (K[2,2] = 1, skew kept), computed with an RQ decomposition.
 
     Args:
@@ -210,7 +210,7 @@ class Cameras:
             origins: (V, N, 3) camera centres.
             dirs: (V, N, 3) unit directions in world coordinates.
             cos: (V, N) z-component of the unit camera-frame direction (ray distance * cos =
-                z-depth; METHOD.md 5.4 "cos theta_pix").
+                z-depth; docs/method.md 5.4 "cos theta_pix").
         """
         if uv is None:
             uv = self.pixel_grid(dtype=self.K.dtype).reshape(1, -1, 2).expand(len(self), -1, -1)

@@ -1,6 +1,6 @@
 """`load_scene`: detect a scene folder's format and read it into a `Scene`.
 
-Formats (METHOD.md 1.1-1.3; readers in `svolsdf.scene.formats`):
+Formats (docs/method.md 1.1-1.3; readers in `svolsdf.scene.formats`):
 
 - ``idr``: IDR / VolSDF / NeuS, ``cameras.npz`` or ``cameras_sphere.npz`` + ``image(s)/``
   [+ ``mask/``]
@@ -13,10 +13,10 @@ Where the files do not say, this module fills in (in order of preference):
 
 - pairs: ``pair.txt``; else MVSNet's view selection (`svolsdf.scene.pairs`) on the sparse points,
   else on points sampled in the normalization sphere;
-- normalization: ``scale_mat``; else VolSDF's rule (METHOD.md 1.2) around the sparse points'
+- normalization: ``scale_mat``; else VolSDF's rule (docs/method.md 1.2) around the sparse points'
   median, else around the point nearest all optical axes;
-- depth range per view: the file's (MVSNet); DTU's standard range (METHOD.md 1.1: 425 mm + 2.65 mm
-  x 192 planes) for DTU scans; else the sparse points' depths; else the normalization sphere.
+- depth range per view: the file's (MVSNet); DTU's standard range (docs/method.md 1.1: 425 mm + 2.65
+  mm x 192 planes) for DTU scans; else the sparse points' depths; else the normalization sphere.
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ __all__ = ["DTU_DEPTH_MIN", "DTU_DEPTH_INTERVAL", "detect_format", "load_scene",
 
 log = logging.getLogger(__name__)
 
-# METHOD.md 1.1 / 1.4: the released code's hard-coded DTU range, d_k = 425 + 2.65 k, 192 planes.
+# docs/method.md 1.1 / 1.4: the released code's hard-coded DTU range, d_k = 425 + 2.65 k, 192
+# planes.
 DTU_DEPTH_MIN = 425.0
 DTU_DEPTH_INTERVAL = 2.65
 DTU_NUM_DEPTH = 192
@@ -179,7 +180,7 @@ def load_scene(path: str | Path, views: list[int] | None = None,
         extras["normalization_source"] = "sparse points (median) + VolSDF scale rule"
     else:
         norm = normalize_cameras(cams_all)
-        extras["normalization_source"] = "VolSDF normalize_cameras (METHOD.md 1.2)"
+        extras["normalization_source"] = "VolSDF normalize_cameras (docs/method.md 1.2)"
 
     # --- depth range per view
     if src.depth_range is not None:
@@ -188,7 +189,7 @@ def load_scene(path: str | Path, views: list[int] | None = None,
     elif dtu:
         far = DTU_DEPTH_MIN + DTU_DEPTH_INTERVAL * DTU_NUM_DEPTH
         depth = torch.tensor([[DTU_DEPTH_MIN, far]], dtype=torch.float64).expand(n_all, 2).clone()
-        extras["depth_range_source"] = "DTU standard (METHOD.md 1.1: 425 + 2.65 k, 192 planes)"
+        extras["depth_range_source"] = "DTU standard (docs/method.md 1.1: 425 + 2.65 k, 192 planes)"
     else:
         depth = sphere_depth_range(cams_all, norm)
         extras["depth_range_source"] = "object sphere (unit-frame radius 1)"

@@ -1,8 +1,8 @@
 """The unit frame and per-view depth ranges for scenes whose files do not give them.
 
-- `normalize_cameras`: VolSDF's ``normalize_cameras.py`` rule (METHOD.md 1.2): the centre is the
-  least-squares point nearest all optical axes, s = 1.1 * (max camera distance to the centre) / 3,
-  so the cameras lie within radius 3 / 1.1 ~ 2.73 of the unit frame and the region of interest
+- `normalize_cameras`: VolSDF's ``normalize_cameras.py`` rule (docs/method.md 1.2): the centre is
+  the least-squares point nearest all optical axes, s = 1.1 * (max camera distance to the centre) /
+  3, so the cameras lie within radius 3 / 1.1 ~ 2.73 of the unit frame and the region of interest
   inside the sphere of radius 3.
 - `normalization_from_points`: the same scale rule around a robust centre of sparse points.
 - `sphere_depth_range`: z-depth range of the normalization sphere seen from each camera.
@@ -34,7 +34,7 @@ def axes_center(centers: Tensor, dirs: Tensor) -> Tensor:
     """The point nearest (in least squares) to all optical axes.
 
     Minimises sum_i ||(I - d_i d_i^T)(x - c_i)||^2, i.e. solves
-    [sum_i (I - d_i d_i^T)] x = sum_i (I - d_i d_i^T) c_i (METHOD.md 1.2, VolSDF
+    [sum_i (I - d_i d_i^T)] x = sum_i (I - d_i d_i^T) c_i (docs/method.md 1.2, VolSDF
     ``normalize_cameras.py``). When the axes are (nearly) parallel the system is singular; the
     minimum-norm least-squares solution relative to the mean camera centre is used and a warning
     is logged.
@@ -65,7 +65,7 @@ def axes_center(centers: Tensor, dirs: Tensor) -> Tensor:
 
 
 def normalize_cameras(cameras: Cameras, radius: float = 3.0, margin: float = 1.1) -> Normalization:
-    """VolSDF normalization from the cameras alone (METHOD.md 1.2).
+    """VolSDF normalization from the cameras alone (docs/method.md 1.2).
 
     centre = `axes_center`, s = margin * max_i ||c_i - centre|| / radius, so every camera lies
     within radius / margin (2.73 for the defaults) of the unit frame's origin.
@@ -87,7 +87,7 @@ def normalization_from_points(points: Tensor, cameras: Cameras, radius: float = 
     """Normalization centred on sparse points, with VolSDF's scale rule.
 
     The centre is the per-axis median of the points (robust to stray points, and defined for
-    forward-facing captures where the optical axes do not meet); the scale follows METHOD.md
+    forward-facing captures where the optical axes do not meet); the scale follows docs/method.md
     1.2 (s = margin * max camera distance / radius), so the cameras lie within radius / margin.
 
     Args:
@@ -118,8 +118,8 @@ def sphere_depth_range(cameras: Cameras, normalization: Normalization,
                        min_near: float = 0.01, radius: float = 1.0) -> Tensor:
     """z-depth range of the object sphere in each view.
 
-    VolSDF's frame (METHOD.md 1.2) puts the cameras inside radius ~2.73 and the object inside the
-    unit sphere; the radius-3 sphere bounds rays, not the object, and seen from a camera inside
+    VolSDF's frame (docs/method.md 1.2) puts the cameras inside radius ~2.73 and the object inside
+    the unit sphere; the radius-3 sphere bounds rays, not the object, and seen from a camera inside
     it spans z from ~0, which would waste most of the MVS planes. So the range is that of the
     sphere of unit-frame radius ``radius`` (default 1, the object sphere).
 

@@ -33,7 +33,7 @@ __all__ = [
 
 
 def read_pair_file(path: str | Path) -> tuple[dict[int, list[int]], dict[int, list[float]]]:
-    """Read MVSNet's ``pair.txt`` (METHOD.md 1.1).
+    """Read MVSNet's ``pair.txt`` (docs/method.md 1.1).
 
     Line 1 is the number of views; then per view a line with the reference id and a line
     ``K src1 score1 src2 score2 ...``.
@@ -99,7 +99,7 @@ def visible_in_views(cameras: Cameras, points: Tensor) -> Tensor:
 
 def sample_sphere_points(normalization: Normalization, n: int = 4096, seed: int = 0) -> Tensor:
     """(n, 3) float64 world points uniform in the object sphere (unit-frame radius 1, where
-    VolSDF's normalization puts the object, METHOD.md 1.2; deterministic)."""
+    VolSDF's normalization puts the object, docs/method.md 1.2; deterministic)."""
     g = torch.Generator().manual_seed(seed)
     d = torch.randn(n, 3, generator=g, dtype=torch.float64)
     d = d / d.norm(dim=-1, keepdim=True)

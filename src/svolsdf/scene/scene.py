@@ -28,7 +28,7 @@ class Normalization:
 
     x_unit = (x_world - center) / scale and x_world = scale * x_unit + center; this is the
     inverse of IDR's ``scale_mat`` = [[s, 0, 0, cx], [0, s, 0, cy], [0, 0, s, cz], [0, 0, 0, 1]]
-    (METHOD.md 1.2). The region of interest lies inside the sphere of radius ``radius``.
+    (docs/method.md 1.2). The region of interest lies inside the sphere of radius ``radius``.
 
     Attributes:
         center: (3,) float64 world coordinates of the unit frame's origin.
@@ -155,10 +155,10 @@ class Scene:
 
         Larger than the working size, and with ``from_files``, the images are read again from
         ``image_paths`` and resized from the files' size (bicubic, antialiased when shrinking, as
-        METHOD.md 1.3), when the files are larger than the working size: a 1600x1200 DTU photo
+        docs/method.md 1.3), when the files are larger than the working size: a 1600x1200 DTU photo
         gives its own detail at 1536x1152 instead of the working 768x576 upsampled. Otherwise (or
         when the files are gone) they are resized from the working-size images: bicubic when
-        enlarging (the released code's x2_mvsres, METHOD.md 9.2.2), antialiased when shrinking.
+        enlarging (the released code's x2_mvsres, docs/method.md 9.2.2), antialiased when shrinking.
 
         Args:
             width, height: the size in pixels.
@@ -193,7 +193,7 @@ class Scene:
     def source_views(self, ref_id: int, candidates: list[int] | None = None) -> list[int]:
         """Source views for ``ref_id`` among ``candidates`` (default: the loaded views).
 
-        Order as MVSNet datasets do (METHOD.md 1.4): candidates in pair order first, then the
+        Order as MVSNet datasets do (docs/method.md 1.4): candidates in pair order first, then the
         remaining candidates in their given order.
         """
         candidates = [v for v in (candidates or self.view_ids) if v != ref_id]

@@ -2,7 +2,7 @@
 
 `make_synthetic_scene` ray-casts an analytic signed distance function (a smooth union of spheres,
 rounded boxes, tori and capsules, randomized by a seed) standing on a finite table plane, seen by
-cameras on a DTU-like spherical cap, and writes the IDR / VolSDF layout (METHOD.md 1.1)::
+cameras on a DTU-like spherical cap, and writes the IDR / VolSDF layout (docs/method.md 1.1)::
 
     OUT/image/000000.png ...   RGB 8-bit renders (2x2 supersampled by default)
     OUT/mask/000.png ...       object mask, 8-bit greyscale: 255 object, 0 table or background
@@ -23,10 +23,11 @@ degrees around the -y direction and elevations ``elevation`` degrees above the t
 DTU's. Intrinsics follow DTU's relative focal length (f ~ 1.8 x image width) with a slightly
 off-centre principal point. Camera axes are OpenCV's (scene/cameras.py).
 
-Normalization (METHOD.md 1.2, VolSDF convention): scale_mat = [[s,0,0,cx],[0,s,0,cy],[0,0,s,cz],
-[0,0,0,1]] with c the object's bounding-sphere centre (where all optical axes meet) and
-s = max(1.1 * (max camera distance to c) / 3, 1.05 * object radius): the object lies inside the
-unit sphere and the cameras within radius ~2.7 (VolSDF's radius-3 region of interest).
+Normalization (docs/method.md 1.2, VolSDF convention): scale_mat =
+[[s,0,0,cx],[0,s,0,cy],[0,0,s,cz], [0,0,0,1]] with c the object's bounding-sphere centre (where all
+optical axes meet) and s = max(1.1 * (max camera distance to c) / 3, 1.05 * object radius): the
+object lies inside the unit sphere and the cameras within radius ~2.7 (VolSDF's radius-3 region of
+interest).
 
 Shading is Lambertian with an ambient term, a fixed directional light and soft shadows, so the
 images are consistent across views (no view-dependent effects); the textures are solid (3D)
@@ -454,7 +455,7 @@ def make_synthetic_scene(out_dir, cfg: SynthConfig | None = None) -> Path:
     centre_w = world.to_world(torch.tensor(centre_loc)[None])[0].numpy()
     radius_w = radius_loc * scale
 
-    # Normalization, METHOD.md 1.2 (VolSDF): s = 1.1 * max camera distance / 3, but never so
+    # Normalization, docs/method.md 1.2 (VolSDF): s = 1.1 * max camera distance / 3, but never so
     # small that the object leaves the unit sphere.
     if cfg.cameras_from:
         scale_mat = borrowed_scale

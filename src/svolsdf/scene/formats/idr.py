@@ -1,4 +1,4 @@
-"""IDR / VolSDF / NeuS layout (METHOD.md 1.1-1.2).
+"""IDR / VolSDF / NeuS layout (docs/method.md 1.1-1.2).
 
 ``cameras.npz`` (IDR, VolSDF) or ``cameras_sphere.npz`` (NeuS) with ``world_mat_i`` (the top
 3x4 is P = K [R | t] in world units) and ``scale_mat_i`` (unit frame -> world); images in

@@ -1,4 +1,4 @@
-"""MVSNet / BlendedMVS layout (METHOD.md 1.1).
+"""MVSNet / BlendedMVS layout (docs/method.md 1.1).
 
 ``cams/{id:08d}_cam.txt``: ``extrinsic`` then the 4x4 world-to-camera matrix, ``intrinsic`` then
 K (3x3), then ``depth_min depth_interval [num_depth [depth_max]]``; images in ``images/`` or
