@@ -203,7 +203,7 @@ def cull_to_views(
 
     Visibility comes after the largest component: culling splits the surface where no view
     looked, and the parts it leaves are all observed (benchmarks/results/fast_preset.md,
-    session 8).
+    notes of commit 9143dbd).
 
     Args:
         vertices: (V, 3) world points; faces: (F, 3).

@@ -134,7 +134,7 @@ class PlaneSweepConfig:
     code's x2_mvsres, docs/method.md 9.2.2) and the volumes, depth maps and fused points follow.
     2 against 1 on six synthetic scenes (768x576, 3 views): the backbone alone's points Chamfer
     up to 20 % lower (1 % higher on one scene), the fast preset's 9-26 % lower, for ~2.5 min
-    more per three-view run (benchmarks/results/fast_preset.md, session-17 notes)."""
+    more per three-view run (benchmarks/results/fast_preset.md, notes of commit ecd04c9)."""
     native_images: bool = False
     """Stages larger than the working size read the images again from their files when those are
     larger (`Scene.images_at`): a 1600x1200 DTU photo gives stage 3 its own detail at 1536x1152.
