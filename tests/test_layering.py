@@ -40,6 +40,14 @@ def test_stages_below_fusion_do_not_import_it(package):
     assert not bad, "import svolsdf.geometry instead: " + "; ".join(bad)
 
 
+def test_io_imports_nothing_above_it():
+    # scene and every stage read and write files through io; the run folder's reader
+    # (io/runfolder.py) leaves config.yaml to the config package's loader
+    bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules("io") for m in _imports(p)
+           if m.startswith("svolsdf.") and not m.startswith(("svolsdf.io", "svolsdf.errors"))]
+    assert not bad, "; ".join(bad)
+
+
 def test_geometry_imports_only_the_scene():
     bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules("geometry") for m in _imports(p)
            if m.startswith("svolsdf.") and not m.startswith(("svolsdf.scene", "svolsdf.geometry"))]

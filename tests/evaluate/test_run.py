@@ -46,7 +46,7 @@ def _run(tmp_path):
     out = tmp_path / "out"
     for d in ("renders", "renders_ibr", "depth", "normals"):
         (out / d).mkdir(parents=True)
-    (out / "config.yaml").write_text(f"scene:\n  path: {scene}\n  views: [0]\n")
+    (out / "config.yaml").write_text(f"scene:\n  path: {scene}\n  views: [0, 1]\n")
     (out / "timing.json").write_text(json.dumps({"optimize": 12.5, "mvs": 3.0}))
     g = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), [0.0]), -1).reshape(-1, 3)
     np.save(tmp_path / "gt.npy", g)

@@ -176,6 +176,7 @@ def demo(
     from svolsdf.config import apply_overrides, preset
     from svolsdf.evaluate.synthetic import synthetic_chamfer
     from svolsdf.io.ply import read_ply
+    from svolsdf.io.runfolder import RunFolder
     from svolsdf.pipeline import Pipeline
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
@@ -190,7 +191,8 @@ def demo(
     run = out / "run"
     typer.echo(f"reconstructing into {run} (fast preset) ...")
     summary = _run_pipeline(Pipeline(cfg, run, progress=not no_progress))
-    views = json.loads((run / "views.json").read_text())["inputs"]
+    run_views = RunFolder(run).views()
+    views = run_views.inputs if run_views is not None else []
     lines = []
     result = {}
     for name in ("points", "mesh"):

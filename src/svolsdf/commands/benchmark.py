@@ -40,6 +40,7 @@ from pathlib import Path
 from svolsdf.commands.executors import ExecutorConfig
 from svolsdf.errors import InputError
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
+from svolsdf.io.runfolder import RunFolder
 
 __all__ = [
     "MODES",
@@ -159,12 +160,8 @@ def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
 
 
 def _stage_seconds(run_dir: Path) -> float | None:
-    p = run_dir / "timing.json"
-    if not p.is_file():
-        return None
-    try:
-        t = json.loads(p.read_text())
-    except ValueError:
+    t = RunFolder(run_dir).timing()
+    if not t:
         return None
     secs = [v.get("seconds") for k, v in t.items() if k != "total" and isinstance(v, dict)]
     secs = [float(s) for s in secs if isinstance(s, (int, float))]
@@ -331,14 +328,15 @@ def run_job(job: BenchmarkJob) -> dict:
     ``job.out/benchmark_row.json``. Never raises: an error becomes a row with ``status``
     "failed: ..." (`failed_row`). The one job function of both executors."""
     from svolsdf import pipeline as pipeline_module
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run, run_views
+    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
 
     out = Path(job.out)
     t0 = time.perf_counter()
     try:
         pipeline_module.Pipeline(job_config(job), out, progress=False).run()
         elapsed = time.perf_counter() - t0
-        test = run_views(out, "test")  # views.json, read once
+        run_views = RunFolder(out).views()  # views.json, read once
+        test = run_views.test if run_views is not None else []
         if job.render is not None and test:
             from svolsdf.commands.render import render_outputs
 

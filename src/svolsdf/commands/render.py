@@ -32,7 +32,6 @@ step 4, "holes").
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -226,17 +225,17 @@ def render_outputs(
         raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     p = open_run(out, progress=False)
     from svolsdf.io.folders import ensure_writable_folder
-    from svolsdf.io.runfolder import config_digest, folder_lock, output_provenance
+    from svolsdf.io.runfolder import config_digest, folder_lock
 
-    if output_provenance(out, ["field"])["field"] == "another config":
+    if p.dir.output_provenance(["field"])["field"] == "another config":
         raise InputError(f"{out}: field/model.pt came from an earlier config than "
-                         f"{out / 'config.yaml'} (a rerun with other options stopped before it "
+                         f"{p.dir.config_file} (a rerun with other options stopped before it "
                          f"trained the field again); run svolsdf reconstruct -o {out} --config "
-                         f"{out / 'config.yaml'} first")
+                         f"{p.dir.config_file} first")
     ensure_writable_folder(out, "run folder")  # renders/ goes there: fail before rendering
     with folder_lock(out, "svolsdf render"):
         res = _render(p, out, views, path, ibr, size, frames, chunk, fps, ibr_config, progress)
-        p.dir.record("render", config_digest(p.dir.config))  # evaluate checks it
+        p.dir.record("render", config_digest(p.dir.config_file))  # evaluate checks it
     return res
 
 
@@ -265,18 +264,17 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
             r = _scene_range(scene, s)
             near_far = torch.tensor([[float(r[:, 0].min()), float(r[:, 1].max())]]).expand(
                 frames, 2).clone()
-        rdir, idir = out / "renders" / "orbit", out / "renders_ibr" / "orbit"
+        rdir, idir = p.dir.renders_dir() / "orbit", p.dir.renders_dir(ibr=True) / "orbit"
         targets: list = list(range(frames))
     else:
-        try:
-            info = json.loads((out / "views.json").read_text())
-        except (OSError, ValueError):
-            info = None
-        if not isinstance(info, dict) or not isinstance(info.get("inputs"), list):
-            log.warning("%s is unreadable; the views follow from config.yaml", out / "views.json")
-            info = {"inputs": p.views, "test": p.test_view_ids}
         if views is None:
-            views = list(info.get("test") or []) or list(info["inputs"])
+            run_views = p.dir.views()
+            if run_views is None or not run_views.inputs:
+                log.warning("%s names no input views; the views follow from config.yaml",
+                            p.dir.views_file)
+                views = list(p.test_view_ids) or list(p.views)
+            else:
+                views = run_views.test or run_views.inputs
         views = [int(v) for v in views]
         if not views:
             raise InputError(f"{out}: no views to render")
@@ -285,7 +283,7 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
         cams_w = tsc.cameras
         names = [str(v) for v in views]
         near_far = _scene_range(tsc, s)
-        rdir, idir = out / "renders", out / "renders_ibr"
+        rdir, idir = p.dir.renders_dir(), p.dir.renders_dir(ibr=True)
         targets = views
     if (cams_w.width, cams_w.height) != size:
         cams_w = cams_w.resize(*size)
@@ -339,9 +337,9 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
                       100 * float(res.weight_sum.mean()))
     video = video_ibr = None
     if path == "orbit":
-        video = write_video(rgb_frames, out / "renders" / "orbit", fps)
+        video = write_video(rgb_frames, rdir, fps)
         if ibr_frames:
-            video_ibr = write_video(ibr_frames, out / "renders_ibr" / "orbit", fps)
+            video_ibr = write_video(ibr_frames, idir, fps)
     spv = float(np.mean(secs)) if secs else None
     log.info("rendered %d view(s) at %dx%d: %.1f s per view (volume rendering)", len(names),
              W, H, spv or 0.0)

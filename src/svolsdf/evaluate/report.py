@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
+from svolsdf.io.runfolder import RunFolder, atomic_write
+
 __all__ = ["ViewImages", "METRIC_INFO", "write_report"]
 
 log = logging.getLogger(__name__)
@@ -282,10 +284,11 @@ def _depth_section(out_dir: Path, view_ids: list[int], gt_depth: dict | None,
     per-view absolute error with its own colour bar."""
     u = _units(units)
     rows = []
-    npys = {v: out_dir / "depth" / f"{v}.npy" for v in view_ids}
+    depth_dir = RunFolder(out_dir).depth_dir
+    npys = {v: depth_dir / f"{v}.npy" for v in view_ids}
     npys = {v: p for v, p in npys.items() if p.is_file()}
     if not npys:  # e.g. a run folder without .npy depth: show the previews as they are
-        files = sorted((out_dir / "depth").glob("*.png")) if (out_dir / "depth").is_dir() else []
+        files = sorted(depth_dir.glob("*.png")) if depth_dir.is_dir() else []
         figs = [_img(b, p.stem) for p in files if (b := _file_b64(p)) is not None]
         return f"<h2>Depth maps</h2><div class='grid'>{''.join(figs)}</div>" if figs else ""
     for vid, p in npys.items():
@@ -325,7 +328,7 @@ def _depth_section(out_dir: Path, view_ids: list[int], gt_depth: dict | None,
 
 
 def _normals_section(out_dir: Path) -> str:
-    folder = out_dir / "normals"
+    folder = RunFolder(out_dir).normals_dir
     files = sorted(folder.glob("*.png")) if folder.is_dir() else []
     figs = [_img(b, f"view {p.stem}") for p in files if (b := _file_b64(p)) is not None]
     if not figs:
@@ -516,8 +519,7 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
         script = f"<script>{plotly_js()}</script>"
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
             f"</title><style>{_CSS}</style>{script}</head><body>{''.join(parts)}</body></html>")
-    path = out_dir / "report.html"
-    from svolsdf.io.runfolder import atomic_write  # a unique temporary name, as every writer
+    path = RunFolder(out_dir).report_file
 
     atomic_write(path, lambda tmp: tmp.write_text(page, encoding="utf-8"))
     log.info("report: 3D view %.1f s, pictures %.1f s, total %.1f s (%.1f MB)",
@@ -526,7 +528,7 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
 
 
 def _depth_ids(out_dir: Path) -> list[int]:
-    d = out_dir / "depth"
+    d = RunFolder(out_dir).depth_dir
     return sorted(int(p.stem) for p in d.glob("*.npy") if p.stem.isdigit()) if d.is_dir() else []
 
 

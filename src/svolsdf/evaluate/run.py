@@ -5,8 +5,11 @@ Reads from the run folder OUT:
     mesh.ply            the mesh, if present
     renders/<id>.png    volume-rendered novel views; renders_ibr/<id>.png image-based renders
     depth/*.png, normals/*.png   previews shown in the report
-    config.yaml         names the scene (``scene: PATH`` or ``scene: {path: PATH, views: [...]}``)
+    config.yaml         names the scene and its input views (``scene.path``, ``scene.views``; read
+                        by `svolsdf.config.load_config`), else views.json does
     timing.json         stage timings, copied into the metrics
+
+through `svolsdf.io.runfolder.RunFolder`.
 
 Writes OUT/metrics.json with fixed keys (null when not computable)::
 
@@ -55,6 +58,7 @@ from svolsdf.evaluate import chamfer as ch
 from svolsdf.evaluate.images import masked_psnr, ssim
 from svolsdf.evaluate.report import ViewImages
 from svolsdf.evaluate.synthetic import is_synthetic_scene
+from svolsdf.io.runfolder import RunFolder
 
 __all__ = ["EvaluateConfig", "check_views_rendered", "evaluate_run", "load_gt_points",
            "write_run_report"]
@@ -116,54 +120,26 @@ def load_gt_points(path: str | Path) -> np.ndarray:
     return read_ply(path)["points"]
 
 
-def _read_config(out: Path) -> dict:
-    p = out / "config.yaml"
-    if not p.is_file():
-        return {}
-    import yaml
+def run_scene(run: RunFolder) -> tuple[Path | None, list[int] | None]:
+    """The scene folder and the input view ids of a run: those of its config.yaml (read by
+    `svolsdf.config.load_config`), else those views.json records; None for what neither names.
 
-    try:
-        return yaml.safe_load(p.read_text()) or {}
-    except Exception as e:
-        raise InputError(f"{p}: not valid YAML ({e})") from None
-
-
-def _scene_info(cfg: dict) -> tuple[Path | None, list[int] | None]:
-    """Scene path and input view ids named by config.yaml, if any."""
-    s = cfg.get("scene")
+    Raises:
+        InputError: config.yaml is not a config (`load_config` names the key or value).
+    """
     path = views = None
-    if isinstance(s, str):
-        path = s
-    elif isinstance(s, dict):
-        path = s.get("path") or s.get("dir")
-        views = s.get("views")
-    path = path or cfg.get("scene_path")
-    views = views or cfg.get("views") or cfg.get("input_views")
-    if isinstance(views, str):
-        views = [int(t) for t in views.replace(",", " ").split()]
-    return (Path(path) if path else None), ([int(v) for v in views] if views else None)
+    if run.config_file.is_file():
+        from svolsdf.config import load_config
 
-
-def run_views(out: Path, key: str) -> list[int]:
-    """The view ids under ``key`` ("inputs" or "test") of OUT/views.json; [] without the file,
-    or when it is unreadable (a warning says so)."""
-    p = Path(out) / "views.json"
-    if not p.is_file():
-        return []
-    try:
-        return [int(v) for v in json.loads(p.read_text()).get(key) or []]
-    except (ValueError, TypeError, AttributeError):
-        log.warning("%s: expected a JSON object with a list %r; its views are not used", p, key)
-        return []
-
-
-def _render_files(folder: Path, views: list[int] | None) -> dict[int, Path]:
-    if not folder.is_dir():
-        return {}
-    files = {int(p.stem): p for p in folder.glob("*.png") if re.fullmatch(r"\d+", p.stem)}
-    if views is not None:
-        files = {v: files[v] for v in views if v in files}
-    return dict(sorted(files.items()))
+        cfg = load_config(run.config_file)
+        path = cfg.scene.path or None
+        views = [int(v) for v in cfg.scene.views] if cfg.scene.views else None
+    if path is None or views is None:
+        rv = run.views()
+        if rv is not None:
+            path = path or rv.scene
+            views = views or rv.inputs or None
+    return (Path(path) if path else None), views
 
 
 def _empty_images(missing: str | None = None) -> dict:
@@ -277,8 +253,8 @@ def _diag(p: np.ndarray) -> float:
     return float(np.linalg.norm(p.max(0) - p.min(0)))
 
 
-def _render_views(out: Path, scene_path: Path | None, views: list[int] | None, masks: bool,
-                  notes: list[str], missing: dict[str, str] | None = None
+def _render_views(run: RunFolder, scene_path: Path | None, views: list[int] | None,
+                  masks: bool, notes: list[str], missing: dict[str, str] | None = None
                   ) -> tuple[dict[str, list[ViewImages]], object]:
     """Renders of renders/ ("images") and renders_ibr/ ("images_ibr") with their ground truth,
     without metrics; returns them by set and the scene loaded at the renders' size.
@@ -286,8 +262,8 @@ def _render_views(out: Path, scene_path: Path | None, views: list[int] | None, m
     from svolsdf.io.images import read_image
 
     missing = {} if missing is None else missing
-    sets = {"images": _render_files(out / "renders", views),
-            "images_ibr": _render_files(out / "renders_ibr", views)}
+    sets = {"images": run.render_files(views=views),
+            "images_ibr": run.render_files(ibr=True, views=views)}
     for key, files in sets.items():
         if not files:
             folder = "renders" if key == "images" else "renders_ibr"
@@ -332,7 +308,8 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
     A set without images, or a metric that cannot be computed (LPIPS without its weights),
     keeps null values and says why in ``missing``."""
     missing: dict[str, str] = {}
-    loaded, scene = _render_views(cfg.out, scene_path, cfg.views, cfg.masks, notes, missing)
+    loaded, scene = _render_views(RunFolder(cfg.out), scene_path, cfg.views, cfg.masks, notes,
+                                  missing)
     for key, why in missing.items():
         metrics[key] = _empty_images(why)
     if scene is None:
@@ -392,21 +369,22 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     out = Path(cfg.out)
     if not out.is_dir():
         raise InputError(f"{out}: run folder does not exist")
-    found = _check_run_folder(out, cfg.scene)
+    run = RunFolder(out)
+    found = _check_run_folder(run, cfg.scene)
     _check_evaluate_options(cfg, out)
-    prov = _check_provenance(out, found)
+    prov = _check_provenance(run, found)
     ensure_writable_folder(out, "run folder")  # metrics.json goes there: fail before the work
     with folder_lock(out, "svolsdf evaluate"):
         return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}))
 
 
-def _check_run_folder(out: Path, scene: Path | None) -> list[str]:
-    """The outputs evaluate and report read in OUT; refuses a folder without any (a scene, an
-    empty or half-finished run: nothing is written into it) and a ``scene`` that is none."""
-    found = [n for n in ("points.ply", "mesh.ply") if (out / n).is_file()] + [
-        n for n in ("renders", "renders_ibr") if _render_files(out / n, None)]
+def _check_run_folder(run: RunFolder, scene: Path | None) -> list[str]:
+    """The outputs evaluate and report read in OUT (`RunFolder.outputs`); refuses a folder
+    without any (a scene, an empty or half-finished run: nothing is written into it) and a
+    ``scene`` that is none."""
+    found = run.outputs()
     if not found:
-        raise InputError(f"{out}: not a run folder (no points.ply, mesh.ply or "
+        raise InputError(f"{run.root}: not a run folder (no points.ply, mesh.ply or "
                          "renders/<view id>.png); give the output folder of svolsdf "
                          "reconstruct, mvs or render, once it has finished")
     if scene is not None:
@@ -425,9 +403,8 @@ def check_views_rendered(out: str | Path, views: list[int] | None) -> None:
     """
     if views is None:
         return
-    out = Path(out)
-    have = set(_render_files(out / "renders", None)) | set(
-        _render_files(out / "renders_ibr", None))
+    run = RunFolder(out)
+    have = set(run.render_files()) | set(run.render_files(ibr=True))
     missing = [v for v in views if v not in have]
     if missing:
         raise InputError(f"--views: no renders/<id>.png of view(s) {missing} in {out} "
@@ -443,22 +420,21 @@ def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
         raise InputError("--dtu-gt and --gt-points: give one ground truth")
 
 
-def _check_provenance(out: Path, found: list[str]) -> dict[str, str]:
+def _check_provenance(run: RunFolder, found: list[str]) -> dict[str, str]:
     """{output: whether OUT/config.yaml made it} (`svolsdf.io.runfolder.output_provenance`);
     refuses outputs that an earlier config made, which would be scored under the wrong one."""
-    from svolsdf.io.runfolder import output_provenance
-
     names = [n for n in found if n in ("points.ply", "mesh.ply")]
     if any(n.startswith("renders") for n in found):
         names.append("renders")
-    prov = output_provenance(out, names)
+    prov = run.output_provenance(names)
     stale = [n for n, v in prov.items() if v == "another config"]
     if stale:
-        again = f"svolsdf reconstruct -o {out} --config {out / 'config.yaml'}"
+        out = run.root
+        again = f"svolsdf reconstruct -o {out} --config {run.config_file}"
         if "renders" in stale:
             again = (f"{again}, then " if stale != ["renders"] else "") + f"svolsdf render {out}"
         raise InputError(f"{out}: {', '.join(stale)} came from an earlier config than "
-                         f"{out / 'config.yaml'} (a rerun with other options stopped before "
+                         f"{run.config_file} (a rerun with other options stopped before "
                          f"it made them again); run {again} first")
     return prov
 
@@ -475,23 +451,22 @@ def _evaluate_run(cfg: EvaluateConfig) -> dict:
             raise InputError(f"{name} {v}: expected a number > 0")
     from svolsdf.io.ply import read_ply
 
-    run_cfg = _read_config(out)
-    scene_path, input_views = _scene_info(run_cfg)
+    run = RunFolder(out)
+    # the inputs the run used (config.yaml may leave them default: views.json has them)
+    scene_path, input_views = run_scene(run)
     if cfg.scene is not None:
         scene_path = Path(cfg.scene)
-    if input_views is None:  # the inputs the run used (config.yaml may leave them default)
-        input_views = run_views(out, "inputs") or None
     notes: list[str] = []
     metrics = _empty_metrics()
     metrics["settings"] = dict(cfg.extra)
     points = mesh = None
-    if (out / "points.ply").is_file():
-        d = read_ply(out / "points.ply")
+    if run.points.is_file():
+        d = read_ply(run.points)
         points = (d["points"], d["colors"])
     else:
         notes.append("No points.ply in the run folder.")
-    if (out / "mesh.ply").is_file():
-        d = read_ply(out / "mesh.ply")
+    if run.mesh().is_file():
+        d = read_ply(run.mesh())
         if d["faces"] is not None and len(d["faces"]):
             mesh = (d["points"], d["faces"])
 
@@ -506,30 +481,29 @@ def _evaluate_run(cfg: EvaluateConfig) -> dict:
     _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views)
     log.info("geometry metrics in %.1fs", time.perf_counter() - t_geo)
 
-    tj = out / "timing.json"
-    if tj.is_file():
-        try:
-            metrics["timing"] = dict(json.loads(tj.read_text()))
-        except (ValueError, TypeError) as e:  # the stage timings only: the scores do not need it
-            log.warning("%s is unreadable (%s); timing left out", tj, e)
-            notes.append(f"{tj.name} unreadable: stage timings left out.")
+    timing = run.timing()
+    if timing is None:  # the stage timings only: the scores do not need them
+        log.warning("%s is unreadable; timing left out", run.timing_file)
+        notes.append(f"{run.timing_file.name} unreadable: stage timings left out.")
+    else:
+        metrics["timing"] = timing
     metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
     _mesh_provenance(metrics, mesh is not None)
-    _write_json(out / "metrics.json", metrics)
+    _write_json(run.metrics_file, metrics)
 
     if cfg.report:
         _write_run_report(out, metrics, views, notes, scene_path=scene_path,
                          input_views=input_views)
         metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
-        _write_json(out / "metrics.json", metrics)
+        _write_json(run.metrics_file, metrics)
     return metrics
 
 
 def _mesh_provenance(metrics: dict, has_mesh: bool) -> None:
-    """``mesh_source`` (which surface mesh.ply is, `svolsdf.io.runinfo.mesh_source`) and
+    """``mesh_source`` (which surface mesh.ply is, `svolsdf.io.runfolder.mesh_source`) and
     ``mesh_over_points`` (the mesh's accuracy, completeness and Chamfer over the points'), so
     that a mesh worse than the points shows as a number."""
-    from svolsdf.io.runinfo import mesh_source
+    from svolsdf.io.runfolder import mesh_source
 
     src = mesh_source(metrics.get("timing")) if has_mesh else None
     if has_mesh and src is None:
@@ -604,7 +578,8 @@ def write_run_report(out: str | Path, metrics: dict | None = None,
     out = Path(out)
     if not out.is_dir():
         raise InputError(f"{out}: run folder does not exist")
-    _check_provenance(out, _check_run_folder(out, scene_path))
+    run = RunFolder(out)
+    _check_provenance(run, _check_run_folder(run, scene_path))
     ensure_writable_folder(out, "run folder")
     with folder_lock(out, "svolsdf report"):
         return _write_run_report(out, metrics, views, notes, scene_path, input_views)
@@ -618,44 +593,29 @@ def _write_run_report(out: Path, metrics: dict | None = None,
     from svolsdf.io.ply import read_ply
 
     out = Path(out)
+    run = RunFolder(out)
     notes = list(notes or [])
-    run_cfg = _read_config(out)
-    cfg_scene, cfg_views = _scene_info(run_cfg)
-    scene_path = scene_path or cfg_scene
-    if scene_path is None and (out / "views.json").is_file():
-        try:
-            s = json.loads((out / "views.json").read_text()).get("scene")
-            scene_path = Path(s) if s else None
-        except (ValueError, AttributeError):
-            scene_path = None
-    input_views = input_views or cfg_views or run_views(out, "inputs") or None
+    if scene_path is None or not input_views:
+        run_path, run_views = run_scene(run)
+        scene_path = scene_path or run_path
+        input_views = input_views or run_views
     if metrics is None:
-        mj = out / "metrics.json"
-        if mj.is_file():
-            try:
-                metrics = json.loads(mj.read_text())
-            except ValueError as e:
-                raise InputError(f"{mj}: not valid JSON ({e})") from None
-        else:
+        metrics = run.metrics()
+        if metrics is None:
             metrics = _empty_metrics()
             notes.append(f"No metrics.json: run svolsdf evaluate {out} for the metrics.")
-            tj = out / "timing.json"
-            if tj.is_file():
-                try:
-                    metrics["timing"] = dict(json.loads(tj.read_text()))
-                except (ValueError, TypeError):
-                    pass
+            metrics["timing"] = run.timing() or {}
     points = mesh = None
-    if (out / "points.ply").is_file():
-        d = read_ply(out / "points.ply")
+    if run.points.is_file():
+        d = read_ply(run.points)
         points = (d["points"], d["colors"])
-    if (out / "mesh.ply").is_file():
-        d = read_ply(out / "mesh.ply")
+    if run.mesh().is_file():
+        d = read_ply(run.mesh())
         if d["faces"] is not None and len(d["faces"]):
             mesh = (d["points"], d["faces"], d["colors"])
     if views is None and scene_path is not None:
         try:
-            loaded, _ = _render_views(out, scene_path, None, True, [])
+            loaded, _ = _render_views(run, scene_path, None, True, [])
         except InputError as e:
             notes.append(f"Novel views not shown: {e}")
             loaded = {}
@@ -669,7 +629,7 @@ def _write_run_report(out: Path, metrics: dict | None = None,
                 views.append(v)
     inputs, cameras, units, gt_depth = [], None, None, None
     if scene_path is not None:
-        ids = input_views or sorted(int(p.stem) for p in (out / "depth").glob("*.npy")
+        ids = input_views or sorted(int(p.stem) for p in run.depth_dir.glob("*.npy")
                                     if re.fullmatch(r"\d+", p.stem))
         if ids:
             try:
@@ -684,7 +644,7 @@ def _write_run_report(out: Path, metrics: dict | None = None,
                 units = units if units not in (None, "unknown") else _synthetic_units(scene_path)
                 gt_depth = {v: np.load(f) for v in ids
                             if (f := Path(scene_path) / "gt_depth" / f"{v:03d}.npy").is_file()}
-    config_text = (out / "config.yaml").read_text() if (out / "config.yaml").is_file() else None
+    config_text = run.config_file.read_text() if run.config_file.is_file() else None
     from svolsdf.evaluate.report import write_report
 
     return write_report(out, metrics, views, inputs, points, mesh,

@@ -1,10 +1,15 @@
-"""What every command that writes into a run folder shares: its lock, atomic writes with unique
-temporary names, and the record of which config made each output (its provenance).
+"""The run folder below every command: `RunFolder` reads it (the paths of its files, views.json,
+timing.json, metrics.json, which outputs it holds); the lock, atomic writes with unique temporary
+names and the record of which config made each output (its provenance) are shared by every
+command that writes one.
 
-The pipeline (`svolsdf.pipeline.RunDir`) and the commands over finished runs (evaluate, report,
-render, mvs) all go through these, so two commands never write one folder at once, a full disk
-never leaves a half file under a final name, and scores are never given to outputs that another
-config made. docs/run-folder.md explains the choices.
+The pipeline's `svolsdf.pipeline.RunDir` is a `RunFolder` with the writing side (stage state,
+views.json, timing.json, OUT/log); the commands over finished runs (evaluate, report, render,
+benchmark, mvs) read through `RunFolder`. Its config.yaml is read by the config package's loader,
+which sits above this module: ``svolsdf.config.load_config(RunFolder(out).config_file)``. Two
+commands never write one folder at once, a full disk never leaves a half file under a final name,
+and scores are never given to outputs that another config made. docs/run-folder.md explains the
+choices.
 """
 
 from __future__ import annotations
@@ -13,15 +18,20 @@ import contextlib
 import errno
 import hashlib
 import json
+import logging
 import os
+import re
 import secrets
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from svolsdf.errors import InputError
 
-__all__ = ["LOCK_NAME", "OUTPUT_STAGES", "atomic_write", "config_digest", "folder_lock",
-           "output_provenance", "read_stage_state", "unique_temp"]
+__all__ = ["LOCK_NAME", "OUTPUT_STAGES", "RunFolder", "RunViews", "atomic_write", "config_digest",
+           "folder_lock", "mesh_source", "output_provenance", "read_stage_state", "unique_temp"]
+
+log = logging.getLogger(__name__)
 
 LOCK_NAME = ".svolsdf.lock"
 """The lock file of a run folder."""
@@ -30,6 +40,244 @@ OUTPUT_STAGES = {"points.ply": "fusion", "mesh.ply": "mesh", "mesh.obj": "mesh",
                  "renders": "render"}
 """The outputs that evaluate and report read, and the record (a stage of OUT/stages.json, or
 ``render``) that names the config which made each."""
+
+
+# --------------------------------------------------------------------------- reading
+@dataclass(frozen=True)
+class RunViews:
+    """OUT/views.json: the views a run used."""
+
+    inputs: list[int]
+    """The input view ids."""
+    test: list[int]
+    """The held-out test view ids (the scene's views that are not inputs)."""
+    size: tuple[int, int] | None
+    """The working size (W, H), None when the file does not say."""
+    scene: str | None
+    """The scene folder, None when the file does not say."""
+
+
+class RunFolder:
+    """A run folder, read: every path of a run and what its bookkeeping files hold. It writes
+    nothing (`svolsdf.pipeline.RunDir` adds the writing side).
+
+    Layout (docs/architecture.md "Data flow"; `svolsdf.pipeline` writes it):
+
+    - ``config.yaml``, ``views.json`` (inputs, test views, working size, scene), ``stages.json``
+      (stage -> key of the config it finished under; "provenance": stage -> the key of its
+      inputs and the digest of the config.yaml it finished or was last reused under;
+      "manifest": the input files, `svolsdf.pipeline.keys.input_manifest`), ``timing.json``,
+      ``log``, ``.svolsdf.lock`` (`folder_lock`: every command that writes here);
+    - ``mvs/stage{1,2,3}/<id>.npz``, ``depth/<id>.npy`` (+ .png), ``confidence/<id>.npy``;
+    - ``field/model.pt`` (+ checkpoints), ``field/render_depth/<id>.npy``, ``field/render_rgb/``,
+      ``normals/``, ``field/stage2/`` (the finer-stage optimization), ``field/surface.pt``;
+    - ``unguided/{depth,confidence}/<id>.npy``, ``network/{depth,confidence}/<id>.npy``;
+    - ``points.ply``, ``mesh.ply`` (or ``mesh.obj``);
+    - after ``svolsdf render``: ``renders/<id>.png``, ``renders_ibr/<id>.png``; after
+      ``svolsdf evaluate``: ``metrics.json`` and ``report.html``.
+
+    Args:
+        root: the folder (need not exist).
+    """
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self.root)!r})"
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def config_file(self) -> Path:
+        """The run's config (load it with `svolsdf.config.load_config`)."""
+        return self.root / "config.yaml"
+
+    @property
+    def views_file(self) -> Path:
+        return self.root / "views.json"
+
+    @property
+    def stages_file(self) -> Path:
+        return self.root / "stages.json"
+
+    @property
+    def timing_file(self) -> Path:
+        return self.root / "timing.json"
+
+    @property
+    def metrics_file(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def report_file(self) -> Path:
+        return self.root / "report.html"
+
+    @property
+    def log_file(self) -> Path:
+        return self.root / "log"
+
+    @property
+    def points(self) -> Path:
+        return self.root / "points.ply"
+
+    def mesh(self, fmt: str = "ply") -> Path:
+        """OUT/mesh.ply, or OUT/mesh.obj for ``fmt`` "obj"."""
+        return self.root / ("mesh.obj" if fmt == "obj" else "mesh.ply")
+
+    @property
+    def field_dir(self) -> Path:
+        return self.root / "field"
+
+    @property
+    def model(self) -> Path:
+        """The fitted field (OUT/field/model.pt)."""
+        return self.field_dir / "model.pt"
+
+    @property
+    def refined_model(self) -> Path:
+        """The field after the finer-stage optimization (OUT/field/stage2/model.pt)."""
+        return self.field_dir / "stage2" / "model.pt"
+
+    @property
+    def surface_model(self) -> Path:
+        """The field refined through the fused points (OUT/field/surface.pt)."""
+        return self.field_dir / "surface.pt"
+
+    def render_depth_dir(self, refined: bool = False) -> Path:
+        """The field's rendered depth of the input views (the refined field's with
+        ``refined``)."""
+        return self.field_dir / ("stage2/render_depth" if refined else "render_depth")
+
+    def stage1_file(self, view: int) -> Path:
+        return self.root / "mvs" / "stage1" / f"{view}.npz"
+
+    @property
+    def depth_dir(self) -> Path:
+        return self.root / "depth"
+
+    @property
+    def normals_dir(self) -> Path:
+        return self.root / "normals"
+
+    @property
+    def unguided_dir(self) -> Path:
+        return self.root / "unguided"
+
+    @property
+    def network_dir(self) -> Path:
+        return self.root / "network"
+
+    def renders_dir(self, ibr: bool = False) -> Path:
+        """OUT/renders (volume rendering), or OUT/renders_ibr with ``ibr``."""
+        return self.root / ("renders_ibr" if ibr else "renders")
+
+    def view_files(self, folder: Path, views: Sequence[int], suffix: str = ".npy"
+                   ) -> dict[int, Path]:
+        """{view: folder/<view><suffix>}."""
+        return {v: folder / f"{v}{suffix}" for v in views}
+
+    # ------------------------------------------------------------------ what it holds
+    def is_run(self) -> bool:
+        """A reconstruct wrote config.yaml and views.json here."""
+        return self.config_file.is_file() and self.views_file.is_file()
+
+    def render_files(self, ibr: bool = False, views: Sequence[int] | None = None
+                     ) -> dict[int, Path]:
+        """{view id: OUT/renders/<id>.png} (OUT/renders_ibr with ``ibr``) sorted by id, only
+        ``views`` when given; {} without the folder."""
+        folder = self.renders_dir(ibr)
+        if not folder.is_dir():
+            return {}
+        files = {int(p.stem): p for p in folder.glob("*.png") if re.fullmatch(r"\d+", p.stem)}
+        if views is not None:
+            files = {v: files[v] for v in views if v in files}
+        return dict(sorted(files.items()))
+
+    def outputs(self) -> list[str]:
+        """The outputs evaluate and report read that the folder holds, of points.ply,
+        mesh.ply, renders and renders_ibr (a folder counts with a <view id>.png in it)."""
+        return [n for n in ("points.ply", "mesh.ply") if (self.root / n).is_file()] + [
+            n for n, ibr in (("renders", False), ("renders_ibr", True)) if self.render_files(ibr)]
+
+    def views(self) -> RunViews | None:
+        """OUT/views.json; None when the file is missing or unreadable (a warning says so)."""
+        p = self.views_file
+        if not p.is_file():
+            return None
+        try:
+            d = json.loads(p.read_text())
+            size = d.get("size")
+            return RunViews(inputs=[int(v) for v in d.get("inputs") or []],
+                            test=[int(v) for v in d.get("test") or []],
+                            size=(int(size[0]), int(size[1])) if size else None,
+                            scene=str(d["scene"]) if d.get("scene") else None)
+        except (OSError, ValueError, TypeError, AttributeError, IndexError, KeyError):
+            log.warning("%s is unreadable (expected a JSON object with lists 'inputs' and "
+                        "'test'); its views are not used", p)
+            return None
+
+    def timing(self) -> dict | None:
+        """OUT/timing.json ({stage: {...}}): {} when the file is missing, None when it is
+        unreadable."""
+        return _json_object(self.timing_file, missing={})
+
+    def metrics(self) -> dict | None:
+        """OUT/metrics.json (`svolsdf evaluate`); None when the file is missing.
+
+        Raises:
+            InputError: the file is not a JSON object, naming it.
+        """
+        p = self.metrics_file
+        if not p.is_file():
+            return None
+        m = _json_object(p)
+        if m is None:
+            raise InputError(f"{p}: not valid JSON (a JSON object); run svolsdf evaluate "
+                             f"{self.root} to write it again")
+        return m
+
+    def stage_state(self) -> dict:
+        """OUT/stages.json as a dict ({} when missing or unreadable, `read_stage_state`)."""
+        return read_stage_state(self.root)
+
+    def output_provenance(self, outputs: list[str]) -> dict[str, str]:
+        """Whether config.yaml made each of ``outputs`` (`output_provenance`)."""
+        return output_provenance(self.root, outputs)
+
+    def mesh_source(self) -> str | None:
+        """Which surface OUT/mesh.ply is, from timing.json (`mesh_source`)."""
+        return mesh_source(self.timing())
+
+
+def _json_object(path: Path, missing: dict | None = None) -> dict | None:
+    """The JSON object in ``path``; ``missing`` when there is no file, None when it is not a
+    JSON object."""
+    if not path.is_file():
+        return missing
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+    return d if isinstance(d, dict) else None
+
+
+def mesh_source(timing: dict | None) -> str | None:
+    """Which surface OUT/mesh.ply is: "field", "poisson", "tsdf", or "field (poisson failed:
+    REASON)" when the method asked for gave no mesh and the field's zero level replaced it;
+    None when the run made no mesh (or its timing.json does not say).
+
+    Args:
+        timing: the parsed OUT/timing.json ({stage: {...}}), or None.
+    """
+    m = (timing or {}).get("mesh")
+    if not isinstance(m, dict):
+        return None
+    if m.get("mesh_source"):
+        return str(m["mesh_source"])
+    # run folders written before mesh_source existed
+    if m.get("poisson_failed"):
+        return f"field (poisson failed: {m['poisson_failed']})"
+    return str(m.get("method") or "field")
 
 
 # --------------------------------------------------------------------------- lock

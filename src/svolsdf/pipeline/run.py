@@ -94,7 +94,7 @@ class Run:
         if not rd.is_run():
             raise InputError(f"{out}: not a run folder (no config.yaml / views.json); run "
                              f"svolsdf reconstruct SCENE -o {out} first")
-        run = cls(validate_config(load_config(rd.config)), out, progress=progress)
+        run = cls(validate_config(load_config(rd.config_file)), out, progress=progress)
         if field:
             run._open_field()
         return run
@@ -134,7 +134,7 @@ class Run:
             raise InputError(f"{e}; rerun svolsdf reconstruct -o {out}: it trains the field "
                              "again") from None
         except RuntimeError as e:
-            raise InputError(f"{model_path}: does not match the field of {self.dir.config} "
+            raise InputError(f"{model_path}: does not match the field of {self.dir.config_file} "
                              f"({e})") from None
         self._model = model.to(self.device)
 

@@ -1,18 +1,7 @@
-"""The run folder as one object: every path of a run, the stage state (OUT/stages.json), the
-folder lock, OUT/log, OUT/timing.json, and atomic saves.
-
-Layout (docs/architecture.md "Data flow"; `svolsdf.pipeline` writes it):
-
-- ``config.yaml``, ``views.json`` (inputs, test views, working size, scene), ``stages.json``
-  (stage -> key of the config it finished under; "provenance": stage -> the key of its inputs
-  and the digest of the config.yaml it finished or was last reused under; "manifest": the
-  input files, `svolsdf.pipeline.keys.input_manifest`), ``timing.json``, ``log``,
-  ``.svolsdf.lock`` (`svolsdf.io.runfolder.folder_lock`: every command that writes here);
-- ``mvs/stage{1,2,3}/<id>.npz``, ``depth/<id>.npy`` (+ .png), ``confidence/<id>.npy``;
-- ``field/model.pt`` (+ checkpoints), ``field/render_depth/<id>.npy``, ``field/render_rgb/``,
-  ``normals/``, ``field/stage2/`` (the finer-stage optimization), ``field/surface.pt``;
-- ``unguided/{depth,confidence}/<id>.npy``, ``network/{depth,confidence}/<id>.npy``;
-- ``points.ply``, ``mesh.ply`` (or ``mesh.obj``).
+"""The run folder's writing side: `RunDir` is a `svolsdf.io.runfolder.RunFolder` (every path of
+a run, what its files hold; the layout is in its docstring) that also writes the stage state
+(OUT/stages.json), views.json, OUT/timing.json and OUT/log, holds the folder lock, and saves
+atomically.
 
 Every file is written to a unique temporary name and renamed, so a killed run never leaves a
 half file under the final name.
@@ -30,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svolsdf.io.runfolder import atomic_write, folder_lock
+from svolsdf.io.runfolder import RunFolder, atomic_write, folder_lock
 
 __all__ = ["RunDir", "save_json", "save_npy", "save_torch"]
 
@@ -60,107 +49,24 @@ def one_line(e: BaseException) -> str:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
-class RunDir:
-    """The output folder of one run (see the module docstring for its layout).
+class RunDir(RunFolder):
+    """The output folder of one run, for the pipeline that writes it: a `RunFolder` (paths and
+    reading) with the stage state, views.json, timing.json, the lock and OUT/log.
 
     Args:
         root: the folder (need not exist yet).
     """
 
     def __init__(self, root: str | Path):
-        self.root = Path(root)
+        super().__init__(root)
         self._warned_state = False
-
-    def __repr__(self) -> str:
-        return f"RunDir({str(self.root)!r})"
-
-    # ------------------------------------------------------------------ paths
-    @property
-    def config(self) -> Path:
-        return self.root / "config.yaml"
-
-    @property
-    def views_file(self) -> Path:
-        return self.root / "views.json"
-
-    @property
-    def stages_file(self) -> Path:
-        return self.root / "stages.json"
-
-    @property
-    def timing_file(self) -> Path:
-        return self.root / "timing.json"
-
-    @property
-    def log_file(self) -> Path:
-        return self.root / "log"
-
-    @property
-    def points(self) -> Path:
-        return self.root / "points.ply"
-
-    def mesh(self, fmt: str = "ply") -> Path:
-        """OUT/mesh.ply, or OUT/mesh.obj for ``fmt`` "obj"."""
-        return self.root / ("mesh.obj" if fmt == "obj" else "mesh.ply")
-
-    @property
-    def field_dir(self) -> Path:
-        return self.root / "field"
-
-    @property
-    def model(self) -> Path:
-        """The fitted field (OUT/field/model.pt)."""
-        return self.field_dir / "model.pt"
-
-    @property
-    def refined_model(self) -> Path:
-        """The field after the finer-stage optimization (OUT/field/stage2/model.pt)."""
-        return self.field_dir / "stage2" / "model.pt"
-
-    @property
-    def surface_model(self) -> Path:
-        """The field refined through the fused points (OUT/field/surface.pt)."""
-        return self.field_dir / "surface.pt"
-
-    def render_depth_dir(self, refined: bool = False) -> Path:
-        """The field's rendered depth of the input views (the refined field's with
-        ``refined``)."""
-        return self.field_dir / ("stage2/render_depth" if refined else "render_depth")
-
-    def stage1_file(self, view: int) -> Path:
-        return self.root / "mvs" / "stage1" / f"{view}.npz"
-
-    @property
-    def depth_dir(self) -> Path:
-        return self.root / "depth"
-
-    @property
-    def unguided_dir(self) -> Path:
-        return self.root / "unguided"
-
-    @property
-    def network_dir(self) -> Path:
-        return self.root / "network"
-
-    def view_files(self, folder: Path, views: Sequence[int], suffix: str = ".npy"
-                   ) -> dict[int, Path]:
-        """{view: folder/<view><suffix>}."""
-        return {v: folder / f"{v}{suffix}" for v in views}
 
     @staticmethod
     def save_npy(path: Path, arr: np.ndarray) -> None:
         """Write ``arr`` to ``path`` (.npy) atomically (`save_npy`)."""
         save_npy(path, arr)
 
-    def is_run(self) -> bool:
-        """A finished reconstruct wrote config.yaml and views.json here."""
-        return self.config.is_file() and self.views_file.is_file()
-
     # ------------------------------------------------------------------ views.json
-    def read_views(self) -> dict:
-        """OUT/views.json: {"inputs": [ids], "test": [ids], "size": [W, H], "scene": path}."""
-        return json.loads(self.views_file.read_text())
-
     def write_views(self, inputs: list[int], test: list[int], size: tuple[int, int],
                     scene: str) -> None:
         save_json(self.views_file, {"inputs": inputs, "test": test, "size": list(size),

@@ -244,8 +244,8 @@ class Pipeline(Run):
         manifest = input_manifest(scene, before)
         self.input_keys = input_keys(self.cfg, manifest)
         self._input_changes = describe_changes(before, manifest)
-        save_config(self.cfg, self.dir.config)
-        self._config_digest = config_digest(self.dir.config)
+        save_config(self.cfg, self.dir.config_file)
+        self._config_digest = config_digest(self.dir.config_file)
         self.dir.write_views(self.views, self.test_view_ids, (scene.width, scene.height),
                              str(self.cfg.scene.path))
         self.dir.write_manifest(manifest)
