@@ -23,28 +23,33 @@ Run (from the repo root), on a finished `svolsdf reconstruct` folder of the fast
 
 from __future__ import annotations
 
-import argparse
-import logging
 import os
-import platform
-import statistics
-import sys
-import time
-import types
-from pathlib import Path
 
-import torch
-import torch.nn.functional as F
+# before torch loads its OpenMP runtime (as svolsdf/__init__.py does): threads that spin while
+# waiting make every step several times slower when another process shares the cores
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import logging  # noqa: E402
+import platform  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import types  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import cpu_name, write_results
+from _machine import cpu_name, write_results  # noqa: E402
 
-from svolsdf.config import load_config
-from svolsdf.field.init import init_grid_from_mvs
-from svolsdf.optimize.trainer import Trainer
-from svolsdf.pipeline import Pipeline
-from svolsdf.pipeline.builders import build_sampler, grid_schedule
-from svolsdf.prior.consistency import _MIN_Z, _Z_LIMIT, MVSPrior, _depth_coord, _project
+from svolsdf.config import load_config  # noqa: E402
+from svolsdf.field.init import init_grid_from_mvs  # noqa: E402
+from svolsdf.optimize.trainer import Trainer  # noqa: E402
+from svolsdf.pipeline import Pipeline  # noqa: E402
+from svolsdf.pipeline.builders import build_sampler, grid_schedule  # noqa: E402
+from svolsdf.prior.consistency import _MIN_Z, _Z_LIMIT, MVSPrior, _depth_coord, _project  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PARTS = ("features", "prior", "clip", "adam")
@@ -90,11 +95,15 @@ def safe_clip_previous(self, params: list[torch.Tensor]) -> None:
 
 
 # ---------------------------------------------------------------------- set-up
-def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
-    """A fast-preset trainer on ``run``'s stage-1 volumes, past its grid growth, with the
-    ``previous`` parts swapped in."""
+def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None = None
+                  ) -> Trainer:
+    """The field stage's trainer on ``run``'s config and stage-1 volumes (model, MVS
+    initialisation, prior, sampler and grid schedule as the pipeline builds them), at step 0 with
+    the grid at its start resolution, with the ``previous`` parts swapped in; ``steps`` replaces
+    ``train.steps`` (the grid schedule follows it). It reads ``run`` and writes nothing there."""
     cfg = load_config(run / "config.yaml")
-    cfg.train.steps = warm_steps  # the grid reaches its full resolution at half the steps
+    if steps is not None:
+        cfg.train.steps = steps
     p = Pipeline(cfg, run, progress=False)
     scene = p.load()
     p.keys = p.stage_keys()
@@ -113,6 +122,14 @@ def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
                 out_dir=None, device=p.device, grid_schedule=grid_schedule(p.cfg))
     if "clip" in previous:
         t._safe_clip = types.MethodType(safe_clip_previous, t)
+    return t
+
+
+def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
+    """A fast-preset trainer on ``run``'s stage-1 volumes, past its grid growth, with the
+    ``previous`` parts swapped in."""
+    # the grid reaches its full resolution at half the steps
+    t = build_trainer(run, previous, steps=warm_steps)
     t.fit(progress=False)  # warm-up: grid growth done, optimizer state built
     if "adam" in previous:
         state = t.optimizer.state_dict()

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
+from torch.profiler import record_function
 
 from svolsdf.field.base import SurfaceModel
 from svolsdf.field.density import LaplaceDensity
@@ -329,14 +330,15 @@ class GridSDFField(SurfaceModel):
 
     def _features(self, p: Tensor) -> Tensor:
         """p: (N, 3) box points -> (N, feature_dim) multi-level trilinear features."""
-        lo, hi = self.bounds
-        t = (p - lo) / (hi - lo)  # (N, 3) in [0, 1] over the box
-        feats = []
-        for fg in self.feature_grids:
-            Z, Y, X = fg.shape[1:]
-            feats.append(trilinear_sample(fg, t * device_vector([X - 1, Y - 1, Z - 1],
-                                                                t.device, t.dtype)))
-        return torch.cat(feats, dim=1)
+        with record_function("svolsdf.feature_lookup"):
+            lo, hi = self.bounds
+            t = (p - lo) / (hi - lo)  # (N, 3) in [0, 1] over the box
+            feats = []
+            for fg in self.feature_grids:
+                Z, Y, X = fg.shape[1:]
+                feats.append(trilinear_sample(fg, t * device_vector([X - 1, Y - 1, Z - 1],
+                                                                    t.device, t.dtype)))
+            return torch.cat(feats, dim=1)
 
     def _grid_sdf(self, x: Tensor, with_grad: bool) -> tuple[Tensor, Tensor | None, Tensor]:
         """Box-extended grid SDF: f(p) + |x - p|; returns sdf (N,), grad (N, 3) or None, p."""
@@ -374,7 +376,8 @@ class GridSDFField(SurfaceModel):
         raw field (clamp=False, docs/method.md 4.5).
         """
         self._check_points(x)
-        sdf, _, p = self._grid_sdf(x, with_grad=False)
+        with record_function("svolsdf.sdf_lookup"):
+            sdf, _, p = self._grid_sdf(x, with_grad=False)
         if self.residual_net is not None:
             sdf = sdf + self.residual_net(self._features(p))[:, 0]
         return self._clamp(x, sdf, None)[0] if clamp else sdf
@@ -390,7 +393,8 @@ class GridSDFField(SurfaceModel):
         ``clamp`` as in `sdf`.
         """
         self._check_points(x)
-        sdf, grad, p = self._grid_sdf(x, with_grad=True)
+        with record_function("svolsdf.sdf_lookup"):
+            sdf, grad, p = self._grid_sdf(x, with_grad=True)
         feat = self._features(p)
         if self.residual_net is not None:
             with torch.enable_grad():
@@ -427,11 +431,12 @@ class GridSDFField(SurfaceModel):
                 f"GridSDFField.colour: feature must be ({n}, {self.feature_dim}), "
                 f"got {tuple(feature.shape)}"
             )
-        nrm = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        h = torch.cat(
-            [feature, positional_encoding(view_dir, self.config.view_multires), nrm], dim=-1
-        )
-        return torch.sigmoid(self.colour_net(h))
+        with record_function("svolsdf.colour_mlp"):
+            nrm = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+            h = torch.cat(
+                [feature, positional_encoding(view_dir, self.config.view_multires), nrm], dim=-1
+            )
+            return torch.sigmoid(self.colour_net(h))
 
     def density(self, sdf: Tensor, beta: Tensor | None = None) -> Tensor:
         """sdf: (...) -> sigma (...) >= 0, VolSDF's Laplace density (docs/method.md 5.4).

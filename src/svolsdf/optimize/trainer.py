@@ -6,6 +6,12 @@ One step (docs/method.md 4.6): one random input view, ``rays`` random pixels, sa
 rendering, the soft-consistency label P' at the same samples (docs/method.md 3), the losses of
 `svolsdf.optimize.losses`, Adam, global-norm clipping and a NaN-safe update. Checkpoints every N
 steps make a killed run resume where it stopped.
+
+The parts of a step are labelled for ``torch.profiler`` (``record_function("svolsdf.<part>")``;
+without an active profiler a label does nothing): grid_growth, rays, sampling, render, losses,
+eikonal, backward, clip and optimizer, inside ``svolsdf.train_step``. The grid field, the
+compositing and the MVS prior label their own parts wherever they are called (sdf_lookup,
+feature_lookup, colour_mlp, composite, prior_lookup). ``benchmarks/profile_fast.py`` reads them.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from pathlib import Path
 
 import torch
 from torch import Tensor
+from torch.profiler import record_function
 
 from svolsdf.config import TrainConfig
 from svolsdf.field.base import SurfaceModel
@@ -153,8 +160,9 @@ class Trainer:
         for at_step, res in self.grid_schedule:
             if self.step == at_step and hasattr(self.model, "upsample") \
                     and res > self.model.resolution:
-                self.model.upsample(res)
-                self._build_optimizer()
+                with record_function("svolsdf.grid_growth"):
+                    self.model.upsample(res)
+                    self._build_optimizer()
                 log.info("grid grown to %d at step %d", res, self.step)
 
     # ------------------------------------------------------------------ rays
@@ -207,9 +215,12 @@ class Trainer:
         """One batch -> dict of loss terms and "total" (docs/method.md 4.6)."""
         cfg = self.cfg
         model = self.model
-        rays, pix, t = self.sample_rays(cfg.rays)
-        s = self.sampler(model, rays, training=True)
-        out = render_rays(model, rays, s.z, background=self.background, create_graph=True)
+        with record_function("svolsdf.rays"):
+            rays, pix, t = self.sample_rays(cfg.rays)
+        with record_function("svolsdf.sampling"):
+            s = self.sampler(model, rays, training=True)
+        with record_function("svolsdf.render"):
+            out = render_rays(model, rays, s.z, background=self.background, create_graph=True)
         R = len(rays)
         target = self.images[t].reshape(3, -1)[:, pix].T  # (R, 3)
         terms: dict[str, Tensor] = {}
@@ -221,54 +232,61 @@ class Trainer:
                 mvs_d = self.mvs_depth[t].reshape(-1)[pix]
                 if cfg.ablation == "no-prob-volume":
                     p_label = L.onehot_label(out.z, mvs_d, rays.cos)
-            else:
+            else:  # (MVSPrior.lookup labels itself svolsdf.prior_lookup)
                 p_ref, p_src, _ = self.prior.lookup(out.points, rays.view)
                 p_label = p_ref * p_src  # P' = P_ref * sum_j P_src^j (docs/method.md 3)
 
-        warm = self.smoothed is not None and self.step < cfg.anneal_rgb
-        if warm:
-            # docs/method.md 4.4: smoothed target during the warm-up
-            tgt = self.smoothed[t].reshape(3, -1)[:, pix].T
-            mask = None
-            if p_label is not None:
-                rule = "released" if cfg.warmup_mask_supervised else "all"
-                mask = L.warmup_ray_mask(p_label, rule=rule)
-            terms["rgb"] = L.rgb_l1_loss(out.rgb, tgt, mask)
-        else:
-            terms["rgb"] = L.rgb_l1_loss(out.rgb, target)
-
-        # eikonal (docs/method.md 4.5): R uniform points in the box + one sample per ray
-        lo, hi = self._eikonal_box()
-        u = torch.rand(R, 3, device=self.device) * (hi - lo) + lo
-        _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp)
-        g_all = torch.cat([g_u, out.grad[torch.arange(R, device=self.device),
-                                         s.eik_index.clamp_max(out.grad.shape[1] - 1)]], 0)
-        terms["eikonal"] = L.eikonal_loss(g_all)
-
-        total = cfg.rgb_weight * terms["rgb"] + cfg.eikonal_weight * terms["eikonal"]
-        if cfg.mode == "svolsdf":
-            if cfg.ablation == "mse":
-                valid = mvs_d > 0
-                terms["mvs"] = L.depth_mse_loss(out.depth, mvs_d, valid)
+        with record_function("svolsdf.losses"):
+            warm = self.smoothed is not None and self.step < cfg.anneal_rgb
+            if warm:
+                # docs/method.md 4.4: smoothed target during the warm-up
+                tgt = self.smoothed[t].reshape(3, -1)[:, pix].T
+                mask = None
+                if p_label is not None:
+                    rule = "released" if cfg.warmup_mask_supervised else "all"
+                    mask = L.warmup_ray_mask(p_label, rule=rule)
+                terms["rgb"] = L.rgb_l1_loss(out.rgb, tgt, mask)
             else:
-                q = 0.0 if cfg.ablation == "ce" else cfg.gce_q
-                terms["mvs"] = L.gce_weight_loss(out.weights, p_label, q=q, form=cfg.gce_form)
-            total = total + cfg.mvs_weight * terms["mvs"]
-            if p_label is not None and cfg.sparse_weight > 0 and self.step < cfg.anneal_rgb:
-                w_sp = L.sparse_weight_at(self.step, cfg.sparse_weight, cfg.anneal_rgb,
-                                          "linear" if cfg.sparse_decay else "constant")
-                # depth over the foreground and the T_bg-scaled background (docs/method.md 5.5)
-                terms["sparse"] = L.sparse_loss(out.depth_all, p_label, normalize=cfg.sparse_norm)
-                total = total + w_sp * terms["sparse"]
-        if cfg.grid_eikonal_weight > 0 and hasattr(model, "grid_eikonal_loss") \
-                and not getattr(model, "mvs_initialised", False):
-            terms["grid_eikonal"] = model.grid_eikonal_loss()
-            total = total + cfg.grid_eikonal_weight * terms["grid_eikonal"]
-        if cfg.smooth_weight > 0 and hasattr(model, "smoothness_loss"):
-            terms["smooth"] = model.smoothness_loss()
-            total = total + cfg.smooth_weight * terms["smooth"]
-        terms["total"] = total
-        terms["psnr"] = -10.0 * torch.log10(((out.rgb.detach() - target) ** 2).mean() + 1e-10)
+                terms["rgb"] = L.rgb_l1_loss(out.rgb, target)
+
+        with record_function("svolsdf.eikonal"):
+            # eikonal (docs/method.md 4.5): R uniform points in the box + one sample per ray
+            lo, hi = self._eikonal_box()
+            u = torch.rand(R, 3, device=self.device) * (hi - lo) + lo
+            _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp)
+            g_all = torch.cat([g_u, out.grad[torch.arange(R, device=self.device),
+                                             s.eik_index.clamp_max(out.grad.shape[1] - 1)]], 0)
+            terms["eikonal"] = L.eikonal_loss(g_all)
+
+        with record_function("svolsdf.losses"):
+            total = cfg.rgb_weight * terms["rgb"] + cfg.eikonal_weight * terms["eikonal"]
+            if cfg.mode == "svolsdf":
+                if cfg.ablation == "mse":
+                    valid = mvs_d > 0
+                    terms["mvs"] = L.depth_mse_loss(out.depth, mvs_d, valid)
+                else:
+                    q = 0.0 if cfg.ablation == "ce" else cfg.gce_q
+                    terms["mvs"] = L.gce_weight_loss(out.weights, p_label, q=q,
+                                                     form=cfg.gce_form)
+                total = total + cfg.mvs_weight * terms["mvs"]
+                if p_label is not None and cfg.sparse_weight > 0 and self.step < cfg.anneal_rgb:
+                    w_sp = L.sparse_weight_at(self.step, cfg.sparse_weight, cfg.anneal_rgb,
+                                              "linear" if cfg.sparse_decay else "constant")
+                    # depth over the foreground and the T_bg-scaled background
+                    # (docs/method.md 5.5)
+                    terms["sparse"] = L.sparse_loss(out.depth_all, p_label,
+                                                    normalize=cfg.sparse_norm)
+                    total = total + w_sp * terms["sparse"]
+            if cfg.grid_eikonal_weight > 0 and hasattr(model, "grid_eikonal_loss") \
+                    and not getattr(model, "mvs_initialised", False):
+                terms["grid_eikonal"] = model.grid_eikonal_loss()
+                total = total + cfg.grid_eikonal_weight * terms["grid_eikonal"]
+            if cfg.smooth_weight > 0 and hasattr(model, "smoothness_loss"):
+                terms["smooth"] = model.smoothness_loss()
+                total = total + cfg.smooth_weight * terms["smooth"]
+            terms["total"] = total
+            terms["psnr"] = -10.0 * torch.log10(((out.rgb.detach() - target) ** 2).mean()
+                                                + 1e-10)
         return terms
 
     def _eikonal_box(self) -> tuple[Tensor, Tensor]:
@@ -291,19 +309,21 @@ class Trainer:
 
     def train_step(self) -> dict[str, Tensor]:
         """One optimization step; returns the (detached) loss terms."""
-        self._maybe_grow_grid()
-        self._anneal_beta()
-        self.model.train()
-        self.optimizer.zero_grad(set_to_none=True)
-        terms = self.losses()
-        terms["total"].backward()
-        params = [p for p in self.model.parameters() if p.grad is not None]
-        if not params:
+        with record_function("svolsdf.train_step"):
+            self._maybe_grow_grid()
+            self._anneal_beta()
+            self.model.train()
+            self.optimizer.zero_grad(set_to_none=True)
+            terms = self.losses()
+            with record_function("svolsdf.backward"):
+                terms["total"].backward()
+            params = [p for p in self.model.parameters() if p.grad is not None]
+            if params:
+                with record_function("svolsdf.clip"):
+                    self._safe_clip(params)
+                with record_function("svolsdf.optimizer"):
+                    self.optimizer.step()
             self.step += 1
-            return {k: v.detach() for k, v in terms.items()}
-        self._safe_clip(params)
-        self.optimizer.step()
-        self.step += 1
         return {k: v.detach() for k, v in terms.items()}
 
     def _safe_clip(self, params: list[Tensor]) -> None:

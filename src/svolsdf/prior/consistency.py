@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.profiler import record_function
 
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.cameras import Cameras
@@ -193,19 +194,20 @@ class MVSPrior:
         if ref_view.shape != (R,):
             raise ValueError(f"MVSPrior.lookup: ref_view must be (R,) = ({R},), "
                              f"got {tuple(ref_view.shape)}")
-        pts = points.detach().reshape(-1, 3).float()
-        ref = ref_view.to(pts.device).long()[:, None].expand(R, S).reshape(-1)
-        p_ref = torch.zeros(R * S, device=pts.device)
-        p_src = torch.zeros_like(p_ref)
-        valid = torch.zeros(R * S, dtype=torch.bool, device=pts.device)
-        for i in range(len(self.views)):
-            cost, ok = self.view_lookup(i, pts)
-            is_ref = ref == i
-            p_ref = torch.where(is_ref, cost, p_ref)
-            p_src = p_src + torch.where(is_ref, torch.zeros_like(cost), cost)
-            valid = valid | (ok & ~is_ref)
-        p_ref = torch.where(valid, p_ref, torch.zeros_like(p_ref))
-        return p_ref.reshape(R, S), p_src.reshape(R, S), valid.reshape(R, S)
+        with record_function("svolsdf.prior_lookup"):
+            pts = points.detach().reshape(-1, 3).float()
+            ref = ref_view.to(pts.device).long()[:, None].expand(R, S).reshape(-1)
+            p_ref = torch.zeros(R * S, device=pts.device)
+            p_src = torch.zeros_like(p_ref)
+            valid = torch.zeros(R * S, dtype=torch.bool, device=pts.device)
+            for i in range(len(self.views)):
+                cost, ok = self.view_lookup(i, pts)
+                is_ref = ref == i
+                p_ref = torch.where(is_ref, cost, p_ref)
+                p_src = p_src + torch.where(is_ref, torch.zeros_like(cost), cost)
+                valid = valid | (ok & ~is_ref)
+            p_ref = torch.where(valid, p_ref, torch.zeros_like(p_ref))
+            return p_ref.reshape(R, S), p_src.reshape(R, S), valid.reshape(R, S)
 
     def p_prime(self, points: Tensor, ref_view: Tensor) -> tuple[Tensor, Tensor]:
         """(R, S, 3), (R,) -> P' (R, S) and valid (R, S)."""

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from torch.profiler import record_function
 
 from svolsdf.field.base import SurfaceModel
 from svolsdf.render.rays import RayBundle, rays_from_cameras
@@ -63,11 +64,12 @@ def composite(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         weights (R, S), transmittance after the last sample (R,).
     """
-    fe = sigma * deltas
-    cum = torch.cumsum(fe, dim=-1)
-    shifted = torch.cat([torch.zeros_like(cum[:, :1]), cum[:, :-1]], dim=-1)
-    w = (1.0 - torch.exp(-fe)) * torch.exp(-shifted)
-    return w, torch.exp(-cum[:, -1])
+    with record_function("svolsdf.composite"):
+        fe = sigma * deltas
+        cum = torch.cumsum(fe, dim=-1)
+        shifted = torch.cat([torch.zeros_like(cum[:, :1]), cum[:, :-1]], dim=-1)
+        w = (1.0 - torch.exp(-fe)) * torch.exp(-shifted)
+        return w, torch.exp(-cum[:, -1])
 
 
 def render_rays(
