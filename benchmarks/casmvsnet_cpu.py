@@ -4,9 +4,9 @@ Three views at the working size 768x576 are upsampled to the paper's network inp
 (docs/method.md 1.3, ``x2_mvsres``) and run through all three stages (192 / 32 / 8 hypotheses). No
 CasMVSNet weights ship with svolsdf, so the network is randomly initialised (seed 0), saved in the
 official checkpoint format (``{'model': state_dict}``, docs/method.md 2.1) and loaded back through
-``svolsdf.mvs.casmvsnet.load_casmvsnet``, exactly as a user's checkpoint would be. Random weights
-do the same arithmetic as trained ones, so the time and memory are those of the real network;
-the depth they give is meaningless and is not scored.
+``svolsdf.mvs.casmvsnet_net.load_casmvsnet``, exactly as a user's checkpoint would be. Random
+weights do the same arithmetic as trained ones, so the time and memory are those of the real
+network; the depth they give is meaningless and is not scored.
 
 Scene: ../shared/data/dtu_scan65 (views 25 22 28) when present, else a synthetic scene with DTU-like
 cameras from ``svolsdf synth``.
@@ -43,7 +43,8 @@ def main() -> None:
     ap.add_argument("--size", default="768x576", help="working size; the network runs at 2x")
     args = ap.parse_args()
 
-    from svolsdf.mvs.casmvsnet import CasMVSNet, CasMVSNetBackbone, mvs_input_size
+    from svolsdf.mvs.casmvsnet import CasMVSNetBackbone, mvs_input_size
+    from svolsdf.mvs.casmvsnet_net import CasMVSNet
     from svolsdf.scene.loaders import load_scene
 
     w, h = (int(x) for x in args.size.split("x"))

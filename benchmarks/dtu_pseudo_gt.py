@@ -63,9 +63,9 @@ SHARED = REPO.parent / "shared"
 def depth_maps(scene_dir: Path, out: Path, size: tuple[int, int], n_src: int) -> dict:
     """Step 1: view id -> (H, W) PatchmatchNet z-depth, with the ``n_src`` best source views by
     the scene's pair score (cached as OUT/depth_pairs<n_src>_<W>x<H>/<id>.npy)."""
+    from svolsdf.commands.mvs import mvs_depth_range
     from svolsdf.mvs.backbone import get_backbone
     from svolsdf.mvs.cascade import run_cascade
-    from svolsdf.mvs.run import mvs_depth_range
     from svolsdf.scene.loaders import load_scene
 
     probe = load_scene(scene_dir, load_images=False)
@@ -97,11 +97,8 @@ def fuse(scene_dir: Path, depths: dict, size: tuple[int, int], k: int, min_views
     """Step 2: (N, 3) world points of the pixels ``min_views`` of their ``k`` best-paired views
     confirm, inside the object masks dilated by ``dilation`` pixels when the scene has masks
     (module docstring)."""
-    from svolsdf.fusion.filter import (
-        check_geometric_consistency,
-        dilate_mask,
-        mask_to_depth_resolution,
-    )
+    from svolsdf.geometry.masks import dilate_mask, mask_to_depth_resolution
+    from svolsdf.geometry.reproject import check_geometric_consistency
     from svolsdf.scene.loaders import load_scene
 
     # not `fuse_depth_maps`: it checks every reference against all other views (49 x 48

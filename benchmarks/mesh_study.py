@@ -128,8 +128,8 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
     from svolsdf.fusion.meshing import clean_mesh, points_tsdf_mesh, poisson_mesh
     from svolsdf.fusion.observe import final_depth_step
     from svolsdf.io.ply import read_ply
+    from svolsdf.pipeline.loaded_run import Run
     from svolsdf.pipeline.mesh import observed_depths_of
-    from svolsdf.pipeline.run import Run
 
     run = Run.open(out)
     cfg, o = run.cfg, run.cfg.output

@@ -31,8 +31,8 @@ import torch
 from _machine import cpu_name, peak_rss_gb  # benchmarks/_machine.py, on sys.path
 from PIL import Image
 
-from svolsdf.fusion.filter import check_geometric_consistency
-from svolsdf.mvs.run import MVSJobConfig, run_mvs
+from svolsdf.commands.mvs import MVSJobConfig, run_mvs
+from svolsdf.geometry.reproject import check_geometric_consistency
 from svolsdf.scene.loaders import load_scene
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 

@@ -96,7 +96,7 @@ def main() -> None:
         except subprocess.CalledProcessError:
             ev = None
         logging.basicConfig(level=logging.INFO, format="%(message)s")
-        from svolsdf.evaluate.run import write_run_report
+        from svolsdf.evaluate.run_report import write_run_report
 
         t0 = time.perf_counter()
         write_run_report(run)

@@ -45,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import cpu_name, write_results  # noqa: E402
 
 from svolsdf.config import load_config  # noqa: E402
-from svolsdf.field.init import init_grid_from_mvs  # noqa: E402
+from svolsdf.field.initial import init_grid_from_mvs  # noqa: E402
 from svolsdf.optimize.trainer import Trainer  # noqa: E402
 from svolsdf.pipeline import Pipeline  # noqa: E402
 from svolsdf.pipeline.builders import build_sampler, grid_schedule  # noqa: E402

@@ -10,11 +10,6 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "svolsdf"
 
-# The `svolsdf mvs` command (backbone alone, then fusion) lives in mvs/ until commands/ exists
-# (docs/architecture-deltas.md, "Package layout, as built").
-KNOWN_UP_IMPORTS = {"mvs/run.py"}
-
-
 def _imports(path: Path) -> set[str]:
     """Every module name ``path`` imports, at any depth (lazy imports count too)."""
     names = set()
@@ -35,7 +30,6 @@ def _modules(package: str):
 @pytest.mark.parametrize("package", ["geometry", "mvs", "prior", "field", "render", "ibr"])
 def test_stages_below_fusion_do_not_import_it(package):
     bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules(package)
-           if p.relative_to(SRC).as_posix() not in KNOWN_UP_IMPORTS
            for m in _imports(p) if m == "svolsdf.fusion" or m.startswith("svolsdf.fusion.")]
     assert not bad, "import svolsdf.geometry instead: " + "; ".join(bad)
 

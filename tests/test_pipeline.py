@@ -81,7 +81,7 @@ def test_zero_level_lies_near_the_ground_truth(tiny_run, tiny_scene):
     a few pixel footprints, and closer than the field the optimization started from (the grid
     initialised from the stage-1 MVS depth, as the field stage does; issue 38: not the sphere,
     which any MVS start beats without a step)."""
-    from svolsdf.field.init import init_grid_from_mvs
+    from svolsdf.field.initial import init_grid_from_mvs
 
     out, summary, p = tiny_run
     views = json.loads((out / "views.json").read_text())["inputs"]
@@ -537,7 +537,7 @@ def test_guide_is_rendered_only_near_the_masks(tiny_run):
     (None: every pixel; a view with an empty mask is rendered whole)."""
     from dataclasses import replace
 
-    from svolsdf.fusion.filter import dilate_mask
+    from svolsdf.geometry.masks import dilate_mask
 
     out, _, p = tiny_run
     scene = p.load()
@@ -639,7 +639,7 @@ def test_volsdf_points_pass_the_multi_view_check(volsdf_run, tmp_path):
     nothing of the remaining view is kept (before, every valid pixel passed)."""
     import shutil
 
-    from svolsdf.pipeline.fusion import fuse
+    from svolsdf.pipeline.fusion_stage import fuse
     from svolsdf.render.views import max_rule_filled
 
     out, _, p, _ = volsdf_run
@@ -762,7 +762,7 @@ def test_poisson_mesh_falls_back_to_the_field(tiny_run, tmp_path):
     assert len(read_ply(tmp_path / "pzf" / "mesh.ply")["faces"]) > 100
     assert "no poisson surface" in (tmp_path / "pzf" / "log").read_text()
     # the user reads it in metrics.json and the report, not only the log (issue 38)
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
 
     m = evaluate_run(EvaluateConfig(out=tmp_path / "pzf", report=True))
     assert m["mesh_source"] == src == m["chamfer_mesh"]["mesh_source"]
@@ -777,7 +777,7 @@ def test_tsdf_mesh_with_free_space_and_support(tiny_run, tmp_path):
     points (issue 37)."""
     from scipy.spatial import cKDTree
 
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
     from svolsdf.fusion.observe import point_spacing
 
     out, _, p = tiny_run

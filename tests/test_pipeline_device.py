@@ -39,10 +39,10 @@ def _cfg(scene):
 
 def test_every_stage_receives_the_resolved_device(scene, tmp_path, monkeypatch):
     import svolsdf.fusion.filter as filter_mod
-    import svolsdf.fusion.mesh as mesh_mod
+    import svolsdf.fusion.mesh_ops as mesh_mod
     import svolsdf.mvs.backbone as backbone_mod
     import svolsdf.optimize.trainer as trainer_mod
-    import svolsdf.pipeline.run as run_mod
+    import svolsdf.pipeline.loaded_run as run_mod
     import svolsdf.prior.consistency as prior_mod
     import svolsdf.render.rays as rays_mod
     from svolsdf.scene.cameras import Cameras

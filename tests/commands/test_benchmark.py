@@ -261,7 +261,7 @@ def test_real_mvs_only_run(tmp_path, synth_scene):
     assert json.loads((run / "views.json").read_text())["test"] == [3]
     # The row holds what `svolsdf evaluate` gives the run: the synthetic protocol (the ground
     # truth the input views observe), scored again here from the files
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
 
     assert len(read_ply(run / "points.ply")["points"]) > 100
     again = evaluate_run(EvaluateConfig(out=run, scene=synth_scene, lpips_net="alex",

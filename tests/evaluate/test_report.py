@@ -16,7 +16,7 @@ from PIL import Image
 
 from headless_browser import browser_part_missing, chromium_path, load_page
 from svolsdf.cli import main
-from svolsdf.evaluate.run import write_run_report
+from svolsdf.evaluate.run_report import write_run_report
 from svolsdf.evaluate.viewer import (
     ViewerConfig,
     cluster_decimate,

@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 import torch
+from tests.field.analytic import SphereSDF
 
 from svolsdf.config import TrainConfig, preset
-from svolsdf.field.analytic import SphereSDF
 from svolsdf.field.background import (
     BackgroundConfig,
     NeRFPlusPlusBackground,

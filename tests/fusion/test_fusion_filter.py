@@ -11,13 +11,11 @@ from fusion_synth import CENTER, RADIUS, look_at_camera, sphere_depth
 from scipy import ndimage
 from skimage.morphology import disk
 
-from svolsdf.fusion.filter import (
-    FusionConfig,
+from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
+from svolsdf.geometry.masks import dilate_mask, mask_to_depth_resolution
+from svolsdf.geometry.reproject import (
     check_geometric_consistency,
     check_geometric_consistency_reference,
-    dilate_mask,
-    fuse_depth_maps,
-    mask_to_depth_resolution,
 )
 
 

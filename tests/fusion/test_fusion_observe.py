@@ -7,7 +7,7 @@ import numpy as np
 import torch
 from tests.fusion.fusion_synth import CENTER, RADIUS, look_at_camera, sphere_depth
 
-from svolsdf.fusion.mesh import extract_mesh
+from svolsdf.fusion.mesh_ops import extract_mesh
 from svolsdf.fusion.observe import (
     cull_free_space,
     final_depth_step,

@@ -103,7 +103,7 @@ def test_corrupted_depth_is_rejected(scene):
 
 
 def _projection_into(tgt, d_t, srcs, j):
-    from svolsdf.fusion.filter import check_geometric_consistency
+    from svolsdf.geometry.reproject import check_geometric_consistency
 
     return check_geometric_consistency(d_t, tgt, torch.ones(48, 64), srcs[j])
 

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from tests.mvs.synth import plane_scene
 
 from svolsdf.cli import main as cli_main
+from svolsdf.commands.mvs import MVSJobConfig, run_mvs
 from svolsdf.errors import InputError
 from svolsdf.io.ply import read_ply
 from svolsdf.mvs.cascade import (
@@ -22,7 +23,6 @@ from svolsdf.mvs.cascade import (
 )
 from svolsdf.mvs.hypotheses import base_interval
 from svolsdf.mvs.planesweep import PlaneSweepBackbone
-from svolsdf.mvs.run import MVSJobConfig, run_mvs
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.size import working_size
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene

@@ -9,13 +9,8 @@ from tests.mvs.synth import plane_scene
 
 from svolsdf.errors import InputError
 from svolsdf.mvs.backbone import get_backbone, photometric_confidence
-from svolsdf.mvs.casmvsnet import (
-    CasMVSNet,
-    CasMVSNetBackbone,
-    load_casmvsnet,
-    mvs_input_size,
-    stride_cameras,
-)
+from svolsdf.mvs.casmvsnet import CasMVSNetBackbone, mvs_input_size, stride_cameras
+from svolsdf.mvs.casmvsnet_net import CasMVSNet, load_casmvsnet
 
 
 # --------------------------------------------------------------------------- expected keys

@@ -379,7 +379,7 @@ def test_synth_refuses_a_size_no_run_takes(tmp_path, capsys):
 
 def test_a_run_that_fuses_no_point_exits_2_saying_why(mvs_run, scene, tmp_path, capsys,
                                                       monkeypatch):
-    import svolsdf.pipeline.fusion as pf
+    import svolsdf.pipeline.fusion_stage as pf
 
     monkeypatch.setattr(pf, "fuse", lambda p, path: (path.write_bytes(b"") and 0) or (0, {}))
     out = tmp_path / "run"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from tests.field.analytic import SphereSDF
 
-from svolsdf.field.analytic import SphereSDF
 from svolsdf.render.rays import rays_from_cameras, sphere_intersections
 from svolsdf.render.samplers import (
     ErrorBoundSamplerConfig,

@@ -43,7 +43,8 @@ def evaluate(
         "--no-report", help="Write metrics.json only.")] = False,
 ) -> None:
     """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
-    from svolsdf.evaluate.run import EvaluateConfig, check_views_rendered, evaluate_run
+    from svolsdf.evaluate.run_outputs import check_views_rendered
+    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
 
     if out.is_dir():  # a missing folder: evaluate_run says so first
         check_views_rendered(out, _parse_views(views))
@@ -71,7 +72,7 @@ def report(
 ) -> None:
     """Regenerate OUT/report.html from the run folder and OUT/metrics.json (no metrics computed:
     `svolsdf evaluate` computes them and writes the report too)."""
-    from svolsdf.evaluate.run import write_run_report
+    from svolsdf.evaluate.run_report import write_run_report
 
     path = write_run_report(out, scene_path=scene)
     typer.echo(f"report {path}")

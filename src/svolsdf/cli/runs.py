@@ -207,7 +207,7 @@ def demo(
     typer.echo("\n".join(lines))
     typer.echo(f"total {summary['timing']['total']['seconds']:.0f} s; inputs {views}; "
                f"outputs in {run}")
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
 
     evaluate_run(EvaluateConfig(out=run))
     typer.echo(f"report {run / 'report.html'}")
@@ -283,7 +283,7 @@ def mvs(
     world units at the backbone's MVS size, 2x the working size for the plane sweep),
     OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json.
     """
-    from svolsdf.mvs.run import MVSJobConfig, run_mvs
+    from svolsdf.commands.mvs import MVSJobConfig, run_mvs
     from svolsdf.scene.size import parse_size
 
     rng = None

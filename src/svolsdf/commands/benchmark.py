@@ -328,7 +328,7 @@ def run_job(job: BenchmarkJob) -> dict:
     ``job.out/benchmark_row.json``. Never raises: an error becomes a row with ``status``
     "failed: ..." (`failed_row`). The one job function of both executors."""
     from svolsdf import pipeline as pipeline_module
-    from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
 
     out = Path(job.out)
     t0 = time.perf_counter()

@@ -77,7 +77,7 @@ def open_run(out: str | Path, progress: bool = False):
         InputError: OUT is not a run folder, its mode has no field, or field/model.pt is missing
             (the message names the folder).
     """
-    from svolsdf.pipeline.run import Run
+    from svolsdf.pipeline.loaded_run import Run
 
     return Run.open(out, progress=progress)
 

@@ -111,9 +111,9 @@ class FieldConfig:
     """grid: resolution at the start (coarse to fine)."""
     init: Literal["mvs", "sphere"] = "mvs"
     """Initial surface. mvs: signed distance of the fused stage-1 MVS depth (the grid field in
-    svolsdf mode, fast preset; field/init.py) | sphere: VolSDF's geometric init (docs/method.md 5.2;
-    the MLP field's only start, so ``kind`` mlp in svolsdf mode needs it). The volsdf mode
-    always starts from the sphere (a baseline never sees MVS)."""
+    svolsdf mode, fast preset; field/initial.py) | sphere: VolSDF's geometric init
+    (docs/method.md 5.2; the MLP field's only start, so ``kind`` mlp in svolsdf mode needs it).
+    The volsdf mode always starts from the sphere (a baseline never sees MVS)."""
     sphere_radius: float = _limited(0.3, min=0.01)
     """grid started from a sphere (volsdf mode, or init = sphere): radius of VolSDF's initial sphere
     |x| - r (docs/method.md 5.2), unit frame, centred at the origin, in a grid over the box of the
@@ -126,7 +126,7 @@ class FieldConfig:
     surface as a whole; a fine one from the start paints the photos on the sphere)."""
     init_unverified_weight: float = _limited(0.0, min=0)
     """grid, init = mvs: vote weight (times the MVS confidence) of the stage-1 depths that no
-    other view confirms, in the initial surface (field/init.py); only inside the object masks,
+    other view confirms, in the initial surface (field/initial.py); only inside the object masks,
     so scenes without masks keep the 0 rule. 0 = they do not vote: a region only one view sees
     then starts at the hull the other views' free space leaves."""
 

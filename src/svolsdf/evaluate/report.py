@@ -437,7 +437,7 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
     Args:
         out_dir: the run folder; ``depth/<id>.npy`` (else ``depth/*.png``) and ``normals/*.png``
             under it are shown.
-        metrics: the ``metrics.json`` content (`svolsdf.evaluate.run`).
+        metrics: the ``metrics.json`` content (`svolsdf.evaluate.scoring`).
         views: evaluated novel views (render, ground truth, mask, per-view metrics).
         inputs: (view id, (3, H, W) image in [0, 1]) of the input views.
         points: (N, 3) points and optional (N, 3) uint8 colours of the fused cloud.

@@ -2,7 +2,7 @@
 reconstruction's mesh goes through (`cull_to_views`).
 
 Meshes are (vertices (V, 3) float32, faces (F, 3) int64) torch tensors on the CPU, in the world
-frame of the cameras, as in `svolsdf.fusion.mesh`.
+frame of the cameras, as in `svolsdf.fusion.mesh_ops`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import logging
 import torch
 from torch import Tensor
 
-from svolsdf.fusion.mesh import _check_mesh, _in_image, largest_component, submesh
+from svolsdf.fusion.mesh_ops import _check_mesh, _in_image, largest_component, submesh
 from svolsdf.geometry import dilate_mask
 from svolsdf.scene.cameras import Cameras
 

@@ -19,10 +19,8 @@ Implements docs/method.md 6.3 (the released ``runner.py::filter_depth`` and
 Depth is z-depth in the cameras' world units; pixel centres sit at integer coordinates
 (`svolsdf.scene.cameras`).
 
-The reprojection check (``check_geometric_consistency`` and its slow twin
-``check_geometric_consistency_reference``) and the mask helpers (``dilate_mask``,
-``mask_to_depth_resolution``) live in `svolsdf.geometry`, below every stage that uses them; they
-are re-exported here so that ``svolsdf.fusion.filter`` keeps its names.
+The reprojection check (`svolsdf.geometry.reproject.check_geometric_consistency`) and the mask
+helpers (`svolsdf.geometry.masks`) live in `svolsdf.geometry`, below every stage that uses them.
 """
 
 from __future__ import annotations
@@ -41,19 +39,10 @@ from svolsdf.geometry.reproject import (
     _check_camera,
     _check_depth,
     check_geometric_consistency,
-    check_geometric_consistency_reference,
 )
 from svolsdf.scene.cameras import Cameras
 
-__all__ = [
-    "FusionConfig",
-    "FusedPoints",
-    "check_geometric_consistency",
-    "check_geometric_consistency_reference",
-    "dilate_mask",
-    "fuse_depth_maps",
-    "mask_to_depth_resolution",
-]
+__all__ = ["FusionConfig", "FusedPoints", "fuse_depth_maps"]
 
 log = logging.getLogger(__name__)
 

@@ -59,7 +59,7 @@ def field_mesh(
         v (V, 3) unit-frame vertices, vw (V, 3) world vertices, faces (F, 3).
     """
     from svolsdf.fusion.cull import cull_to_views
-    from svolsdf.fusion.mesh import extract_mesh, largest_component, to_world
+    from svolsdf.fusion.mesh_ops import extract_mesh, largest_component, to_world
 
     def sdf_fn(x):
         return model.sdf(x.to(device)).cpu()
@@ -93,7 +93,7 @@ def field_mesh(
 def field_mesh_colours(model, v: Tensor, faces: Tensor, device=None) -> Tensor | None:
     """(V, 3) vertex colours of a field's mesh from its colour network (unit-frame vertices
     ``v``, faces (F, 3)); None, with a warning, when that fails (colours are a convenience)."""
-    from svolsdf.fusion.mesh import colors_from_fn, model_colour_fn, vertex_normals
+    from svolsdf.fusion.mesh_ops import colors_from_fn, model_colour_fn, vertex_normals
 
     try:
         return colors_from_fn(v, vertex_normals(v, faces), model_colour_fn(model), device=device)

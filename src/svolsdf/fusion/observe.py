@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from svolsdf.fusion.mesh import _check_mesh, _in_image, submesh
+from svolsdf.fusion.mesh_ops import _check_mesh, _in_image, submesh
 from svolsdf.mvs.hypotheses import base_interval, interval_ratio
 from svolsdf.scene.cameras import Cameras
 

@@ -6,7 +6,7 @@ consistent with a source if its depth, carried to the source, sampled there (bil
 carried back, lands within ``dist_thresh`` pixels of where it started and within a relative
 depth difference ``rel_thresh``.
 
-Fusion (`svolsdf.fusion.filter`), the field's initialisation (`svolsdf.field.init`) and
+Fusion (`svolsdf.fusion.filter`), the field's initialisation (`svolsdf.field.initial`) and
 image-based rendering (`svolsdf.ibr.blend`) all run this check, so it lives below them.
 
 Depth is z-depth in the cameras' world units; pixel centres sit at integer coordinates

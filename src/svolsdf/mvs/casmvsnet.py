@@ -24,7 +24,7 @@ Image resizes before the network (working size -> x2 MVS size) follow our pixel-
 (`Cameras.resize`).
 
 The network modules and the checkpoint loader are in `svolsdf.mvs.casmvsnet_net`; this module is
-the backbone around them (input sizes, stage cameras and hypotheses) and re-exports their names.
+the backbone around them (input sizes, stage cameras and hypotheses).
 """
 
 from __future__ import annotations
@@ -46,15 +46,7 @@ from svolsdf.mvs.backbone import (
     upsample_depth,
     volume_from_prob,
 )
-from svolsdf.mvs.casmvsnet_net import (
-    REG_BASE,
-    STAGE_CHANNELS,
-    CasMVSNet,
-    ConvBnReLU,
-    CostRegNet,
-    FeatureNet,
-    load_casmvsnet,
-)
+from svolsdf.mvs.casmvsnet_net import CasMVSNet, load_casmvsnet
 from svolsdf.mvs.hypotheses import (
     STAGE_DEPTHS,
     base_interval,
@@ -66,19 +58,7 @@ from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Scene
 
-__all__ = [
-    "ConvBnReLU",
-    "FeatureNet",
-    "CostRegNet",
-    "CasMVSNet",
-    "load_casmvsnet",
-    "CasMVSNetConfig",
-    "CasMVSNetBackbone",
-    "mvs_input_size",
-    "stride_cameras",
-    "REG_BASE",
-    "STAGE_CHANNELS",
-]
+__all__ = ["CasMVSNetConfig", "CasMVSNetBackbone", "mvs_input_size", "stride_cameras"]
 
 log = logging.getLogger(__name__)
 

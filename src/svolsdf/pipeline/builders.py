@@ -2,9 +2,9 @@
 field (`SurfaceModel`), its coarse-to-fine schedule, the ray sampler, the training data.
 
 Used by the stages, by the stage keys (the backbone's full config) and by commands that open a
-finished run (`svolsdf.pipeline.run.Run`). Imports of the components stay inside the builders:
-only the built objects' modules are loaded, and tests may replace a component's class in its
-own module.
+finished run (`svolsdf.pipeline.loaded_run.Run`). Imports of the components stay inside the
+builders: only the built objects' modules are loaded, and tests may replace a component's class
+in its own module.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from svolsdf.pipeline import options
-from svolsdf.pipeline.run import Run, load_model
+from svolsdf.pipeline.loaded_run import Run, load_model
 from svolsdf.pipeline.rundir import save_torch
 
 __all__ = ["build_mesh", "observed_depths_of"]

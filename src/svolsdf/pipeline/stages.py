@@ -37,8 +37,8 @@ from svolsdf.errors import InputError, RunInterrupted
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline import builders, options
 from svolsdf.pipeline.keys import STAGES, describe_changes, input_keys, input_manifest
+from svolsdf.pipeline.loaded_run import Run, load_model
 from svolsdf.pipeline.machine import peak_rss_gb, set_threads
-from svolsdf.pipeline.run import Run, load_model
 from svolsdf.pipeline.rundir import one_line, save_npy, save_torch
 
 __all__ = ["Pipeline"]
@@ -313,7 +313,7 @@ class Pipeline(Run):
     def _filtered_stage1_depth(self) -> torch.Tensor:
         """(V, H, W) stage-1 MVS depth (world), geometrically filtered, 0 where rejected, at the
         working size (for the "mse" and "no-prob-volume" ablations)."""
-        from svolsdf.field.init import consistent_depths
+        from svolsdf.field.initial import consistent_depths
 
         scene = self.load()
         depths, _ = consistent_depths(self.regressed_volumes1())  # >= 1 consistent source (6.3)
@@ -370,7 +370,7 @@ class Pipeline(Run):
         if tcfg.mode == "svolsdf" and self._volumes1 is not None:
             prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
             if self.cfg.field.kind == "grid" and self.cfg.field.init == "mvs":
-                from svolsdf.field.init import init_grid_from_mvs
+                from svolsdf.field.initial import init_grid_from_mvs
 
                 scene = self.load()
                 init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
@@ -508,7 +508,7 @@ class Pipeline(Run):
         if self._done("fusion") and path.is_file():
             return path
         t0 = time.perf_counter()
-        from svolsdf.pipeline.fusion import fuse
+        from svolsdf.pipeline.fusion_stage import fuse
 
         n, extra = fuse(self, path)
         if n == 0:  # never a finished run: nothing downstream can use it
@@ -542,7 +542,7 @@ class Pipeline(Run):
         if self._done("mesh") and path.is_file():
             return path
         t0 = time.perf_counter()
-        from svolsdf.fusion.mesh import save_mesh
+        from svolsdf.fusion.mesh_ops import save_mesh
         from svolsdf.pipeline.mesh import build_mesh
 
         vw, f, cols, info = build_mesh(self)

@@ -1,5 +1,6 @@
-"""Which views of a scene a run uses: the working size, the input views (DTU's protocol, a
-central view and its best sources, or ``--views auto``) and the held-out test views."""
+"""Which views of a scene a run uses: the input views (DTU's protocol, a central view and its
+best sources, or ``--views auto``) and the held-out test views. The working size has one rule,
+`svolsdf.scene.size.working_size`."""
 
 from __future__ import annotations
 
@@ -7,9 +8,8 @@ import torch
 
 from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS
 from svolsdf.scene.scene import Scene
-from svolsdf.scene.size import working_size  # re-exported: the one rule
 
-__all__ = ["auto_views", "default_views", "test_views", "working_size"]
+__all__ = ["auto_views", "default_views", "test_views"]
 
 
 def _is_dtu49(scene: Scene) -> bool:

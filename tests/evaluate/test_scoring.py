@@ -13,7 +13,7 @@ from conftest import shared_path
 from svolsdf.cli import main
 from svolsdf.errors import InputError
 from svolsdf.evaluate.images import masked_psnr
-from svolsdf.evaluate.run import EvaluateConfig, evaluate_run
+from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
 from svolsdf.io.ply import write_mesh_ply, write_points_ply
 from svolsdf.scene.loaders import load_scene
 

@@ -35,7 +35,7 @@ from svolsdf.errors import InputError
 from svolsdf.scene.scene import Scene
 from svolsdf.scene.size import working_size
 
-__all__ = ["MVSJobConfig", "run_mvs", "working_size", "mvs_depth_range"]
+__all__ = ["MVSJobConfig", "run_mvs", "mvs_depth_range"]
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Tests for svolsdf.fusion.mesh on analytic SDFs."""
+"""Tests for svolsdf.fusion.mesh_ops on analytic SDFs."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 from fusion_synth import look_at_camera, sphere_depth
 
 from svolsdf.fusion.cull import cull_by_frusta, cull_by_masks, cull_unseen
-from svolsdf.fusion.mesh import (
+from svolsdf.fusion.mesh_ops import (
     colors_from_fn,
     colors_from_images,
     extract_mesh,

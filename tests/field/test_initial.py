@@ -1,4 +1,4 @@
-"""field/init.py: the SDF grid initialised from (exact) MVS depth puts its zero level on the
+"""field/initial.py: the SDF grid initialised from (exact) MVS depth puts its zero level on the
 surface, is a signed distance (|grad| ~ 1), and ignores inconsistent depth."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from svolsdf.field.grid import GridFieldConfig, GridSDFField
-from svolsdf.field.init import init_grid_from_mvs, signed_distance_from_signs
+from svolsdf.field.initial import init_grid_from_mvs, signed_distance_from_signs
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.scene import Normalization
 

@@ -19,8 +19,9 @@ from svolsdf.pipeline.keys import stage_keys
 from svolsdf.pipeline.machine import resolve_device
 from svolsdf.pipeline.options import has_field, runs_mvs1
 from svolsdf.pipeline.rundir import RunDir, one_line
-from svolsdf.pipeline.views import auto_views, default_views, test_views, working_size
+from svolsdf.pipeline.views import auto_views, default_views, test_views
 from svolsdf.scene.scene import Scene
+from svolsdf.scene.size import working_size
 
 __all__ = ["Run", "load_model"]
 

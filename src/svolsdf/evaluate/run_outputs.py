@@ -1,0 +1,201 @@
+"""What ``svolsdf evaluate`` and ``svolsdf report`` read from a run folder, and what they check
+before they write into it: the run's scene and input views (its config.yaml through
+`svolsdf.config.load_config`, else views.json), the renders beside their ground-truth images, the
+outputs present and the config that made them (`svolsdf.io.runfolder.RunFolder`), ground-truth
+point files, and metrics.json's layout with every value null.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from svolsdf.errors import InputError
+from svolsdf.evaluate.report import ViewImages
+from svolsdf.io.runfolder import RunFolder
+
+__all__ = ["chamfer_block", "check_provenance", "check_run_folder", "check_views_rendered",
+           "empty_images", "empty_metrics", "finite_or_none", "load_gt_points", "load_renders",
+           "run_scene", "write_json"]
+
+
+def run_scene(run: RunFolder) -> tuple[Path | None, list[int] | None]:
+    """The scene folder and the input view ids of a run: those of its config.yaml (read by
+    `svolsdf.config.load_config`), else those views.json records; None for what neither names.
+
+    Raises:
+        InputError: config.yaml is not a config (`load_config` names the key or value).
+    """
+    path = views = None
+    if run.config_file.is_file():
+        from svolsdf.config import load_config
+
+        cfg = load_config(run.config_file)
+        path = cfg.scene.path or None
+        views = [int(v) for v in cfg.scene.views] if cfg.scene.views else None
+    if path is None or views is None:
+        rv = run.views()
+        if rv is not None:
+            path = path or rv.scene
+            views = views or rv.inputs or None
+    return (Path(path) if path else None), views
+
+
+def load_gt_points(path: str | Path) -> np.ndarray:
+    """(N, 3) float64 ground-truth points from a .ply or .npy file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: ground-truth points file does not exist")
+    if path.suffix.lower() == ".npy":
+        try:
+            a = np.load(path)
+        except Exception as e:
+            raise InputError(f"{path}: cannot read as .npy ({e})") from None
+        if a.ndim != 2 or a.shape[1] < 3:
+            raise InputError(f"{path}: expected an (N, 3) array, got shape {a.shape}")
+        return a[:, :3].astype(np.float64)
+    from svolsdf.io.ply import read_ply
+
+    return read_ply(path)["points"]
+
+
+def check_run_folder(run: RunFolder, scene: Path | None) -> list[str]:
+    """The outputs evaluate and report read in OUT (`RunFolder.outputs`); refuses a folder
+    without any (a scene, an empty or half-finished run: nothing is written into it) and a
+    ``scene`` that is none."""
+    found = run.outputs()
+    if not found:
+        raise InputError(f"{run.root}: not a run folder (no points.ply, mesh.ply or "
+                         "renders/<view id>.png); give the output folder of svolsdf "
+                         "reconstruct, mvs or render, once it has finished")
+    if scene is not None:
+        from svolsdf.scene.loaders import detect_format
+
+        detect_format(scene)  # --scene WRONG: refused, not scored against nothing
+    return found
+
+
+def check_provenance(run: RunFolder, found: list[str]) -> dict[str, str]:
+    """{output: whether OUT/config.yaml made it} (`svolsdf.io.runfolder.output_provenance`);
+    refuses outputs that an earlier config made, which would be scored under the wrong one."""
+    names = [n for n in found if n in ("points.ply", "mesh.ply")]
+    if any(n.startswith("renders") for n in found):
+        names.append("renders")
+    prov = run.output_provenance(names)
+    stale = [n for n, v in prov.items() if v == "another config"]
+    if stale:
+        out = run.root
+        again = f"svolsdf reconstruct -o {out} --config {run.config_file}"
+        if "renders" in stale:
+            again = (f"{again}, then " if stale != ["renders"] else "") + f"svolsdf render {out}"
+        raise InputError(f"{out}: {', '.join(stale)} came from an earlier config than "
+                         f"{run.config_file} (a rerun with other options stopped before "
+                         f"it made them again); run {again} first")
+    return prov
+
+
+def check_views_rendered(out: str | Path, views: list[int] | None) -> None:
+    """``svolsdf evaluate --views``: every view asked for has a render to score (a benchmark
+    passes its held-out views whether or not the run rendered them, and gets nulls).
+
+    Raises:
+        InputError: naming the views without renders/<id>.png and the command that makes them.
+    """
+    if views is None:
+        return
+    run = RunFolder(out)
+    have = set(run.render_files()) | set(run.render_files(ibr=True))
+    missing = [v for v in views if v not in have]
+    if missing:
+        raise InputError(f"--views: no renders/<id>.png of view(s) {missing} in {out} "
+                         f"(rendered: {sorted(have) or 'none'}); run svolsdf render {out} "
+                         f"--views {' '.join(map(str, views))} first")
+
+
+def load_renders(run: RunFolder, scene_path: Path | None, views: list[int] | None,
+                  masks: bool, notes: list[str], missing: dict[str, str] | None = None
+                  ) -> tuple[dict[str, list[ViewImages]], object]:
+    """Renders of renders/ ("images") and renders_ibr/ ("images_ibr") with their ground truth,
+    without metrics; returns them by set and the scene loaded at the renders' size.
+    ``missing`` (if given) receives, per set, why it has no images."""
+    from svolsdf.io.images import read_image
+
+    missing = {} if missing is None else missing
+    sets = {"images": run.render_files(views=views),
+            "images_ibr": run.render_files(ibr=True, views=views)}
+    for key, files in sets.items():
+        if not files:
+            folder = "renders" if key == "images" else "renders_ibr"
+            missing[key] = f"no {folder}/<view id>.png" + (
+                f" of views {views}" if views is not None else "")
+    if not any(sets.values()):
+        notes.append("No renders (renders/<view id>.png): image metrics are null.")
+        return {}, None
+    if scene_path is None:
+        notes.append("No scene (config.yaml or --scene): image metrics are null.")
+        for key, files in sets.items():
+            if files:
+                missing[key] = "no scene (config.yaml or --scene)"
+        return {}, None
+    from svolsdf.scene.loaders import load_scene
+
+    ids = sorted({v for s in sets.values() for v in s})
+    first = read_image(next(iter(next(s for s in sets.values() if s).values())))
+    h, w = first.shape[-2:]
+    scene = load_scene(scene_path, views=ids, image_size=(w, h), masks=masks)
+    loaded: dict[str, list[ViewImages]] = {}
+    for key, files in sets.items():
+        if not files:
+            continue
+        loaded[key] = []
+        for vid, path in files.items():
+            pred = read_image(path)
+            if pred.shape[-2:] != (h, w):
+                raise InputError(f"{path} is {pred.shape[-1]}x{pred.shape[-2]} but "
+                                 f"{next(iter(files.values()))} is {w}x{h}; renders must share "
+                                 "one size")
+            k = scene.index(vid)
+            mask = scene.masks[k] if scene.masks is not None else None
+            loaded[key].append(ViewImages(vid, pred, scene.images[k], mask, {},
+                                          "volume" if key == "images" else "ibr"))
+    return loaded, scene
+
+
+def empty_metrics() -> dict:
+    return {"chamfer": chamfer_block(None, None, None),
+            "chamfer_mesh": chamfer_block(None, None, None),
+            "fscore": None, "fscore_threshold": None, "precision": None, "recall": None,
+            "images": empty_images(), "images_ibr": empty_images(),
+            "mesh_source": None,
+            "mesh_over_points": {"accuracy": None, "completeness": None, "overall": None},
+            "timing": {}, "settings": {}}
+
+
+def empty_images(missing: str | None = None) -> dict:
+    return {k: {"mean": None, "per_view": {}, "missing": missing}
+            for k in ("psnr", "ssim", "lpips")}
+
+
+def chamfer_block(res: dict | None, protocol: str | None, source: str | None) -> dict:
+    res = res or {}
+    return {"accuracy": finite_or_none(res.get("accuracy")),
+            "completeness": finite_or_none(res.get("completeness")),
+            "overall": finite_or_none(res.get("overall")),
+            "protocol": protocol, "source": source}
+
+
+def finite_or_none(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def write_json(path: Path, obj: dict) -> None:
+    from svolsdf.io.runfolder import atomic_write
+
+    text = json.dumps(obj, indent=2, allow_nan=False)
+    atomic_write(path, lambda tmp: tmp.write_text(text))

@@ -1,0 +1,365 @@
+"""``svolsdf evaluate OUT``: metrics of a finished run and its HTML report.
+
+Reads from the run folder OUT:
+    points.ply          the fused point cloud (world units)
+    mesh.ply            the mesh, if present
+    renders/<id>.png    volume-rendered novel views; renders_ibr/<id>.png image-based renders
+    depth/*.png, normals/*.png   previews shown in the report
+    config.yaml         names the scene and its input views (``scene.path``, ``scene.views``; read
+                        by `svolsdf.config.load_config`), else views.json does
+    timing.json         stage timings, copied into the metrics
+
+through `svolsdf.io.runfolder.RunFolder`.
+
+Writes OUT/metrics.json with fixed keys (null when not computable)::
+
+    chamfer: {accuracy, completeness, overall, protocol, source}
+    chamfer_mesh: {accuracy, completeness, overall, protocol, source, mesh_source}
+    mesh_source: which surface mesh.ply is (field | poisson | tsdf | "field (poisson failed:
+                ...)"), from timing.json; mesh_over_points: {accuracy, completeness, overall}
+                of the mesh over the points'
+    fscore, fscore_threshold, precision, recall
+    images:     {psnr: {mean, per_view, missing}, ssim: {...}, lpips: {...}}
+                (missing: why the metric is null, e.g. no renders or no LPIPS weights)
+    images_ibr: the same for renders_ibr/
+    timing: {..timing.json.., evaluate_seconds}
+    settings: what was evaluated against what
+
+and OUT/report.html (`svolsdf.evaluate.run_report`).
+
+Geometry: with ``dtu_gt`` the DTU protocol (docs/method.md 8.1), with ``gt_points`` the generic
+two-way Chamfer, and otherwise, for a scene written by ``svolsdf synth``, its own ground truth
+(`svolsdf.evaluate.synthetic.synthetic_chamfer`, the benchmarks' protocol: F-score at 0.5 % and
+distances clipped at 5 % of its diagonal). Otherwise the F-score threshold defaults to 1% of the
+ground truth's bounding-box diagonal (DTU: of the STL points above the plane), a scale-free
+choice; pass ``threshold`` for a fixed one. In DTU mode precision / recall use the protocol's
+point sets (observed prediction points; STL points above the plane) with all distances counted.
+
+Images (docs/method.md 8.3): ground truth is the scene's image at the render's size (bicubic), masks
+resized and thresholded at 0.5; PSNR over masked pixels, SSIM and LPIPS (VGG by default) on images
+composited onto white.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from svolsdf.errors import InputError
+from svolsdf.evaluate import chamfer as ch
+from svolsdf.evaluate.images import masked_psnr, ssim
+from svolsdf.evaluate.report import ViewImages
+from svolsdf.evaluate.run_outputs import (
+    chamfer_block,
+    check_provenance,
+    check_run_folder,
+    empty_images,
+    empty_metrics,
+    finite_or_none,
+    load_gt_points,
+    load_renders,
+    run_scene,
+    write_json,
+)
+from svolsdf.evaluate.run_report import write_run_report_unlocked
+from svolsdf.evaluate.synthetic import is_synthetic_scene
+from svolsdf.io.runfolder import RunFolder
+
+__all__ = ["EvaluateConfig", "evaluate_run"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvaluateConfig:
+    """Options of ``svolsdf evaluate``."""
+
+    out: Path
+    """The run folder (holds points.ply, renders/, ...)."""
+    gt_points: Path | None = None
+    """Ground-truth points for the generic Chamfer: a PLY (vertices) or an (N, 3) .npy file."""
+    dtu_gt: Path | None = None
+    """DTU ground-truth root (ObsMask/, Points/stl/); selects the DTU protocol."""
+    scan: int | None = None
+    """DTU scan number (default: from the scene)."""
+    scene: Path | None = None
+    """Scene folder for ground-truth images (default: from OUT/config.yaml)."""
+    views: list[int] | None = None
+    """View ids to evaluate (default: every renders/<id>.png)."""
+    threshold: float | None = None
+    """F-score threshold in world units (default: 1% of the ground truth's bbox diagonal)."""
+    max_dist: float | None = None
+    """Generic Chamfer cut-off (default none; the DTU protocol always uses 20 mm)."""
+    lpips_net: Literal["vgg", "alex"] = "vgg"
+    """LPIPS backbone, 'vgg' (the paper's) or 'alex'."""
+    lpips_weights: Path | None = None
+    """LPIPS weights file or folder (default: shared/weights/lpips)."""
+    ssim_data_range: float = 1.0
+    """SSIM data range; 2.0 reproduces the released code's numbers (docs/method.md 8.3)."""
+    masks: bool = True
+    """Use the scene's object masks for image metrics when it has them."""
+    seed: int = 0
+    """Seed of the DTU protocol's random shuffle."""
+    report: bool = True
+    """Also write OUT/report.html."""
+    extra: dict = field(default_factory=dict)
+    """Free-form facts stored under ``settings``."""
+
+
+def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict,
+              notes: list[str], scene_path: Path | None = None,
+              input_views: list[int] | None = None) -> None:
+    if cfg.dtu_gt is not None:
+        if scan is None:
+            raise InputError("--dtu-gt needs --scan N (the scene does not name its DTU scan)")
+        files = ch.find_dtu_files(cfg.dtu_gt, scan)
+        obs = ch.load_obs_mask(files.obs_mask)
+        plane = ch.load_plane(files.plane)
+        from svolsdf.io.ply import read_ply
+
+        stl = read_ply(files.stl)["points"]
+        above = stl @ plane[:3] + plane[3] > 0
+        thr = cfg.threshold or _diag(stl[above]) * 0.01
+        metrics["settings"]["dtu"] = {"scan": scan, "obs_mask": str(files.obs_mask),
+                                      "plane": str(files.plane), "stl": str(files.stl)}
+        if points is not None:
+            r = ch.dtu_chamfer_arrays(points[0], stl, obs, plane, seed=cfg.seed,
+                                      fscore_threshold=thr)
+            metrics["chamfer"] = chamfer_block(r, "dtu", "points.ply")
+            _put_fscore(metrics, r, thr)
+        if mesh is not None:
+            r = ch.dtu_chamfer_arrays(mesh[0], stl, obs, plane, mode="mesh", faces=mesh[1],
+                                      seed=cfg.seed)
+            metrics["chamfer_mesh"] = chamfer_block(r, "dtu-mesh", "mesh.ply")
+    elif cfg.gt_points is not None:
+        gt = load_gt_points(cfg.gt_points)
+        thr = cfg.threshold or _diag(gt) * 0.01
+        metrics["settings"]["gt_points"] = str(cfg.gt_points)
+        if points is not None and len(points[0]):
+            r = ch.chamfer_fscore(points[0], gt, thr, max_dist=cfg.max_dist)
+            metrics["chamfer"] = chamfer_block(r, "generic", "points.ply")
+            _put_fscore(metrics, r, thr)
+        if mesh is not None:
+            surf = ch.sample_mesh_surface(mesh[0], mesh[1], density=_diag(gt) / 1000)
+            r = ch.chamfer_fscore(surf, gt, thr, max_dist=cfg.max_dist)
+            metrics["chamfer_mesh"] = chamfer_block(r, "generic-mesh", "mesh.ply")
+    elif scene_path is not None and input_views and is_synthetic_scene(scene_path):
+        _synthetic_geometry(cfg, scene_path, input_views, points, mesh, metrics, notes)
+    else:
+        notes.append("No ground-truth geometry given (--gt-points or --dtu-gt): Chamfer and "
+                     "F-score are null.")
+
+
+def _synthetic_geometry(cfg: EvaluateConfig, scene_path: Path, views: list[int], points, mesh,
+                        metrics: dict, notes: list[str]) -> None:
+    """A `svolsdf synth` scene scores itself: `synthetic_chamfer` against the ground truth the
+    input views observe, distances clipped at 5 % of its diagonal (``max_dist``), F-score at
+    0.5 % (``threshold``); ``overall_dtu_rule`` leaves distances beyond the cut-off out of the
+    means (docs/method.md 8.1). The mesh is scored by its vertices, as benchmarks/fast_preset.py."""
+    from svolsdf.evaluate.synthetic import synthetic_chamfer
+
+    def score(pts: np.ndarray, source: str) -> tuple[dict, dict]:
+        r = synthetic_chamfer(pts, scene_path, views, max_dist=cfg.max_dist,
+                              threshold=cfg.threshold, on_empty="clip")
+        block = chamfer_block(r, "synthetic", source)
+        block["overall_dtu_rule"] = finite_or_none(r["overall_dtu_rule"])
+        if r["pred_points"] == 0:
+            notes.append(f"{source}: no point lies near the ground-truth object; every distance "
+                         f"is clipped at {r['max_dist']:.4g}.")
+        return r, block
+
+    r = None
+    if points is not None:
+        r, metrics["chamfer"] = score(points[0], "points.ply")
+        _put_fscore(metrics, r, r["threshold"])
+    if mesh is not None:
+        rm, metrics["chamfer_mesh"] = score(mesh[0], "mesh.ply")
+        r = r or rm
+    if r is not None:
+        metrics["settings"]["synthetic"] = {
+            "scene": str(scene_path), "input_views": list(views), "max_dist": r["max_dist"],
+            "gt_points_observed": int(r["gt_points"])}
+        notes.append(f"Geometry against the synthetic scene's ground truth seen by input views "
+                     f"{list(views)}: distances clipped at {r['max_dist']:.4g} (5 % of its "
+                     f"diagonal); 'overall_dtu_rule' leaves them out instead.")
+
+
+def _put_fscore(metrics: dict, r: dict, thr: float) -> None:
+    metrics["fscore"] = finite_or_none(r.get("fscore"))
+    metrics["fscore_threshold"] = float(thr)
+    metrics["precision"] = finite_or_none(r.get("precision"))
+    metrics["recall"] = finite_or_none(r.get("recall"))
+
+
+def _diag(p: np.ndarray) -> float:
+    if len(p) == 0:
+        raise InputError("ground truth has no points")
+    return float(np.linalg.norm(p.max(0) - p.min(0)))
+
+
+def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str]
+            ) -> tuple[list[ViewImages], object]:
+    """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene.
+    A set without images, or a metric that cannot be computed (LPIPS without its weights),
+    keeps null values and says why in ``missing``."""
+    missing: dict[str, str] = {}
+    loaded, scene = load_renders(RunFolder(cfg.out), scene_path, cfg.views, cfg.masks, notes,
+                                  missing)
+    for key, why in missing.items():
+        metrics[key] = empty_images(why)
+    if scene is None:
+        return [], None
+    metrics["settings"]["scene"] = str(scene_path)
+    metrics["settings"]["image_size"] = [int(scene.width), int(scene.height)]
+    metrics["settings"]["masks"] = scene.masks is not None
+    from svolsdf.evaluate.lpips import LPIPS, lpips_distance
+
+    lp = lp_missing = None
+    try:
+        lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
+    except InputError as e:  # PSNR, SSIM and the geometry do not need it
+        lp_missing = f"LPIPS not computed: {e}"
+        log.warning("%s (pass --lpips-weights)", lp_missing)
+        notes.append(lp_missing + ".")
+    metrics["settings"]["lpips_net"] = cfg.lpips_net
+    metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
+    views: list[ViewImages] = []
+    for key, group in loaded.items():
+        block = empty_images()
+        for v in group:
+            v.metrics = {"psnr": masked_psnr(v.pred, v.gt, v.mask),
+                         "ssim": ssim(v.pred, v.gt, v.mask, data_range=cfg.ssim_data_range),
+                         "lpips": lpips_distance(v.pred, v.gt, lp, v.mask)
+                         if lp is not None else None}
+            for m, x in v.metrics.items():
+                block[m]["per_view"][str(v.view_id)] = finite_or_none(x)
+            views.append(v)
+        for m in block:
+            vs = [x for x in block[m]["per_view"].values() if x is not None]
+            block[m]["mean"] = float(np.mean(vs)) if vs else None
+        if lp is None:
+            block["lpips"]["missing"] = lp_missing
+        metrics[key] = block
+    return views, scene
+
+
+def evaluate_run(cfg: EvaluateConfig) -> dict:
+    """Compute OUT/metrics.json (and OUT/report.html) for a run folder, holding its lock.
+
+    Args:
+        cfg: `EvaluateConfig`.
+
+    Returns:
+        the metrics dict that was written.
+
+    Raises:
+        InputError: a missing folder or ground-truth file, unreadable inputs, not a run, an
+            option that cannot be honoured (a scene that is not one, views without renders),
+            outputs that an earlier config made (``settings.provenance`` of the metrics), or
+            another command writing the folder.
+    """
+    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.runfolder import folder_lock
+
+    out = Path(cfg.out)
+    if not out.is_dir():
+        raise InputError(f"{out}: run folder does not exist")
+    run = RunFolder(out)
+    found = check_run_folder(run, cfg.scene)
+    _check_evaluate_options(cfg, out)
+    prov = check_provenance(run, found)
+    ensure_writable_folder(out, "run folder")  # metrics.json goes there: fail before the work
+    with folder_lock(out, "svolsdf evaluate"):
+        return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}))
+
+
+def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
+    """Options that evaluate could not honour are errors, not silently ignored."""
+    if cfg.scan is not None and cfg.dtu_gt is None:
+        raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
+    if cfg.dtu_gt is not None and cfg.gt_points is not None:
+        raise InputError("--dtu-gt and --gt-points: give one ground truth")
+
+
+def _evaluate_run(cfg: EvaluateConfig) -> dict:
+    """`evaluate_run` once its checks passed and the lock is held."""
+    t0 = time.perf_counter()
+    out = Path(cfg.out)
+    if cfg.lpips_net not in ("vgg", "alex"):
+        raise InputError(f"--lpips-net {cfg.lpips_net!r}: expected 'vgg' or 'alex'")
+    for name, v in (("--threshold", cfg.threshold), ("--ssim-data-range", cfg.ssim_data_range),
+                    ("max_dist", cfg.max_dist)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise InputError(f"{name} {v}: expected a number > 0")
+    from svolsdf.io.ply import read_ply
+
+    run = RunFolder(out)
+    # the inputs the run used (config.yaml may leave them default: views.json has them)
+    scene_path, input_views = run_scene(run)
+    if cfg.scene is not None:
+        scene_path = Path(cfg.scene)
+    notes: list[str] = []
+    metrics = empty_metrics()
+    metrics["settings"] = dict(cfg.extra)
+    points = mesh = None
+    if run.points.is_file():
+        d = read_ply(run.points)
+        points = (d["points"], d["colors"])
+    else:
+        notes.append("No points.ply in the run folder.")
+    if run.mesh().is_file():
+        d = read_ply(run.mesh())
+        if d["faces"] is not None and len(d["faces"]):
+            mesh = (d["points"], d["faces"])
+
+    views, scene = _images(cfg, scene_path, metrics, notes)
+    scan = cfg.scan
+    if scan is None and scene is not None and scene.extras.get("scan") is not None:
+        scan = int(scene.extras["scan"])
+    if scan is None and scene_path is not None:
+        m = re.search(r"scan(\d+)", str(scene_path))
+        scan = int(m.group(1)) if m else None
+    t_geo = time.perf_counter()
+    _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views)
+    log.info("geometry metrics in %.1fs", time.perf_counter() - t_geo)
+
+    timing = run.timing()
+    if timing is None:  # the stage timings only: the scores do not need them
+        log.warning("%s is unreadable; timing left out", run.timing_file)
+        notes.append(f"{run.timing_file.name} unreadable: stage timings left out.")
+    else:
+        metrics["timing"] = timing
+    metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
+    _mesh_provenance(metrics, mesh is not None)
+    write_json(run.metrics_file, metrics)
+
+    if cfg.report:
+        write_run_report_unlocked(out, metrics, views, notes, scene_path=scene_path,
+                         input_views=input_views)
+        metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
+        write_json(run.metrics_file, metrics)
+    return metrics
+
+
+def _mesh_provenance(metrics: dict, has_mesh: bool) -> None:
+    """``mesh_source`` (which surface mesh.ply is, `svolsdf.io.runfolder.mesh_source`) and
+    ``mesh_over_points`` (the mesh's accuracy, completeness and Chamfer over the points'), so
+    that a mesh worse than the points shows as a number."""
+    from svolsdf.io.runfolder import mesh_source
+
+    src = mesh_source(metrics.get("timing")) if has_mesh else None
+    if has_mesh and src is None:
+        src = "unknown (no mesh entry in timing.json)"
+    metrics["mesh_source"] = src
+    metrics["chamfer_mesh"]["mesh_source"] = src
+    p, m = metrics["chamfer"], metrics["chamfer_mesh"]
+    metrics["mesh_over_points"] = {
+        k: (round(m[k] / p[k], 4) if m.get(k) is not None and p.get(k) else None)
+        for k in ("accuracy", "completeness", "overall")}
