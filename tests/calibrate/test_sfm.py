@@ -46,6 +46,7 @@ def _matched(truth_dir, est_dir):
     return t, e, idx
 
 
+@pytest.mark.slow  # structure from motion on 20 views: ~20 s
 def test_camera_centres_within_half_a_percent(truth, calibrated):
     out, summary = calibrated
     assert len(summary["registered"]) == 20 and summary["unregistered"] == []
@@ -114,6 +115,7 @@ def _tiny_cfg(scene, views=None, steps=100):
     return cfg
 
 
+@pytest.mark.slow  # two reconstructions: ~90 s
 def test_reconstruction_on_auto_views_scores_like_the_true_cameras(truth, calibrated, tmp_path):
     """3 views picked by --views auto, reconstructed on the estimated cameras and on the true
     ones (both without object masks, which photos do not come with): the Chamfer of the points

@@ -82,6 +82,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow  # Ray's own start-up and a bounded join: ~8 s
 def test_a_wrong_ray_address_fails_within_30_s(scene, tmp_path, capsys):
     """Issue 38: ray.init retried a wrong --address for ~12 minutes. Now: exit 2 within 30 s,
     one line naming the address and what to do, before any job or folder."""
@@ -127,6 +128,7 @@ def test_local_executor_runs_in_order():
 
 
 # --------------------------------------------------------------------------- Ray
+@pytest.mark.slow  # a local Ray: ~5-13 s each
 def test_cli_ray_executor_starts_and_stops_a_local_ray(scene, tmp_path, capsys, caplog):
     """Without --address the command starts a local Ray and shuts it down at the end."""
     if ray.is_initialized():  # pragma: no cover - another module left one running
@@ -146,6 +148,7 @@ def test_cli_ray_executor_starts_and_stops_a_local_ray(scene, tmp_path, capsys, 
     assert row["status"] == "ok" and row["overall"] > 0 and row["views"] == [0, 1, 2]
 
 
+@pytest.mark.slow  # a local Ray: ~5-13 s each
 def test_ray_and_local_executors_write_the_same_table(scene, tmp_path, local_ray, caplog):
     with caplog.at_level(logging.INFO, logger="svolsdf"):
         rows_r = run_benchmark(_cfg(scene, tmp_path / "ray", "ray"), progress=False)
@@ -174,6 +177,7 @@ def test_ray_and_local_executors_write_the_same_table(scene, tmp_path, local_ray
         assert (tmp_path / "ray" / "synth_r" / sub / "mvs-only" / ROW_FILE).is_file()
 
 
+@pytest.mark.slow  # a local Ray: ~5-13 s each
 def test_rerun_skips_finished_jobs_and_resumes_interrupted_ones(scene, tmp_path, local_ray,
                                                                  caplog):
     out = tmp_path / "b"
@@ -202,6 +206,7 @@ def test_rerun_skips_finished_jobs_and_resumes_interrupted_ones(scene, tmp_path,
     assert (ok_dir / ROW_FILE).stat().st_mtime_ns != row_time
 
 
+@pytest.mark.slow  # a local Ray: ~5-13 s each
 def test_a_task_whose_worker_dies_is_a_row(local_ray):
     def job(k):
         if k == 2:
@@ -218,6 +223,7 @@ def test_a_task_whose_worker_dies_is_a_row(local_ray):
     assert got[1]["k"] == 2 and got[1]["status"].startswith("failed: ")
 
 
+@pytest.mark.slow  # a local Ray: ~5-13 s each
 def test_a_running_clusters_address_passes_the_check(local_ray):
     """The address check joins a real cluster (the module's local Ray, by its GCS address)."""
     check_ray_address(local_ray.get_runtime_context().gcs_address)

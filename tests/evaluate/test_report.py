@@ -187,6 +187,7 @@ def test_a_missing_browser_part_fails_when_the_browser_is_required(monkeypatch):
         browser_part_missing("websocket-client is missing")
 
 
+@pytest.mark.slow  # a headless browser
 def test_report_in_headless_chromium(run, tmp_path):
     """The page loads from disk with networking off, the 3D view makes its WebGL canvas, and
     nothing is logged as an error. The screenshot stays in tmp_path for debugging."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from svolsdf.scene.cameras import Cameras
@@ -40,3 +42,12 @@ def sphere_depth(cam: Cameras, center=CENTER, radius=RADIUS) -> torch.Tensor:
     t = -b - torch.sqrt(disc.clamp_min(0))
     z = torch.where(disc > 0, t * cos, torch.zeros_like(t))
     return z.reshape(cam.height, cam.width)
+
+
+def three_cameras() -> dict[int, Cameras]:
+    """Three cameras 4 units from the origin looking at it, about 20 degrees apart."""
+    return {
+        0: look_at_camera((0.0, 0.0, -4.0)),
+        1: look_at_camera((4.0 * math.sin(0.35), 0.2, -4.0 * math.cos(0.35))),
+        2: look_at_camera((-4.0 * math.sin(0.3), -0.3, -4.0 * math.cos(0.3))),
+    }

@@ -1,5 +1,6 @@
 """`RunDir` (stage state, atomic saves, timing), `stage_keys` without a scene, `Run.open`'s
-errors, and the components that moved out of the pipeline (issue 33)."""
+errors, what `Pipeline` refuses before any stage, the regressed stage-1 depth the field stage
+takes, and the components that moved out of the pipeline (issue 33)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,9 @@ import logging
 import numpy as np
 import pytest
 import torch
+from tiny_pipeline import make_tiny_scene, tiny_cfg
 
-from svolsdf.config import preset
+from svolsdf.config import load_config, preset
 from svolsdf.errors import InputError
 from svolsdf.pipeline import STAGES, Pipeline, Run, RunDir, stage_keys
 
@@ -80,3 +82,63 @@ def test_guide_depth_rule():
     assert out[7].tolist() == [[2.0, 4.0], [8.0, 8.0]]
     kept = guide_depths(depth, opacity, [7], 2.0, "none")
     assert kept[7].tolist() == [[2.0, 4.0], [6.0, 8.0]]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return make_tiny_scene(tmp_path_factory.mktemp("syn") / "scene")
+
+
+def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
+    cfg = tiny_cfg(tiny_scene)
+    cfg.scene.views = [0, 1, 99]
+    with pytest.raises(InputError, match="99"):
+        Pipeline(cfg, tmp_path / "a", progress=False).run()
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        Pipeline(tiny_cfg(tiny_scene), f, progress=False)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("train:\n  stepz: 3\n")
+    with pytest.raises(InputError, match="stepz"):
+        load_config(bad)
+    cfg = tiny_cfg(tiny_scene)
+    cfg.output.finer_stage_optimization = True
+    cfg.train.mode = "volsdf"
+    with pytest.raises(InputError, match="finer_stage_optimization"):
+        Pipeline(cfg, tmp_path / "b", progress=False).run()
+
+
+def test_an_unrecognised_scene_folder_leaves_no_run_folder(tmp_path):
+    """Issue 38: a folder no scene format reads is refused before OUT (and OUT/log) exists."""
+    scene = tmp_path / "not_a_scene"
+    scene.mkdir()
+    (scene / "notes.txt").write_text("no cameras here")
+    cfg = preset("fast")
+    cfg.scene.path = str(scene)
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="no known scene layout"):
+        Pipeline(cfg, out, progress=False).run()
+    assert not (out / "log").exists() and not out.exists()
+
+
+def test_field_stage_uses_the_regressed_stage1_depth(tmp_path):
+    # the plane sweep stores the main-mode depth; the field stage takes sum_k P_k d_k (2.4)
+    from svolsdf.mvs.volume import ProbabilityVolume
+    from svolsdf.scene.cameras import Cameras
+
+    cam = Cameras(K=torch.tensor([[[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]]]),
+                  w2c=torch.eye(4)[None], width=4, height=3)
+    depths = torch.linspace(1, 2, 5).view(5, 1, 1).expand(5, 3, 4).contiguous()
+    prob = torch.zeros(5, 3, 4)
+    prob[0], prob[4] = 0.6, 0.4  # bimodal: mode depth 1.0, expectation 1.4
+    vol = ProbabilityVolume(depths, prob, torch.ones(3, 4), torch.ones(3, 4), cam, 0)
+    cfg = preset("fast")
+    cfg.scene.path = str(tmp_path)
+    p = Pipeline(cfg, tmp_path / "o")
+    assert p.regressed_volumes1() is None
+    p.volumes1 = [vol]
+    reg = p.regressed_volumes1()
+    torch.testing.assert_close(reg[0].depth, torch.full((3, 4), 1.4))
+    assert vol.depth.eq(1).all()  # the stored volume is left as it is
+    assert p.regressed_volumes1() is reg  # cached

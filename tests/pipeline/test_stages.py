@@ -1,54 +1,35 @@
 """End to end: a tiny synthetic scene through `Pipeline` (MVS, S-VolSDF fit, guided MVS, fusion,
-mesh), its outputs, stage reuse, and bad input."""
+mesh; `svolsdf.pipeline.stages`), its outputs, stage reuse and stage keys, and each output option
+rerun on a copy of the finished run. A 300-step run: the slow tests."""
 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
+from tiny_pipeline import make_tiny_scene, rerun_on_copy, tiny_cfg
 
 from svolsdf.config import load_config, preset
 from svolsdf.errors import InputError
 from svolsdf.evaluate.synthetic import observed_gt_points, synthetic_chamfer
 from svolsdf.io.ply import read_ply
-from svolsdf.pipeline import Pipeline, peak_rss_gb
-from svolsdf.pipeline.builders import backbone_kwargs, grid_schedule
-from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+from svolsdf.pipeline import Pipeline
+from svolsdf.pipeline.builders import backbone_kwargs
+
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    d = tmp_path_factory.mktemp("syn") / "scene"
-    make_synthetic_scene(d, SynthConfig(views=3, width=160, height=120, seed=5, object="blobs",
-                                        supersample=1, gt_points=40_000))
-    return d
-
-
-def _tiny_cfg(scene, steps=300):
-    cfg = preset("fast")
-    cfg.scene.path = str(scene)
-    cfg.train.steps = steps
-    cfg.train.rays = 256
-    cfg.train.checkpoint_every = 100
-    cfg.field.grid_start_resolution = 32
-    cfg.field.grid_resolution = 64
-    cfg.output.mesh_resolution = 96
-    # the mesh from the field alone: the key tests below change fusion options, which the
-    # fitted mesh follows (test_mesh_fitted_to_the_points covers it)
-    cfg.output.mesh_fit_points = 0
-    cfg.output.mesh_method = "field"  # the field's own mesh; Poisson has its own tests
-    return cfg
+    return make_tiny_scene(tmp_path_factory.mktemp("syn") / "scene")
 
 
 @pytest.fixture(scope="module")
 def tiny_run(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
-    p = Pipeline(_tiny_cfg(tiny_scene), out, progress=False)
+    p = Pipeline(tiny_cfg(tiny_scene), out, progress=False)
     summary = p.run()
     return out, summary, p
 
@@ -106,41 +87,6 @@ def test_zero_level_lies_near_the_ground_truth(tiny_run, tiny_scene):
     assert fit_mm < 0.9 * init_mm, (fit_mm, init_mm)
     assert sdf_fit.mean() < sdf_init.mean(), (sdf_fit.mean(), sdf_init.mean())
     assert r["accuracy"] < 3.0 * footprint and r["completeness"] < 4.0 * footprint, r
-
-
-def test_chamfer_of_points_far_from_the_object(tiny_scene):
-    """Nothing near the object: an InputError by default, the clip distance with on_empty="clip"
-    (so a method that missed the object still has a number in a comparison)."""
-    views = [0, 1]
-    gt = observed_gt_points(tiny_scene, views)
-    far = gt.mean(0) + 100.0 * (gt.max(0) - gt.min(0))
-    pts = far[None] + np.random.default_rng(0).normal(size=(50, 3))
-    with pytest.raises(InputError, match="no reconstructed point"):
-        synthetic_chamfer(pts, tiny_scene, views)
-    r = synthetic_chamfer(pts, tiny_scene, views, on_empty="clip")
-    assert r["pred_points"] == 0 and r["fscore"] == 0.0
-    assert r["accuracy"] == r["completeness"] == r["overall"] == r["max_dist"] > 0
-    near = synthetic_chamfer(gt[::7], tiny_scene, views, on_empty="clip")
-    assert near["overall"] < 0.1 * r["overall"]
-    with pytest.raises(ValueError, match="on_empty"):
-        synthetic_chamfer(pts, tiny_scene, views, on_empty="ignore")
-    # half of the ground truth reconstructed exactly, plus outliers just beyond the cut-off
-    half = gt[gt[:, 0] < np.median(gt[:, 0])]
-    md = near["max_dist"]
-    hi = gt.max(0)
-    # outliers off a corner of the GT's box: inside the scored margin, >= 1.4 max_dist from it
-    corner = hi + 0.9 * md
-    out = corner + np.random.default_rng(1).uniform(-0.05, 0.05, (len(half) // 4, 3)) * md
-    mix = np.concatenate([half, out])
-    clip = synthetic_chamfer(mix, tiny_scene, views)
-    excl = synthetic_chamfer(mix, tiny_scene, views, rule="exclude")
-    # clip: the outliers (and the missing half) count as max_dist; exclude: they are left out
-    assert excl["accuracy"] < 0.01 * md
-    assert clip["accuracy"] > excl["accuracy"] + 0.005 * md
-    assert excl["completeness"] < clip["completeness"]
-    assert clip["fscore"] == excl["fscore"]
-    with pytest.raises(ValueError, match="rule"):
-        synthetic_chamfer(pts, tiny_scene, views, rule="truncate")
 
 
 def test_rerun_reuses_finished_stages(tiny_run):
@@ -288,7 +234,6 @@ def test_fusion_unguided_dilation_enters_only_the_fusion_key(tiny_run):
     the option changes only the fusion key."""
     from dataclasses import asdict, replace
 
-    from svolsdf.config import preset
 
     assert preset("fast").output.fusion_unguided_dilation == 4
     assert preset("paper").output.fusion_unguided_dilation is None
@@ -351,60 +296,13 @@ def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
     assert not (tmp_path / "run3" / "mvs").exists()
 
 
-def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
-    cfg = _tiny_cfg(tiny_scene)
-    cfg.scene.views = [0, 1, 99]
-    with pytest.raises(InputError, match="99"):
-        Pipeline(cfg, tmp_path / "a", progress=False).run()
-    f = tmp_path / "file"
-    f.write_text("x")
-    with pytest.raises(InputError, match="not a folder"):
-        Pipeline(_tiny_cfg(tiny_scene), f, progress=False)
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("train:\n  stepz: 3\n")
-    with pytest.raises(InputError, match="stepz"):
-        load_config(bad)
-    cfg = _tiny_cfg(tiny_scene)
-    cfg.output.finer_stage_optimization = True
-    cfg.train.mode = "volsdf"
-    with pytest.raises(InputError, match="finer_stage_optimization"):
-        Pipeline(cfg, tmp_path / "b", progress=False).run()
-
-
-def test_an_unrecognised_scene_folder_leaves_no_run_folder(tmp_path):
-    """Issue 38: a folder no scene format reads is refused before OUT (and OUT/log) exists."""
-    scene = tmp_path / "not_a_scene"
-    scene.mkdir()
-    (scene / "notes.txt").write_text("no cameras here")
-    cfg = preset("fast")
-    cfg.scene.path = str(scene)
-    out = tmp_path / "out"
-    with pytest.raises(InputError, match="no known scene layout"):
-        Pipeline(cfg, out, progress=False).run()
-    assert not (out / "log").exists() and not out.exists()
-
-
-def _rerun_on_copy(out, dest, **output):
-    """Copy the finished run ``out`` to ``dest``, set ``cfg.output.<key> = value`` for each of
-    ``output`` and run the pipeline there (finished stages are reused); returns the Pipeline."""
-    import shutil
-
-    shutil.copytree(out, dest)
-    cfg = load_config(out / "config.yaml")
-    for k, v in output.items():
-        setattr(cfg.output, k, v)
-    p2 = Pipeline(cfg, dest, progress=False)
-    p2.run()
-    return p2
-
-
 def test_fusion_surface_option_adds_points_on_the_surface(tiny_run, tmp_path):
     """The fast preset's fusion counts a depth on the rendered surface as a consistent view;
     turning it off reruns only fusion and keeps a subset of the points."""
     out, _, p = tiny_run
     assert p.cfg.output.fusion_surface > 0
     out2 = tmp_path / "nosurf"
-    p2 = _rerun_on_copy(out, out2, fusion_surface=0.0)
+    p2 = rerun_on_copy(out, out2, fusion_surface=0.0)
     assert set(p2.timing) - {"total"} == {"fusion"}
     n_with = len(read_ply(out / "points.ply")["points"])
     n_without = len(read_ply(out2 / "points.ply")["points"])
@@ -416,7 +314,7 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
     stage 3 around the re-rendered depth; reuses the finished field and stage-1 volumes."""
     out, _, p = tiny_run
     out2 = tmp_path / "finer"
-    p2 = _rerun_on_copy(out, out2, finer_stage_optimization=True)
+    p2 = rerun_on_copy(out, out2, finer_stage_optimization=True)
     assert "field" not in p2.timing and "mvs23" in p2.timing and "mesh" in p2.timing
     assert (out2 / "field" / "stage2" / "model.pt").is_file()
     assert (out2 / "field" / "stage2" / "losses.csv").is_file()
@@ -428,41 +326,6 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
     d = np.load(out2 / "depth" / f"{v}.npy")
     assert d.shape == (240, 320) and np.isfinite(d).all()  # the MVS size
     assert not np.array_equal(d, np.load(out / "depth" / f"{v}.npy"))
-
-
-def test_field_stage_uses_the_regressed_stage1_depth(tmp_path):
-    # the plane sweep stores the main-mode depth; the field stage takes sum_k P_k d_k (2.4)
-    from svolsdf.mvs.volume import ProbabilityVolume
-    from svolsdf.scene.cameras import Cameras
-
-    cam = Cameras(K=torch.tensor([[[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]]]),
-                  w2c=torch.eye(4)[None], width=4, height=3)
-    depths = torch.linspace(1, 2, 5).view(5, 1, 1).expand(5, 3, 4).contiguous()
-    prob = torch.zeros(5, 3, 4)
-    prob[0], prob[4] = 0.6, 0.4  # bimodal: mode depth 1.0, expectation 1.4
-    vol = ProbabilityVolume(depths, prob, torch.ones(3, 4), torch.ones(3, 4), cam, 0)
-    cfg = preset("fast")
-    cfg.scene.path = str(tmp_path)
-    p = Pipeline(cfg, tmp_path / "o")
-    assert p.regressed_volumes1() is None
-    p.volumes1 = [vol]
-    reg = p.regressed_volumes1()
-    torch.testing.assert_close(reg[0].depth, torch.full((3, 4), 1.4))
-    assert vol.depth.eq(1).all()  # the stored volume is left as it is
-    assert p.regressed_volumes1() is reg  # cached
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM is Linux's /proc")
-def test_peak_memory_of_a_child_does_not_include_its_parents_peak():
-    """timing.json's peak memory: a pipeline started by a process that once held ~400 MB more
-    (a benchmark) must not report that peak as its own (ru_maxrss survives fork + exec)."""
-    big = np.ones(400 * 2**20 // 8)  # 400 MiB, touched
-    big += 1
-    code = "from svolsdf.pipeline import peak_rss_gb; print(peak_rss_gb())"
-    child = float(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
-                                 text=True).stdout)
-    assert peak_rss_gb() > child + 0.3
-    del big
 
 
 def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
@@ -488,29 +351,10 @@ def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
     # the same depth maps; the surface check (fusion_surface) can only add consistent pixels
     assert counts["unguided"] >= len(read_ply(out_m / "points.ply")["points"])
     out2 = tmp_path / "no_unguided"
-    p2 = _rerun_on_copy(out, out2, fusion_unguided=False)
+    p2 = rerun_on_copy(out, out2, fusion_unguided=False)
     assert set(p2.timing) - {"total"} == {"fusion"}
     # without the unguided maps the guided depths have fewer sources to agree with
     assert len(read_ply(out2 / "points.ply")["points"]) <= counts["guided"]
-
-
-def test_set_threads(monkeypatch):
-    """--threads N is used as given; 0 is the cores this process may run on, unless
-    OMP_NUM_THREADS is set."""
-    from svolsdf.pipeline import set_threads
-
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(2)
-        assert set_threads(1) == 1 and torch.get_num_threads() == 1  # applied, not only returned
-        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-        if hasattr(os, "sched_getaffinity"):
-            assert set_threads(0) == len(os.sched_getaffinity(0))
-        torch.set_num_threads(1)
-        monkeypatch.setenv("OMP_NUM_THREADS", "1")
-        assert set_threads(0) == 1  # left to OMP_NUM_THREADS
-    finally:
-        torch.set_num_threads(before)
 
 
 def test_a_finished_field_loads_without_its_stage1_volumes(tiny_run, tmp_path):
@@ -584,105 +428,6 @@ def test_field_psnr_on_the_input_views_is_logged_and_kept(tiny_run):
     assert "field: PSNR on the input views (inside the object masks)" in log_text
 
 
-@pytest.fixture(scope="module")
-def volsdf_run(tiny_scene, tmp_path_factory):
-    """A 40-step --mode volsdf run of the tiny scene, with its field before any step."""
-    cfg = _tiny_cfg(tiny_scene, steps=40)
-    cfg.train.mode = "volsdf"
-    cfg.train.checkpoint_every = 0
-    out = tmp_path_factory.mktemp("volsdf") / "v"
-    p = Pipeline(cfg, out, progress=False)
-    p.load()
-    init = p.build_model()
-    return out, p.run(), p, init
-
-
-def test_volsdf_mode_starts_from_a_sphere_with_nothing_from_mvs(volsdf_run, tiny_scene):
-    """Issue 28: --mode volsdf is VolSDF: the sphere in the bounding sphere's box, a coarse-to-
-    fine grid, the whole-grid eikonal term; no MVS stage, prior or MVS-derived box. Issue 38:
-    no stage-1 file where the pipeline writes them (OUT/mvs/stage1), and the fit improves on
-    its start."""
-    out, summary, p, model = volsdf_run
-    cfg = p.cfg
-    assert torch.equal(model.bounds, torch.tensor([[-1.0] * 3, [1.0] * 3]))
-    assert model.resolution == cfg.field.sphere_start_resolution == 16
-    x = torch.tensor([[0.7, 0.0, 0.0], [0.0, -0.8, 0.1]])  # |x| - r, away from the centre's kink
-    assert model.sdf(x).tolist() == pytest.approx((x.norm(dim=-1) - cfg.field.sphere_radius)
-                                                  .tolist(), abs=0.02)
-    assert not getattr(model, "mvs_initialised", False)
-    # doublings to the final resolution, the last at 3/4 of the steps
-    assert grid_schedule(p.cfg) == [(15, 32), (30, 64)]
-    assert p.volumes1 is None and "mvs1" not in p.timing
-    assert not any(p.dir.stage1_file(v).exists() for v in p.views)
-    assert not (out / "mvs").exists()
-    hist = (out / "field" / "losses.csv").read_text().splitlines()
-    assert "grid_eikonal" in hist[0]
-    assert summary["mesh"] is not None
-    # quality: 40 steps bring the surface towards the object (measured: the median |SDF| at
-    # the observed ground truth 9.8 mm from the sphere's 15.4; the mesh's Chamfer 7.5 mm)
-    gt = observed_gt_points(tiny_scene, p.views)
-    norm = p.load().normalization
-    gt_u = norm.to_unit(torch.from_numpy(gt)).float()
-    with torch.no_grad():
-        start = model.sdf(gt_u).abs().median().item() * norm.scale
-        fit = p.model().sdf(gt_u.to(p.device)).abs().median().item() * norm.scale
-    assert fit < 0.8 * start, (fit, start)
-    footprint = 600.0 / (1.8 * 160)  # mm per pixel at the object (SynthConfig defaults)
-    mesh = synthetic_chamfer(read_ply(out / "mesh.ply")["points"], tiny_scene, p.views)
-    assert mesh["overall"] < 5.0 * footprint, mesh
-
-
-def test_volsdf_points_pass_the_multi_view_check(volsdf_run, tmp_path):
-    """Issue 38: VolSDF's fused depth is its rendered guide; that guide is no consistent
-    source for itself, and the pixels docs/method.md 6.1 fills with the map's maximum depth are no
-    surface. A pixel only one view sees is dropped: with the other views' depth removed,
-    nothing of the remaining view is kept (before, every valid pixel passed)."""
-    import shutil
-
-    from svolsdf.pipeline.fusion_stage import fuse
-    from svolsdf.render.views import max_rule_filled
-
-    out, _, p, _ = volsdf_run
-    assert p.cfg.output.fusion_surface > 0 and p.cfg.output.fusion_views == 1
-    n_all = len(read_ply(out / "points.ply")["points"])
-    valid = 0
-    for v in p.views:
-        d = torch.from_numpy(np.load(out / "depth" / f"{v}.npy"))
-        assert max_rule_filled(d).any()  # the fill is there, and fused as no depth
-        valid += int(((d > 0) & ~max_rule_filled(d)).sum())
-    assert 0 < n_all < valid
-    copy = tmp_path / "one_view"
-    shutil.copytree(out, copy)
-    for v in p.views[1:]:
-        np.save(copy / "depth" / f"{v}.npy", np.zeros_like(np.load(out / "depth" / f"{v}.npy")))
-    p2 = Pipeline(load_config(out / "config.yaml"), copy, progress=False)
-    p2.load()
-    assert fuse(p2, copy / "points_one_view.ply")[0] == 0
-
-
-def test_volsdf_with_the_mlp_field_is_the_mlp_baseline(tiny_scene, tmp_path):
-    """`--mode volsdf --set field.kind=mlp`: VolSDF's MLP from its sphere, nothing from MVS,
-    a mesh and points after a few steps (a small MLP and image here for speed), named
-    "VolSDF (MLP)" in tables."""
-    from svolsdf.commands.render import open_run
-    from svolsdf.config import apply_overrides
-    from svolsdf.evaluate.benchmark_tables import method_label
-    from svolsdf.field.volsdf import VolSDFField
-
-    cfg = apply_overrides(_tiny_cfg(tiny_scene, steps=3), {
-        "train.mode": "volsdf", "field.kind": "mlp", "field.mlp_depth": 4,
-        "field.mlp_width": 64, "train.checkpoint_every": 0, "scene.image_size": [64, 48],
-        "output.mesh_resolution": 32})
-    out = tmp_path / "mlp"
-    summary = Pipeline(cfg, out, progress=False).run()
-    p = open_run(out)
-    assert isinstance(p.model(), VolSDFField) and not (out / "mvs").exists()
-    assert len(read_ply(out / "mesh.ply")["faces"]) > 0 and summary["mesh"] is not None
-    assert (out / "points.ply").is_file()
-    assert "rgb" in (out / "field" / "losses.csv").read_text().splitlines()[0]
-    assert method_label(p.cfg.train.mode, p.cfg.field.kind) == "VolSDF (MLP)"
-
-
 def test_sphere_start_settings_stay_out_of_an_mvs_started_fields_key(tiny_run):
     out, _, p = tiny_run
     before = p.stage_keys()
@@ -705,7 +450,7 @@ def test_mesh_fitted_to_the_points(tiny_run, tmp_path):
     from scipy.spatial import cKDTree
 
     out, _, p = tiny_run
-    p2 = _rerun_on_copy(out, tmp_path / "fit", mesh_fit_points=150)
+    p2 = rerun_on_copy(out, tmp_path / "fit", mesh_fit_points=150)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     assert (tmp_path / "fit" / "field" / "surface.pt").is_file()
     pts = read_ply(out / "points.ply")["points"]
@@ -721,7 +466,7 @@ def test_watertight_mesh_option(tiny_run, tmp_path):
     import trimesh
 
     out, _, p = tiny_run
-    p2 = _rerun_on_copy(out, tmp_path / "wt", mesh_watertight=True)
+    p2 = rerun_on_copy(out, tmp_path / "wt", mesh_watertight=True)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     m = read_ply(tmp_path / "wt" / "mesh.ply")
     mesh = trimesh.Trimesh(m["points"], m["faces"], process=True)
@@ -737,7 +482,7 @@ def test_poisson_mesh_option(tiny_run, tmp_path):
     from scipy.spatial import cKDTree
 
     out, _, p = tiny_run
-    p2 = _rerun_on_copy(out, tmp_path / "pz", mesh_method="poisson", poisson_depth=8)
+    p2 = rerun_on_copy(out, tmp_path / "pz", mesh_method="poisson", poisson_depth=8)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     assert p2.timing["mesh"]["method"] == "poisson"
     tree = cKDTree(read_ply(out / "points.ply")["points"])
@@ -748,14 +493,14 @@ def test_poisson_mesh_option(tiny_run, tmp_path):
     # a watertight mesh is the field's closed zero level: with poisson it is refused, naming
     # both options (issue 38: Poisson was silently ignored)
     with pytest.raises(InputError, match="mesh_watertight.*mesh_method"):
-        _rerun_on_copy(out, tmp_path / "pzw", mesh_method="poisson", mesh_watertight=True)
+        rerun_on_copy(out, tmp_path / "pzw", mesh_method="poisson", mesh_watertight=True)
 
 
 def test_poisson_mesh_falls_back_to_the_field(tiny_run, tmp_path):
     """A Poisson surface that cannot be made (here trimmed away entirely) leaves the field's
     zero level as the mesh, with the reason in the log and timing.json: the run still ends."""
     out, _, p = tiny_run
-    p2 = _rerun_on_copy(out, tmp_path / "pzf", mesh_method="poisson", poisson_depth=6,
+    p2 = rerun_on_copy(out, tmp_path / "pzf", mesh_method="poisson", poisson_depth=6,
                         poisson_trim=14)
     src = p2.timing["mesh"]["mesh_source"]
     assert src.startswith("field (poisson failed: "), p2.timing["mesh"]
@@ -781,7 +526,7 @@ def test_tsdf_mesh_with_free_space_and_support(tiny_run, tmp_path):
     from svolsdf.fusion.observe import point_spacing
 
     out, _, p = tiny_run
-    p2 = _rerun_on_copy(out, tmp_path / "ts", mesh_method="tsdf", mesh_free_space=True,
+    p2 = rerun_on_copy(out, tmp_path / "ts", mesh_method="tsdf", mesh_free_space=True,
                         mesh_support=3.0)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     t = p2.timing["mesh"]

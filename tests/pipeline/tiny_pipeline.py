@@ -1,0 +1,48 @@
+"""The tiny synthetic scene and the short fast-preset config of the pipeline's end-to-end tests
+(tests/pipeline: test_stages.py, test_volsdf_mode.py, test_rundir.py)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from svolsdf.config import Config, load_config, preset
+from svolsdf.pipeline import Pipeline
+from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+
+def make_tiny_scene(folder: Path) -> Path:
+    """A three-view 160x120 synthetic scene of blobs (seed 5) written to ``folder``."""
+    make_synthetic_scene(folder, SynthConfig(views=3, width=160, height=120, seed=5,
+                                             object="blobs", supersample=1, gt_points=40_000))
+    return folder
+
+
+def tiny_cfg(scene, steps: int = 300) -> Config:
+    """The fast preset, shortened for the tiny scene: ``steps`` steps of 256 rays, a 32 -> 64
+    grid, the field's own 96^3 mesh."""
+    cfg = preset("fast")
+    cfg.scene.path = str(scene)
+    cfg.train.steps = steps
+    cfg.train.rays = 256
+    cfg.train.checkpoint_every = 100
+    cfg.field.grid_start_resolution = 32
+    cfg.field.grid_resolution = 64
+    cfg.output.mesh_resolution = 96
+    # the mesh from the field alone: the key tests (test_stages.py) change fusion options, which the
+    # fitted mesh follows (test_mesh_fitted_to_the_points covers it)
+    cfg.output.mesh_fit_points = 0
+    cfg.output.mesh_method = "field"  # the field's own mesh; Poisson has its own tests
+    return cfg
+
+
+def rerun_on_copy(out: Path, dest: Path, **output) -> Pipeline:
+    """Copy the finished run ``out`` to ``dest``, set ``cfg.output.<key> = value`` for each of
+    ``output`` and run the pipeline there (finished stages are reused); returns the Pipeline."""
+    shutil.copytree(out, dest)
+    cfg = load_config(out / "config.yaml")
+    for k, v in output.items():
+        setattr(cfg.output, k, v)
+    p2 = Pipeline(cfg, dest, progress=False)
+    p2.run()
+    return p2
