@@ -32,6 +32,7 @@ def _fast() -> Config:
     c.output.mesh_cull_unseen = True  # the mesh keeps the surface the input views see
     c.output.mesh_method = "poisson"  # the mesh of the fused points, not of the field
     c.output.mesh_fit_points = 300  # with mesh_method field: that surface refined to the points
+    c.output.mesh_free_space = True  # no face in space an input view saw empty (docs/meshing.md)
     return c
 
 
