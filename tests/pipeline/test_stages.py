@@ -473,6 +473,11 @@ def test_watertight_mesh_option(tiny_run, tmp_path):
     assert mesh.is_watertight and m["colors"] is not None
     culled = read_ply(out / "mesh.ply")
     assert not trimesh.Trimesh(culled["points"], culled["faces"], process=True).is_watertight
+    # free-space culling (the fast preset's) does not cut the closed surface, and says so
+    p3 = rerun_on_copy(out, tmp_path / "wt_free", mesh_watertight=True, mesh_free_space=True)
+    m3 = read_ply(tmp_path / "wt_free" / "mesh.ply")
+    assert trimesh.Trimesh(m3["points"], m3["faces"], process=True).is_watertight
+    assert "mesh_watertight" in p3.timing["mesh"]["cleanup"]["not_applied"]
 
 
 def test_poisson_mesh_option(tiny_run, tmp_path):

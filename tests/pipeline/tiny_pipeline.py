@@ -33,6 +33,9 @@ def tiny_cfg(scene, steps: int = 300) -> Config:
     # fitted mesh follows (test_mesh_fitted_to_the_points covers it)
     cfg.output.mesh_fit_points = 0
     cfg.output.mesh_method = "field"  # the field's own mesh; Poisson has its own tests
+    # free-space culling reads the fused points too, so fusion options would rerun the mesh
+    # (test_tsdf_mesh_with_free_space_and_support covers it)
+    cfg.output.mesh_free_space = False
     return cfg
 
 

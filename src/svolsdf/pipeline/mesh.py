@@ -105,14 +105,21 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
                         "instead", method, reason)
     if vw is None:
         vw, f, cols = _field_mesh(p, model, scene, use_masks)
+    # the watertight mesh is the whole closed zero level by definition: no face is cut from it,
+    # and timing.json / metrics.json say so (docs/meshing.md)
+    closed = o.mesh_watertight and source == "field"
+    free = o.mesh_free_space and not closed
     vw, f, cols, cleanup = clean_mesh(
-        vw, f, cols, scene, observed=observed if o.mesh_free_space else None,
-        free_space_tol=o.mesh_free_space_steps * step if o.mesh_free_space else None,
-        points=pts, support_k=o.mesh_support)
+        vw, f, cols, scene, observed=observed if free else None,
+        free_space_tol=o.mesh_free_space_steps * step if free else None,
+        points=pts, support_k=0.0 if closed else o.mesh_support)
     if len(f) == 0:
         raise RuntimeError("mesh: no face left after free-space culling and trimming")
     info = {"mesh_source": source, "method": source.split(" ")[0],
             "cleanup": cleanup.as_dict()}
+    if closed and (o.mesh_free_space or o.mesh_support > 0):
+        info["cleanup"]["not_applied"] = ("mesh_watertight: the closed surface is kept whole "
+                                          "(no free-space culling or support trimming)")
     if method is not None:
         info["points"] = int(len(pts))
     return vw, f, cols, info
