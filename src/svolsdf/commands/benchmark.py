@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from svolsdf.commands.executors import ExecutorConfig
+from svolsdf.config import choices
 from svolsdf.errors import InputError
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
 from svolsdf.io.runfolder import RunFolder
@@ -63,8 +64,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MODES = ("svolsdf", "mvs-only", "volsdf")
-"""The pipeline's modes (``cfg.train.mode``)."""
+MODES = choices("train.mode")
+"""The pipeline's modes (``cfg.train.mode``'s choices, in the schema's order)."""
 
 METRIC_KEYS = ("accuracy", "completeness", "overall", "overall_dtu_rule", "fscore", "psnr",
                "ssim", "lpips", "psnr_ibr", "ssim_ibr", "lpips_ibr", "mesh_accuracy",
@@ -387,7 +388,7 @@ def _validate(cfg: BenchmarkConfig) -> None:
     if not cfg.scenes:
         raise InputError("benchmark: give at least one scene (--scenes A B ...)")
     if not cfg.modes:
-        raise InputError("benchmark: give at least one mode (--modes svolsdf mvs-only volsdf)")
+        raise InputError(f"benchmark: give at least one mode (--modes {' '.join(MODES)})")
     bad = [m for m in cfg.modes if m not in MODES]
     if bad:
         raise InputError(f"benchmark: unknown mode(s) {bad} (choose from {', '.join(MODES)})")

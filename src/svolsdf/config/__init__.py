@@ -26,6 +26,7 @@ from svolsdf.config.schema import (
     OutputConfig,
     SceneConfig,
     TrainConfig,
+    choices,
 )
 from svolsdf.config.validate import validate_config
 
@@ -48,4 +49,5 @@ __all__ = [
     "option_docs",
     "config_yaml",
     "validate_config",
+    "choices",
 ]

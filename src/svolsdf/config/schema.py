@@ -8,12 +8,13 @@ by `svolsdf.config.validate.validate_config`.
 from __future__ import annotations
 
 import dataclasses
+import types
 from dataclasses import dataclass
 from dataclasses import field as dc_field
-from typing import Any, Literal
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 __all__ = ["Config", "SceneConfig", "MVSConfig", "FieldConfig", "TrainConfig", "OutputConfig",
-           "DTU_TRAIN_IDS", "DTU_EXCLUDED_IDS"]
+           "DTU_TRAIN_IDS", "DTU_EXCLUDED_IDS", "choices"]
 
 
 def _limited(default: Any = dataclasses.MISSING, *, factory: Any = dataclasses.MISSING,
@@ -133,7 +134,7 @@ class FieldConfig:
 
 @dataclass
 class TrainConfig:
-    mode: Literal["svolsdf", "volsdf", "mvs-only"] = "svolsdf"
+    mode: Literal["svolsdf", "mvs-only", "volsdf"] = "svolsdf"
     """svolsdf (MVS prior + losses) | volsdf (the same model without the prior) | mvs-only."""
     ablation: Literal["soft-consistency-only", "mse", "no-prob-volume", "ce"] | None = None
     """None | soft-consistency-only | mse | no-prob-volume | ce (paper ablations)."""
@@ -336,3 +337,23 @@ class Config:
     """Fusion of the final depth into points.ply, and the mesh."""
 
 
+def choices(option: str) -> tuple[str, ...]:
+    """The strings an option's ``Literal`` allows, in their declared order: the one list of a
+    choice (``choices("train.mode")``, ``choices("train.ablation")``; None, where the option
+    takes it, is not among them).
+
+    Raises:
+        KeyError: ``option`` is no option, or takes no ``Literal``.
+    """
+    cls, *path = (Config, *option.split("."))
+    tp: Any = None
+    for name in path:
+        hints = get_type_hints(cls)
+        if name not in hints:
+            raise KeyError(f"{option}: no such option")
+        tp = cls = hints[name]
+    args = get_args(tp) if get_origin(tp) in (Union, types.UnionType) else (tp,)
+    found = tuple(a for t in args if get_origin(t) is Literal for a in get_args(t))
+    if not found:
+        raise KeyError(f"{option}: not a choice (no Literal)")
+    return found

@@ -31,6 +31,7 @@ from torch.profiler import record_function
 from svolsdf.config import TrainConfig
 from svolsdf.field.base import SurfaceModel
 from svolsdf.optimize import losses as L
+from svolsdf.optimize.modes import ABLATIONS, supervised_by_mvs_depth, uses_prior
 from svolsdf.render.rays import RayBundle, rays_from_cameras
 from svolsdf.render.volume import render_rays
 from svolsdf.scene.cameras import Cameras
@@ -38,9 +39,6 @@ from svolsdf.scene.cameras import Cameras
 __all__ = ["Trainer", "TrainData"]
 
 log = logging.getLogger(__name__)
-
-ABLATIONS = (None, "soft-consistency-only", "mse", "no-prob-volume", "ce")
-
 
 @dataclass
 class TrainData:
@@ -83,8 +81,7 @@ class Trainer:
                  grid_schedule: list[tuple[int, int]] | None = None):
         if cfg.ablation not in ABLATIONS:
             raise ValueError(f"unknown ablation {cfg.ablation!r} (choose from {ABLATIONS[1:]})")
-        if cfg.mode == "svolsdf" and prior is None and cfg.ablation not in ("mse",
-                                                                              "no-prob-volume"):
+        if uses_prior(cfg) and prior is None and not supervised_by_mvs_depth(cfg):
             raise ValueError("mode svolsdf needs an MVS prior")
         self.model = model.to(device)
         self.device = torch.device(device)
@@ -115,7 +112,7 @@ class Trainer:
                 log.warning("object_ray_fraction: view(s) %s have an empty object mask; every "
                             "ray is drawn uniformly", (count == 0).nonzero()[:, 0].tolist())
         self.smoothed = None
-        if cfg.mode == "svolsdf" and cfg.sparse_weight > 0 and cfg.anneal_rgb > 0:
+        if uses_prior(cfg) and cfg.sparse_weight > 0 and cfg.anneal_rgb > 0:
             # docs/method.md 4.4: heavily smoothed targets for the first anneal_rgb steps
             self.smoothed = L.warmup_rgb_target(self.images)
         self.grid_schedule = sorted(grid_schedule or [])
@@ -227,8 +224,8 @@ class Trainer:
 
         # labels P' (docs/method.md 3) or an ablation's replacement
         p_label = None
-        if cfg.mode == "svolsdf":
-            if cfg.ablation in ("mse", "no-prob-volume"):
+        if uses_prior(cfg):
+            if supervised_by_mvs_depth(cfg):
                 mvs_d = self.mvs_depth[t].reshape(-1)[pix]
                 if cfg.ablation == "no-prob-volume":
                     p_label = L.onehot_label(out.z, mvs_d, rays.cos)
@@ -260,7 +257,7 @@ class Trainer:
 
         with record_function("svolsdf.losses"):
             total = cfg.rgb_weight * terms["rgb"] + cfg.eikonal_weight * terms["eikonal"]
-            if cfg.mode == "svolsdf":
+            if uses_prior(cfg):
                 if cfg.ablation == "mse":
                     valid = mvs_d > 0
                     terms["mvs"] = L.depth_mse_loss(out.depth, mvs_d, valid)

@@ -58,7 +58,7 @@ def fuse(p, path: Path) -> tuple[int, dict]:
     fcfg = FusionConfig(dist_thresh=o.fusion_dist, rel_thresh=o.fusion_rel,
                         min_consistent=o.fusion_views, conf_thresh=o.fusion_conf,
                         use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
-    if cfg.train.mode == "svolsdf":  # OUT/depth is the field-guided depth
+    if options.guided_mvs(cfg):  # OUT/depth is the field-guided depth
         fcfg.primary_mask_dilation = o.fusion_guided_dilation
         fcfg.alt_mask_dilation = o.fusion_unguided_dilation
     # the refined surface after the finer-stage optimization
@@ -66,8 +66,8 @@ def fuse(p, path: Path) -> tuple[int, dict]:
     # the rendered guide is the surface (the soft-consistency ablation's guide is not). In
     # volsdf mode OUT/depth is that guide itself: it must not count as its own consistent
     # source, so VolSDF's points pass the same multi-view check as every other mode's
-    guide_is_depth = cfg.train.mode == "volsdf"
-    use_surface = (o.fusion_surface > 0 and cfg.train.ablation != "soft-consistency-only"
+    guide_is_depth = options.is_baseline(cfg)
+    use_surface = (o.fusion_surface > 0 and not options.guide_from_consistency(cfg)
                    and not guide_is_depth
                    and all((sdir / f"{v}.npy").is_file() for v in views))
     cams = {v: scene.cameras[[i]] for i, v in enumerate(views)}
@@ -90,7 +90,7 @@ def fuse(p, path: Path) -> tuple[int, dict]:
         # field (they only centre MVS in svolsdf mode): no depth
         depths = {v: torch.where(max_rule_filled(d), torch.zeros_like(d), d)
                   for v, d in depths.items()}
-    confs = load(out, "confidence") if cfg.train.mode != "volsdf" else None
+    confs = load(out, "confidence") if not options.is_baseline(cfg) else None
     alt = alt_confs = None
     if options.wants_unguided(cfg):  # the unguided stages 2-3 as each view's second hypothesis
         alt, alt_confs = load(p.dir.unguided_dir, "depth"), \

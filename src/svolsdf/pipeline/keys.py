@@ -24,6 +24,7 @@ from svolsdf.config import Config
 from svolsdf.pipeline.builders import backbone_kwargs
 from svolsdf.pipeline.options import (
     grid_from_sphere,
+    is_baseline,
     mesh_from_points,
     wants_mesh_fit,
     wants_network,
@@ -99,7 +100,7 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                      *([net] if net is not None else []),
                      # issue 38: VolSDF's rendered depth is fused under the multi-view rule
                      # (before, its own surface passed every pixel): its old points are stale
-                     *(["multi-view"] if cfg.train.mode == "volsdf" else []))
+                     *(["multi-view"] if is_baseline(cfg) else []))
     # mesh_fit_points enters only when set (with the fused points it fits): run folders
     # made before the option keep their mesh key
     fit = ([c["output"]["mesh_fit_points"], k_fusion] if wants_mesh_fit(cfg) else [])

@@ -17,7 +17,7 @@ from svolsdf.errors import InputError
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline.keys import stage_keys
 from svolsdf.pipeline.machine import resolve_device
-from svolsdf.pipeline.options import has_field, runs_mvs1
+from svolsdf.pipeline.options import has_field, is_baseline, runs_mvs1
 from svolsdf.pipeline.rundir import RunDir, one_line
 from svolsdf.pipeline.views import auto_views, default_views, test_views
 from svolsdf.scene.scene import Scene
@@ -212,7 +212,7 @@ class Run:
         stage-1 MVS depth where the run has it, else from the views' frusta."""
         from svolsdf.field.bounds import field_bounds
 
-        use = self._volumes1 is not None and self.cfg.train.mode != "volsdf"
+        use = self._volumes1 is not None and not is_baseline(self.cfg)
         return field_bounds(self.load(), self.regressed_volumes1() if use else None)
 
     def build_model(self):

@@ -1,48 +1,84 @@
 """What a config turns on: the rules that decide which stages run and which options act, shared
-by the stages, their keys and the commands that open a finished run."""
+by the stages, their keys and the commands that open a finished run. Each rule on the mode and
+the ablation is written here once (the optimization's own, on `TrainConfig`, in
+`svolsdf.optimize.modes`); callers ask by meaning."""
 
 from __future__ import annotations
 
 from svolsdf.config import Config
+from svolsdf.optimize import modes
 
-__all__ = ["grid_from_sphere", "has_field", "mesh_from_points", "runs_mvs1", "wants_mesh_fit",
-           "wants_network", "wants_poisson", "wants_unguided"]
+__all__ = ["fits_to_mvs_depth", "grid_from_sphere", "guide_from_consistency", "guided_mvs",
+           "has_field", "has_guide", "is_baseline", "mesh_from_points", "runs_mvs1",
+           "uses_prior", "wants_mesh_fit", "wants_network", "wants_poisson", "wants_unguided"]
+
+
+def is_baseline(cfg: Config) -> bool:
+    """The VolSDF baseline (volsdf mode): it never sees MVS, and its final depth is the field's
+    rendered guide itself (no MVS stages 2-3, no confidence)."""
+    return cfg.train.mode == "volsdf"
+
+
+def guided_mvs(cfg: Config) -> bool:
+    """svolsdf mode: the final depth (OUT/depth) is MVS stages 2-3 centred on a guide."""
+    return cfg.train.mode == "svolsdf"
+
+
+def has_guide(cfg: Config) -> bool:
+    """The run computes a guide depth (every mode but mvs-only)."""
+    return cfg.train.mode != "mvs-only"
+
+
+def guide_from_consistency(cfg: Config) -> bool:
+    """The soft-consistency ablation: the guide is the stage-1 volumes' consistency depth, not a
+    field's rendering (no field is fitted)."""
+    return cfg.train.ablation == "soft-consistency-only"
+
+
+def uses_prior(cfg: Config) -> bool:
+    """The field is fitted under the stage-1 MVS prior (`svolsdf.optimize.modes.uses_prior`)."""
+    return modes.uses_prior(cfg.train)
+
+
+def fits_to_mvs_depth(cfg: Config) -> bool:
+    """The field is fitted to the filtered stage-1 MVS depth (the "mse" and "no-prob-volume"
+    ablations; `svolsdf.optimize.modes.supervised_by_mvs_depth`)."""
+    return modes.supervised_by_mvs_depth(cfg.train)
 
 
 def runs_mvs1(cfg: Config) -> bool:
     """The run computes the stage-1 MVS volumes (svolsdf and mvs-only modes, the ablations)."""
-    return cfg.train.mode in ("svolsdf", "mvs-only") or bool(cfg.train.ablation)
+    return not is_baseline(cfg) or bool(cfg.train.ablation)
 
 
 def has_field(cfg: Config) -> bool:
     """The run fits a neural field (svolsdf and volsdf modes, not the soft-consistency
     ablation)."""
-    return cfg.train.mode in ("svolsdf", "volsdf") and \
-        cfg.train.ablation != "soft-consistency-only"
+    return has_guide(cfg) and not guide_from_consistency(cfg)
 
 
 def grid_from_sphere(cfg: Config) -> bool:
     """The grid field starts from VolSDF's sphere, not from the stage-1 MVS surface."""
     f = cfg.field
-    return f.kind == "grid" and not (cfg.train.mode == "svolsdf" and f.init == "mvs"
-                                     and cfg.train.ablation != "soft-consistency-only")
+    return f.kind == "grid" and not (uses_prior(cfg) and f.init == "mvs"
+                                     and not guide_from_consistency(cfg))
 
 
 def wants_network(cfg: Config) -> bool:
     """`OutputConfig.fusion_network` applies: set, in svolsdf mode (which has a guide)."""
-    return cfg.output.fusion_network is not None and cfg.train.mode == "svolsdf"
+    return cfg.output.fusion_network is not None and guided_mvs(cfg)
 
 
 def wants_unguided(cfg: Config) -> bool:
     """`OutputConfig.fusion_unguided` applies: svolsdf mode, whose stages 2-3 are guided."""
-    return cfg.output.fusion_unguided and cfg.train.mode == "svolsdf"
+    return cfg.output.fusion_unguided and guided_mvs(cfg)
 
 
 def wants_mesh_fit(cfg: Config) -> bool:
     """`OutputConfig.mesh_fit_points` applies: set, svolsdf mode (its points come from the
     finer MVS stages), a grid field."""
     return (cfg.output.mesh_fit_points > 0 and cfg.output.mesh_method == "field"
-            and cfg.train.mode == "svolsdf"
+            and guided_mvs(cfg)
             and cfg.train.ablation is None and cfg.field.kind == "grid")
 
 

@@ -73,6 +73,9 @@ class Pipeline(Run):
         self._net: tuple | None = None  # (its config, the fusion network's backbone)
         self._stage = "setup"  # the stage run() is in, for the message of an interrupt
         self._trainer = None  # the field stage's Trainer while it runs (its step, ditto)
+        # PSNR of the field's rendering of the input views (`svolsdf.pipeline.previews.field_psnr`),
+        # set when the guide stage renders them; timing.json's guide entry carries it
+        self.field_psnr: float | None = None
         self.input_keys: dict[str, str] | None = None  # set by run() (`keys.input_keys`)
         self._config_digest: str | None = None  # of OUT/config.yaml, set by run()
         self._input_changes: list[str] = []
@@ -306,7 +309,7 @@ class Pipeline(Run):
         """The field stage's `TrainData` (`svolsdf.pipeline.builders.build_train_data`)."""
         scene = self.load()
         mvs_depth = None
-        if self.cfg.train.ablation in ("mse", "no-prob-volume"):
+        if options.fits_to_mvs_depth(self.cfg):
             mvs_depth = self._filtered_stage1_depth() / scene.normalization.scale
         return builders.build_train_data(self.cfg, scene, mvs_depth)
 
@@ -367,7 +370,7 @@ class Pipeline(Run):
         tcfg = self.cfg.train
         torch.manual_seed(tcfg.seed)
         prior = None
-        if tcfg.mode == "svolsdf" and self._volumes1 is not None:
+        if options.uses_prior(self.cfg) and self._volumes1 is not None:
             prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
             if self.cfg.field.kind == "grid" and self.cfg.field.init == "mvs":
                 from svolsdf.field.initial import init_grid_from_mvs
@@ -384,7 +387,7 @@ class Pipeline(Run):
     # ------------------------------------------------------------------ guide depth
     def stage_guide(self) -> dict[int, torch.Tensor] | None:
         """World z-depth maps that replace the stage-1 depth (docs/method.md 6.1), or None."""
-        if self.cfg.train.mode == "mvs-only":
+        if not options.has_guide(self.cfg):
             return None
         files = self.dir.view_files(self.dir.render_depth_dir(), self.views)
         if self._done("guide") and all(f.is_file() for f in files.values()):
@@ -392,7 +395,7 @@ class Pipeline(Run):
             if maps is not None:
                 return maps
         t0 = time.perf_counter()
-        if self.cfg.train.ablation == "soft-consistency-only":
+        if options.guide_from_consistency(self.cfg):
             from svolsdf.prior.consistency import consistency_depth
 
             guide = consistency_depth(self._volumes1, self.load().normalization)
@@ -401,7 +404,7 @@ class Pipeline(Run):
         for v, d in guide.items():
             save_npy(files[v], d.numpy().astype(np.float32))
         self._mark("guide")
-        psnr = getattr(self, "field_psnr", None)
+        psnr = self.field_psnr
         self._time("guide", t0, **({"field_psnr": psnr} if psnr is not None else {}))
         return guide
 
@@ -438,7 +441,7 @@ class Pipeline(Run):
         from svolsdf.io.images import write_depth_preview
 
         guide = self.stage_guide()
-        if self.cfg.train.mode == "volsdf":
+        if options.is_baseline(self.cfg):
             depths = guide
             for v, d in depths.items():
                 save_npy(files[v], d.numpy().astype(np.float32))
