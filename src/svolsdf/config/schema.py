@@ -35,6 +35,12 @@ def _backbone_names() -> list[str]:
     return available_backbones()
 
 
+def _mesh_method_names() -> list[str]:
+    from svolsdf.fusion.mesh_methods import registered_mesh_methods
+
+    return registered_mesh_methods()
+
+
 #: DTU protocol input views (docs/method.md 1.4): the first num_view of this list.
 DTU_TRAIN_IDS = [25, 22, 28, 40, 44, 48, 0, 8, 13]
 #: DTU views never used for testing (docs/method.md 1.4).
@@ -283,10 +289,11 @@ class OutputConfig:
     field; 0 = off, the paper: the mesh is the optimized field's zero level). The finer MVS
     stages place depth more precisely than the surface that guided them, so the fused points
     are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
-    mesh_method: Literal["field", "poisson", "tsdf"] = "field"
+    mesh_method: str = _limited("field", choices=_mesh_method_names)
     """Mesh source: field (the optimized field's zero level, the paper) | poisson (screened
     Poisson of OUT/points.ply, `svolsdf.fusion.poisson`) | tsdf (the final depth maps the fused
-    points confirm, `svolsdf.fusion.tsdf`). docs/meshing.md compares them."""
+    points confirm, `svolsdf.fusion.tsdf`) | any method registered with
+    `svolsdf.fusion.mesh_methods.register_mesh_method`. docs/meshing.md compares them."""
     mesh_free_space: bool = False
     """Mesh: remove faces that lie in space an input view saw as empty, i.e. more than
     ``mesh_free_space_steps`` final depth steps in front of the depth that view observed there

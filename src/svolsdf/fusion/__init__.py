@@ -1,5 +1,6 @@
 """svolsdf.fusion: depth-map filtering and fusion (`filter`), mesh extraction and operations on
-meshes (`mesh_ops`), culling (`cull`), the reconstruction's mesh recipes (`meshing`)."""
+meshes (`mesh_ops`), culling (`cull`), the reconstruction's mesh recipes (`meshing`) and the
+mesh methods by name (`mesh_methods`)."""
 
 from svolsdf.fusion.filter import FusedPoints, FusionConfig, fuse_depth_maps
 from svolsdf.fusion.mesh_ops import extract_mesh, largest_component, save_mesh, to_world

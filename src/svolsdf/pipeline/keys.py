@@ -120,6 +120,11 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                    *((["tsdf", c["output"]["tsdf_resolution"],
                        c["output"]["tsdf_truncation_steps"], k_fusion])
                      if mesh_from_points(cfg) == "tsdf" else []),
+                   # a method registered beyond these three (svolsdf.fusion.mesh_methods)
+                   # enters by name, with the fusion it reads when it meshes the points
+                   *((["mesh-method", c["output"]["mesh_method"],
+                       *([k_fusion] if mesh_from_points(cfg) else [])])
+                     if c["output"]["mesh_method"] not in ("field", "poisson", "tsdf") else []),
                    *((["free-space", c["output"]["mesh_free_space_steps"], k_fusion])
                      if c["output"]["mesh_free_space"] else []),
                    *((["support", c["output"]["mesh_support"], k_fusion])

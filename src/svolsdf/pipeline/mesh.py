@@ -1,7 +1,8 @@
-"""The mesh stage's inputs and method choice: which surface the mesh is (the field's zero
-level, the Poisson surface of the fused points or the TSDF of the observed final depth), what it
-falls back to when that fails (and says so), and the culling every method gets
-(`svolsdf.fusion.meshing` holds the methods themselves)."""
+"""The mesh stage's inputs: the method `OutputConfig.mesh_method` names in the registry
+(`svolsdf.fusion.mesh_methods`: the field's zero level, the Poisson surface of the fused points,
+the TSDF of the observed final depth, or any registered one), what it falls back to when that
+fails (and says so), and the culling every method gets (`svolsdf.fusion.meshing` holds the
+algorithms)."""
 
 from __future__ import annotations
 
@@ -44,9 +45,10 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
     """The run's mesh as `OutputConfig` asks: (vw (V, 3) world vertices, faces (F, 3), colours
     (V, 3) uint8 or None, timing extras: ``mesh_source``, ``method``, ``cleanup``, ``points``).
 
-    ``mesh_source`` is "field", "poisson", "tsdf", or "field (poisson failed: REASON)" (the
-    same for tsdf) when the method asked for gave no surface and the field's zero level, which
-    always exists, replaced it.
+    The method is `OutputConfig.mesh_method`'s in the registry (`svolsdf.fusion.mesh_methods`;
+    the field's with a watertight mesh). ``mesh_source`` is its name ("field", "poisson",
+    "tsdf", ...), or "field (poisson failed: REASON)" (the same for any other method) when it
+    gave no surface and the field's zero level, which always exists, replaced it.
 
     Args:
         p: the `svolsdf.pipeline.Pipeline` whose fusion stage can run or has run.
@@ -54,7 +56,8 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
     Raises:
         RuntimeError: free-space culling and trimming left no face.
     """
-    from svolsdf.fusion.meshing import clean_mesh, points_tsdf_mesh, poisson_mesh
+    from svolsdf.fusion.mesh_methods import MeshInputs, get_mesh_method
+    from svolsdf.fusion.meshing import clean_mesh
     from svolsdf.fusion.observe import final_depth_step
     from svolsdf.io.ply import read_ply
 
@@ -66,45 +69,38 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
     scene = p.load()
     use_masks = scene.masks is not None and o.use_masks
     step = final_depth_step(scene.depth_range, p.cfg.mvs.width)
+    # the watertight mesh is the field's closed zero level, whatever the method
+    chosen = get_mesh_method("field" if o.mesh_watertight else o.mesh_method)
     method = options.mesh_from_points(p.cfg)
     pts = cols_pts = observed = None
     if method is not None or o.mesh_free_space or o.mesh_support > 0:
         d = read_ply(p.stage_fusion())
         pts, cols_pts = d["points"], d["colors"]
-    if (method == "tsdf" or o.mesh_free_space) and len(pts):
+    if (chosen.needs_observed or o.mesh_free_space) and len(pts):
         observed = observed_depths_of(p, pts)
     source = "field"
     vw = f = cols = None
-    if method is not None:
+    inputs = MeshInputs(points=pts, colours=cols_pts, scene=scene, observed=observed,
+                        model=model, field_mesh=lambda: _field_mesh(p, model, scene, use_masks),
+                        output=o, depth_step=step, use_masks=use_masks, device=p.device)
+    if chosen.name != "field":
         try:
-            if len(pts) < 100:
+            if chosen.needs_points and len(pts) < 100:
                 raise RuntimeError(f"{len(pts)} fused points")
-            if method == "poisson":
-                vw, f, cols = poisson_mesh(pts, cols_pts, model, scene, o.poisson_depth,
-                                           o.poisson_trim, use_masks=use_masks,
-                                           unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol,
-                                           device=p.device)
-            else:
-                if observed is None:
-                    raise RuntimeError("no final depth maps to fuse")
-                vw, f, cols = points_tsdf_mesh(
-                    pts, cols_pts, scene, observed,
-                    trunc=float(o.tsdf_truncation_steps * step.mean()),
-                    resolution=o.tsdf_resolution, use_masks=use_masks,
-                    unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
+            vw, f, cols = chosen.run(inputs)
             if len(f) == 0:
                 raise RuntimeError("no face left after culling")
-            source = method
+            source = chosen.name
         except (RuntimeError, ValueError, ImportError) as e:
             # the points can be too few or too scattered for a surface; the field's zero level
             # is always there, so the run still ends with a mesh, and says which
             reason = " ".join(str(e).split())[:200]
-            source = f"field ({method} failed: {reason})"
+            source = f"field ({chosen.name} failed: {reason})"
             vw = None
             log.warning("mesh: no %s surface of the fused points (%s); the field's zero level "
-                        "instead", method, reason)
+                        "instead", chosen.name, reason)
     if vw is None:
-        vw, f, cols = _field_mesh(p, model, scene, use_masks)
+        vw, f, cols = get_mesh_method("field").run(inputs)
     # the watertight mesh is the whole closed zero level by definition: no face is cut from it,
     # and timing.json / metrics.json say so (docs/meshing.md)
     closed = o.mesh_watertight and source == "field"

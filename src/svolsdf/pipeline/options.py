@@ -90,9 +90,12 @@ def wants_poisson(cfg: Config) -> bool:
 
 
 def mesh_from_points(cfg: Config) -> str | None:
-    """The mesh method that meshes the fused points and depth ("poisson" or "tsdf"), or None
-    when the mesh is the field's (method field, or a watertight mesh: a surface of the points
-    opens where they stop; the watertight mesh is the field's closed zero level)."""
+    """The mesh method that meshes the fused points and depth ("poisson", "tsdf" or another
+    registered with ``needs_points``, `svolsdf.fusion.mesh_methods`), or None when the mesh is
+    the field's (method field, or a watertight mesh: a surface of the points opens where they
+    stop; the watertight mesh is the field's closed zero level)."""
+    from svolsdf.fusion.mesh_methods import get_mesh_method
+
     o = cfg.output
-    return o.mesh_method if o.mesh_method in ("poisson", "tsdf") and not o.mesh_watertight \
-        else None
+    return o.mesh_method if get_mesh_method(o.mesh_method).needs_points \
+        and not o.mesh_watertight else None

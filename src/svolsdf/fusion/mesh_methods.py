@@ -1,0 +1,136 @@
+"""The mesh methods, by name: what `OutputConfig.mesh_method` may say and what each name runs.
+
+A method is a function of one `MeshInputs` returning (vw (V, 3) world vertices, faces (F, 3),
+colours (V, 3) uint8 or None), registered with ``@register_mesh_method("name")``. Adding one is
+one file with one decorator: the config accepts its name once the file is imported, and the
+mesh stage (`svolsdf.pipeline.mesh.build_mesh`) runs it, falls back to the field's zero level
+when it gives no surface, and cleans what it returns like every other method.
+
+Built in: "field" (the field's zero level), "poisson" (screened Poisson of the fused points),
+"tsdf" (the TSDF of the observed final depth); `svolsdf.fusion.meshing` holds their algorithms.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from torch import Tensor
+
+from svolsdf.errors import InputError
+from svolsdf.scene.scene import Scene
+
+__all__ = ["MeshInputs", "MeshMethod", "get_mesh_method", "register_mesh_method",
+           "registered_mesh_methods"]
+
+MeshResult = tuple[Tensor, Tensor, "Tensor | None"]
+
+
+@dataclass
+class MeshInputs:
+    """What a mesh method may read.
+
+    Attributes:
+        points, colours: the fused points (N, 3) world and their (N, 3) uint8 colours; None
+            unless the method ``needs_points`` (or the cleaning reads them).
+        scene: the loaded input views.
+        observed: each input view's observed final depth (`svolsdf.fusion.observe`), or None
+            (read when the method ``needs_observed`` or free-space culling is on).
+        model: the optimized field (a `SurfaceModel`; the refined one after the finer stage).
+        field_mesh: the field's zero level as the mesh stage makes it (fitted to the points,
+            culled, coloured): () -> (vw, faces, colours).
+        output: the run's `OutputConfig` (the method's options are read from it).
+        depth_step: the final depth's step per view (`svolsdf.fusion.observe.final_depth_step`).
+        use_masks: cull by the scene's masks.
+        device: where the field is evaluated.
+    """
+
+    points: np.ndarray | None
+    colours: np.ndarray | None
+    scene: Scene
+    observed: list[Tensor] | None
+    model: Any
+    field_mesh: Callable[[], MeshResult]
+    output: Any
+    depth_step: Tensor
+    use_masks: bool
+    device: Any = None
+
+
+@dataclass(frozen=True)
+class MeshMethod:
+    """A registered method: ``run(inputs)`` -> (vw, faces, colours); ``needs_points``: it meshes
+    the fused points (the mesh stage then reads OUT/points.ply and needs at least 100 of
+    them); ``needs_observed``: it reads the observed final depth (and so the points too)."""
+
+    name: str
+    run: Callable[[MeshInputs], MeshResult]
+    needs_points: bool = False
+    needs_observed: bool = False
+
+
+_METHODS: dict[str, MeshMethod] = {}
+
+
+def register_mesh_method(name: str, needs_points: bool = False, needs_observed: bool = False):
+    """Function decorator adding a mesh method under ``name`` (see `MeshMethod`)."""
+
+    def deco(fn: Callable[[MeshInputs], MeshResult]):
+        # the observed depth is the views' depth where the fused points confirm it
+        _METHODS[name] = MeshMethod(name, fn, needs_points or needs_observed, needs_observed)
+        return fn
+
+    return deco
+
+
+def registered_mesh_methods() -> list[str]:
+    """The names `OutputConfig.mesh_method` accepts, in registration order (the built-in ones
+    first)."""
+    return list(_METHODS)
+
+
+def get_mesh_method(name: str) -> MeshMethod:
+    """The method registered as ``name``.
+
+    Raises:
+        InputError: no method has that name.
+    """
+    if name not in _METHODS:
+        raise InputError(f"unknown mesh method {name!r} "
+                         f"(available: {', '.join(registered_mesh_methods())})")
+    return _METHODS[name]
+
+
+# --------------------------------------------------------------------------- built in
+@register_mesh_method("field")
+def _field(m: MeshInputs) -> MeshResult:
+    """The field's zero level (`svolsdf.fusion.meshing.field_mesh`), the paper's mesh."""
+    return m.field_mesh()
+
+
+@register_mesh_method("poisson", needs_points=True)
+def _poisson(m: MeshInputs) -> MeshResult:
+    """Screened Poisson of the fused points (`svolsdf.fusion.meshing.poisson_mesh`)."""
+    from svolsdf.fusion.meshing import poisson_mesh
+
+    o = m.output
+    return poisson_mesh(m.points, m.colours, m.model, m.scene, o.poisson_depth, o.poisson_trim,
+                        use_masks=m.use_masks, unseen=o.mesh_cull_unseen,
+                        rel_tol=o.mesh_cull_tol, device=m.device)
+
+
+@register_mesh_method("tsdf", needs_points=True, needs_observed=True)
+def _tsdf(m: MeshInputs) -> MeshResult:
+    """The TSDF of the final depth the fused points confirm
+    (`svolsdf.fusion.meshing.points_tsdf_mesh`)."""
+    from svolsdf.fusion.meshing import points_tsdf_mesh
+
+    if m.observed is None:
+        raise RuntimeError("no final depth maps to fuse")
+    o = m.output
+    return points_tsdf_mesh(m.points, m.colours, m.scene, m.observed,
+                            trunc=float(o.tsdf_truncation_steps * m.depth_step.mean()),
+                            resolution=o.tsdf_resolution, use_masks=m.use_masks,
+                            unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
