@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from svolsdf.cli.flags import RECONSTRUCT_FLAGS, flag_labels
 from svolsdf.errors import InputError, RunInterrupted
 
 app = typer.Typer(
@@ -124,13 +125,11 @@ def build_config(scene: Path | None, config: Path | None, preset_name: str | Non
 
 
 
-#: config key -> the `reconstruct` option that sets it (for error messages)
+#: config key -> the `reconstruct` option that sets it (for error messages): the generated flags
+#: (`svolsdf.cli.flags.RECONSTRUCT_FLAGS`) and the hand-written ones
 _RECONSTRUCT_OPTIONS = {
-    "scene.views": "--views", "scene.image_size": "--size", "mvs.backbone": "--backbone",
-    "mvs.weights": "--weights", "mvs.scale": "--mvs-scale", "train.mode": "--mode",
-    "train.ablation": "--ablation", "train.steps": "--steps", "device": "--device",
-    "output.mesh_resolution": "--mesh-resolution", "train.seed": "--seed",
-    "field.background": "--background", "threads": "--threads",
+    **flag_labels(RECONSTRUCT_FLAGS),
+    "scene.views": "--views", "scene.image_size": "--size",
     "output.fusion_network": "--fusion-network",
     "output.fusion_network_weights": "--fusion-network",
 }

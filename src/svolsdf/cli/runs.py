@@ -17,6 +17,7 @@ from svolsdf.cli.app import (
     app,
     build_config,
 )
+from svolsdf.cli.flags import RECONSTRUCT_FLAGS, flag_overrides, with_flags
 from svolsdf.errors import InputError
 
 
@@ -72,7 +73,6 @@ def config_cmd(
 
 
 
-@app.command("reconstruct")
 def reconstruct(
     scene: Annotated[Path | None, typer.Argument(
         help="Scene folder (any format `svolsdf info` reads); optional with --config.")] = None,
@@ -86,32 +86,8 @@ def reconstruct(
     preset_name: Annotated[str | None, typer.Option(
         "--preset", help="fast (default: minutes on a CPU) or paper (docs/method.md constants).")
     ] = None,
-    backbone: Annotated[str | None, typer.Option(
-        "--backbone", help="MVS backbone: planesweep (default), casmvsnet, patchmatchnet.")
-    ] = None,
-    weights: Annotated[Path | None, typer.Option(
-        "--weights", help="Weights of a learned MVS backbone.")] = None,
-    mvs_scale: Annotated[float | None, typer.Option(
-        "--mvs-scale", help="MVS at this multiple of the working size (mvs.scale; default: "
-                            "the backbone's).")] = None,
-    mode: Annotated[str | None, typer.Option(
-        "--mode", help="svolsdf (default), mvs-only, or volsdf (no MVS prior).")] = None,
-    ablation: Annotated[str | None, typer.Option(
-        "--ablation", help="soft-consistency-only, mse, no-prob-volume or ce.")] = None,
-    steps: Annotated[int | None, typer.Option("--steps", help="Optimization steps.")] = None,
-    device: Annotated[str | None, typer.Option(
-        "--device", help="auto (default), cpu or cuda.")] = None,
-    threads: Annotated[int | None, typer.Option(
-        "--threads", help="torch CPU threads (default: the cores this process may use).")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="A config.yaml (e.g. from an earlier OUT) to start from.")] = None,
-    mesh_resolution: Annotated[int | None, typer.Option(
-        "--mesh-resolution", help="Marching-cubes resolution.")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
-    background: Annotated[bool | None, typer.Option(
-        "--background/--no-background",
-        help="NeRF++ inverted-sphere background for unbounded scenes "
-             "(docs/method.md 5.5).")] = None,
     fusion_network: Annotated[Path | None, typer.Option(
         "--fusion-network", help="Weights of a PatchmatchNet (TorchScript) to start from the "
                                  "field's depth and fuse as a further hypothesis "
@@ -121,6 +97,7 @@ def reconstruct(
                       "last: --set train.steps=200 --set output.mesh_method=poisson; "
                       "`svolsdf config` lists them all.")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+    **options,  # the flags of RECONSTRUCT_FLAGS (`with_flags`), by parameter name
 ) -> None:
     """Reconstruct a scene: MVS, S-VolSDF optimization, guided MVS, fusion and mesh.
 
@@ -134,10 +111,7 @@ def reconstruct(
         "scene.views": None if auto else _parse_views(views),
         "scene.view_selection": "auto" if auto else None,
         "scene.num_views": auto or None, "scene.image_size": _parse_size(size),
-        "mvs.backbone": backbone, "mvs.weights": None if weights is None else str(weights),
-        "mvs.scale": mvs_scale, "train.mode": mode, "train.ablation": ablation,
-        "train.steps": steps, "device": device, "output.mesh_resolution": mesh_resolution,
-        "train.seed": seed, "field.background": background, "threads": threads,
+        **flag_overrides(RECONSTRUCT_FLAGS, options),
         "output.fusion_network": None if fusion_network is None else "patchmatchnet",
         "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
     }, _RECONSTRUCT_OPTIONS, sets=set_)
@@ -154,6 +128,9 @@ def reconstruct(
         typer.echo(f"mesh:   {summary['mesh']}")
     typer.echo(f"total {summary['timing'].get('total', {}).get('seconds', 0):.0f} s; "
                f"details in {Path(out) / 'timing.json'}")
+
+
+app.command("reconstruct")(with_flags(reconstruct, RECONSTRUCT_FLAGS))
 
 
 @app.command("demo")

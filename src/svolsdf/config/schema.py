@@ -143,7 +143,8 @@ class TrainConfig:
     mode: Literal["svolsdf", "mvs-only", "volsdf"] = "svolsdf"
     """svolsdf (MVS prior + losses) | volsdf (the same model without the prior) | mvs-only."""
     ablation: Literal["soft-consistency-only", "mse", "no-prob-volume", "ce"] | None = None
-    """None | soft-consistency-only | mse | no-prob-volume | ce (paper ablations)."""
+    """soft-consistency-only | mse | no-prob-volume | ce (the paper's ablations; None = the full
+    model)."""
     steps: int = _limited(1000, min=0)
     """Optimization steps (each draws ``rays`` rays from one input view)."""
     rays: int = _limited(512, min=1)

@@ -1,0 +1,151 @@
+"""Command-line flags generated from the config schema (`svolsdf.config.schema`).
+
+A flag that sets one config option is declared once, as ``flag -> dotted option`` in a table
+such as `RECONSTRUCT_FLAGS`. Its type comes from the option's annotation, its help text from the
+first sentence of the option's docstring (`svolsdf.config.option_docs`) with its choices
+(`svolsdf.config.choices`, or a registry's ``choices`` limit) appended when that sentence does not
+name them all, and its default is None: the config's value stands unless the flag is given.
+`with_flags` adds the table's flags to a command's signature for typer, and `flag_overrides`
+turns the values typer passes back into the dotted overrides that `build_config` applies.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import re
+import types
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union, get_args, get_origin, get_type_hints
+
+import typer
+
+#: `svolsdf reconstruct` flag -> the config option it sets (adding a flag is one line here)
+RECONSTRUCT_FLAGS: dict[str, str] = {
+    "--backbone": "mvs.backbone",
+    "--weights": "mvs.weights",
+    "--mvs-scale": "mvs.scale",
+    "--mode": "train.mode",
+    "--ablation": "train.ablation",
+    "--steps": "train.steps",
+    "--device": "device",
+    "--threads": "threads",
+    "--mesh-resolution": "output.mesh_resolution",
+    "--seed": "train.seed",
+    "--background": "field.background",
+}
+
+#: flags that take a file (a ``Path`` on the command line, a string in the config)
+PATH_FLAGS = frozenset({"--weights"})
+
+
+def param_name(flag: str) -> str:
+    """``--mesh-resolution`` -> ``mesh_resolution`` (the parameter typer passes it as)."""
+    return flag.lstrip("-").replace("-", "_")
+
+
+def _option_field(key: str) -> tuple[Any, dataclasses.Field]:
+    """The type hint and dataclass field of the dotted option ``key``."""
+    from svolsdf.config import Config
+
+    cls: Any = Config
+    *sections, name = key.split(".")
+    for section in sections:
+        cls = get_type_hints(cls)[section]
+    if name not in get_type_hints(cls):
+        raise KeyError(f"{key}: no such option")
+    field = next(f for f in dataclasses.fields(cls) if f.name == name)
+    return get_type_hints(cls)[name], field
+
+
+def option_choices(key: str) -> tuple[str, ...]:
+    """The values option ``key`` allows: its ``Literal``'s, else its registry's; () for any."""
+    from svolsdf.config import choices
+
+    try:
+        return choices(key)
+    except KeyError:
+        pass
+    registry = _option_field(key)[1].metadata.get("limits", {}).get("choices")
+    return tuple(registry()) if registry is not None else ()
+
+
+def flag_type(flag: str, key: str) -> type:
+    """The flag's value type: the option's annotation without None (a ``Literal`` is a str)."""
+    if flag in PATH_FLAGS:
+        return Path
+    hint = _option_field(key)[0]
+    args = get_args(hint) if get_origin(hint) in (Union, types.UnionType) else (hint,)
+    args = tuple(a for a in args if a is not type(None))
+    if len(args) != 1:
+        raise TypeError(f"{flag}: option {key} has no single type ({hint})")
+    tp = args[0]
+    if get_origin(tp) is Literal:
+        return str
+    if tp not in (bool, int, float, str):
+        raise TypeError(f"{flag}: option {key} of type {tp} needs a hand-written flag")
+    return tp
+
+
+def first_sentence(doc: str) -> str:
+    """A docstring's first sentence (up to the first '. ' outside parentheses), without the
+    reStructuredText backticks."""
+    text = doc.replace("``", "").replace("`", "").strip()
+    depth = 0
+    for i, c in enumerate(text):
+        depth += (c == "(") - (c == ")")
+        if c == "." and depth == 0 and (i + 1 == len(text) or text[i + 1].isspace()):
+            return text[:i + 1]
+    return text
+
+
+def flag_help(key: str) -> str:
+    """The help of the flag setting option ``key``: the first sentence of its docstring, then
+    its choices in parentheses when the sentence does not name each of them."""
+    from svolsdf.config import option_docs
+
+    text = first_sentence(option_docs()[key])
+    named = set(re.findall(r"[\w-]+", text))
+    allowed = option_choices(key)
+    if allowed and not set(allowed) <= named:
+        text += f" (one of: {', '.join(allowed)})"
+    return text
+
+
+def _option(flag: str, key: str) -> typer.models.OptionInfo:
+    decl = f"{flag}/--no-{flag[2:]}" if flag_type(flag, key) is bool else flag
+    return typer.Option(decl, help=flag_help(key))
+
+
+def with_flags(fn, table: dict[str, str]):
+    """``fn`` with the table's flags in its signature, in place of its ``**options`` (typer
+    builds the command from that signature; each flag is optional, default None)."""
+    sig = inspect.signature(fn, eval_str=True)
+    params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    if len(params) == len(sig.parameters):
+        raise TypeError(f"{fn.__name__} takes no **options for the generated flags")
+    taken = {p.name for p in params}
+    for flag, key in table.items():
+        name = param_name(flag)
+        if name in taken:
+            raise TypeError(f"{flag}: {fn.__name__} already has a parameter {name}")
+        params.append(inspect.Parameter(
+            name, inspect.Parameter.KEYWORD_ONLY, default=None,
+            annotation=Annotated[flag_type(flag, key) | None, _option(flag, key)]))
+    fn.__signature__ = sig.replace(parameters=params)
+    return fn
+
+
+def flag_overrides(table: dict[str, str], options: dict[str, Any]) -> dict[str, Any]:
+    """The values typer passed for the table's flags -> dotted option -> value (None: not given;
+    a path as a string, as the config holds it)."""
+    out = {}
+    for flag, key in table.items():
+        v = options.get(param_name(flag))
+        out[key] = str(v) if isinstance(v, Path) else v
+    return out
+
+
+def flag_labels(table: dict[str, str]) -> dict[str, str]:
+    """Dotted option -> the flag that sets it (for error messages)."""
+    return {key: flag for flag, key in table.items()}

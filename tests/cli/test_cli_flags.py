@@ -1,0 +1,138 @@
+"""The `reconstruct` flags generated from the schema (`svolsdf.cli.flags`): each maps to a config
+option, its help is that option's first docstring sentence (with its choices), and passing it
+sets that option."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from svolsdf.cli import app, main
+from svolsdf.cli.app import _RECONSTRUCT_OPTIONS
+from svolsdf.cli.flags import (
+    RECONSTRUCT_FLAGS,
+    first_sentence,
+    flag_overrides,
+    option_choices,
+    with_flags,
+)
+from svolsdf.config import option_docs, preset
+
+
+def _get(cfg, key: str):
+    for part in key.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def _param(flag: str):
+    cmd = typer.main.get_command(app).commands["reconstruct"]
+    return next(p for p in cmd.params if flag in p.opts)
+
+
+@pytest.fixture
+def seen(monkeypatch):
+    """The config `reconstruct` builds: the pipeline is replaced by a recorder (no run)."""
+    import svolsdf.pipeline as pl
+
+    got = {}
+
+    class Recorder:
+        def __init__(self, cfg, out, progress=True):
+            got["cfg"] = cfg
+
+        def run(self):
+            return {"points": "p", "mesh": None, "timing": {}}
+
+    monkeypatch.setattr(pl, "Pipeline", Recorder)
+    return got
+
+
+def _other_value(key: str, default):
+    """A value of option ``key`` that is not ``default``, as typed on the command line."""
+    allowed = option_choices(key)
+    if allowed:
+        return next(c for c in allowed if c != default)
+    if isinstance(default, bool):
+        return not default
+    if key.endswith("weights"):
+        return "w.pt"
+    if isinstance(default, int):
+        return str(default + 1)
+    return "1.5" if default is None else str(default * 2)  # a float option
+
+
+def test_every_flag_is_a_documented_option_with_its_label():
+    docs = option_docs()
+    assert len(set(RECONSTRUCT_FLAGS.values())) == len(RECONSTRUCT_FLAGS)
+    for flag, key in RECONSTRUCT_FLAGS.items():
+        assert docs.get(key), (flag, key)
+        assert _RECONSTRUCT_OPTIONS[key] == flag
+        p = _param(flag)
+        assert p.default is None and not p.required, flag
+
+
+@pytest.mark.parametrize("flag", sorted(RECONSTRUCT_FLAGS))
+def test_flag_help_is_the_first_sentence_of_the_schema_doc(flag):
+    key = RECONSTRUCT_FLAGS[flag]
+    help_text = _param(flag).help
+    sentence = first_sentence(option_docs()[key])
+    assert help_text.startswith(sentence) and sentence.endswith(".") and "``" not in sentence
+    assert all(c in help_text for c in option_choices(key))
+    if help_text != sentence:  # only the choices the sentence does not name are appended
+        assert help_text == f"{sentence} (one of: {', '.join(option_choices(key))})"
+
+
+def test_first_sentence_skips_dots_inside_parentheses_and_numbers():
+    assert first_sentence("A (docs/method.md 5.5. x) b. C d.") == "A (docs/method.md 5.5. x) b."
+    assert first_sentence("Runs ``scale`` x 2.5 times") == "Runs scale x 2.5 times"
+
+
+@pytest.mark.parametrize("flag", sorted(RECONSTRUCT_FLAGS))
+def test_passing_a_flag_sets_its_option(flag, seen, tmp_path):
+    key = RECONSTRUCT_FLAGS[flag]
+    base = preset("fast")
+    default = _get(base, key)
+    value = _other_value(key, default)
+    if isinstance(value, bool):
+        arg = [flag if value else f"--no-{flag[2:]}"]
+    else:
+        arg = [flag, value]
+    main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), *arg])
+    got = _get(seen["cfg"], key)
+    assert got != default
+    assert str(got) == str(value) or got == value or got == float(value), (flag, got, value)
+    # nothing else changed but the scene
+    cfg = seen["cfg"]
+    for section in ("mvs", "train", "field", "output"):
+        for f in dataclasses.fields(getattr(base, section)):
+            k = f"{section}.{f.name}"
+            if k != key:
+                assert _get(cfg, k) == _get(base, k), (flag, k)
+
+
+def test_flag_overrides_leave_unset_flags_none_and_paths_strings():
+    got = flag_overrides(RECONSTRUCT_FLAGS, {"steps": 5, "weights": Path("a/w.pt")})
+    assert got["train.steps"] == 5 and got["mvs.weights"] == "a/w.pt"
+    assert set(got) == set(RECONSTRUCT_FLAGS.values())
+    assert all(v is None for k, v in got.items() if k not in ("train.steps", "mvs.weights"))
+
+
+def test_a_new_table_line_is_a_new_flag():
+    toy = typer.Typer()
+    got = {}
+
+    def cmd(name: str = "x", **options) -> None:
+        got.update(flag_overrides(table, options))
+
+    table = {"--rays": "train.rays", "--mesh-watertight": "output.mesh_watertight"}
+    toy.command()(with_flags(cmd, table))
+    res = CliRunner().invoke(toy, ["--rays", "64", "--mesh-watertight"])
+    assert res.exit_code == 0, res.output
+    assert got == {"train.rays": 64, "output.mesh_watertight": True}
+    res = CliRunner().invoke(toy, ["--rays", "many"])
+    assert res.exit_code == 2
