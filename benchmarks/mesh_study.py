@@ -125,7 +125,8 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
               free_steps: list[float], support: list[float], cache: Path | None = None
               ) -> tuple[dict, list[dict]]:
     """(the points' scores, one row per (method, free-space steps, k))."""
-    from svolsdf.fusion.meshing import clean_mesh, points_tsdf_mesh, poisson_mesh
+    from svolsdf.fusion.mesh_methods import MeshInputs, get_mesh_method
+    from svolsdf.fusion.meshing import clean_mesh
     from svolsdf.fusion.observe import final_depth_step
     from svolsdf.io.ply import read_ply
     from svolsdf.pipeline.loaded_run import Run
@@ -155,15 +156,11 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
             m = read_ply(out / "mesh.ply")
             vw, f = torch.from_numpy(m["points"]).float(), torch.from_numpy(m["faces"]).long()
             t_method = float(json.loads((out / "timing.json").read_text())["mesh"]["seconds"])
-        elif method == "poisson":
-            vw, f, c = poisson_mesh(pts, cols, run.model(), scene, o.poisson_depth, o.poisson_trim,
-                                    use_masks=use_masks, unseen=o.mesh_cull_unseen,
-                                    rel_tol=o.mesh_cull_tol, device=run.device)
-        else:
-            vw, f, c = points_tsdf_mesh(pts, cols, scene, observed,
-                                        trunc=float(o.tsdf_truncation_steps * step.mean()),
-                                        resolution=o.tsdf_resolution, use_masks=use_masks,
-                                        unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
+        else:  # a registered points method, as the mesh stage runs it
+            inputs = MeshInputs(points=pts, colours=cols, scene=scene, observed=observed,
+                                model=run.model(), field_mesh=None, output=o, depth_step=step,
+                                use_masks=use_masks, device=run.device)
+            vw, f, _ = get_mesh_method(method).run(inputs)
         if method != "run" and (cached is None or not cached.is_file()):
             t_method = time.perf_counter() - t0 + (t_obs if method == "tsdf" else 0.0)
             if cached is not None:

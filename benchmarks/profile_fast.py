@@ -353,24 +353,22 @@ def field_section(field: dict, run_secs: list[float] | None, field_s: float | No
               "| label | seconds of the run | share |", "|---|---|---|"]
     for c, secs in sorted(comps.items(), key=lambda kv: -kv[1]):
         lines.append(f"| {c} | {secs:.1f} | {_pct(secs, steps_s)} |")
-    ops: dict[str, float] = defaultdict(float)
-    for p, s in zip(ph, run_secs, strict=True):
-        for k, v in p["aten"].items():
-            ops[k] += v / p["labels"][("train_step",)] * s
-    lines += ["", "Top 10 ATen ops by self CPU time (all phases, in seconds of the run):", "",
-              "| op | seconds of the run | share |", "|---|---|---|"]
-    top_ops = sorted(ops.items(), key=lambda kv: -kv[1])[:10]
-    for k, secs in top_ops:
-        lines.append(f"| `{k}` | {secs:.1f} | {_pct(secs, steps_s)} |")
-    nodes: dict[str, float] = defaultdict(float)
-    for p, s in zip(ph, run_secs, strict=True):
-        for k, v in p["backward"].items():
-            nodes[k] += v / p["labels"][("train_step",)] * s
-    lines += ["", "Largest backward nodes (inclusive):", "",
-              "| autograd node | seconds of the run | share |", "|---|---|---|"]
-    top_nodes = sorted(nodes.items(), key=lambda kv: -kv[1])[:8]
-    for k, secs in top_nodes:
-        lines.append(f"| `{k}` | {secs:.1f} | {_pct(secs, steps_s)} |")
+    def top(what: str, n: int, title: str, column: str) -> list[tuple[str, float]]:
+        """The ``n`` largest entries of each phase's ``what`` profile, in seconds of the run,
+        written as a table under ``title``."""
+        secs: dict[str, float] = defaultdict(float)
+        for p, s in zip(ph, run_secs, strict=True):
+            for k, v in p[what].items():
+                secs[k] += v / p["labels"][("train_step",)] * s
+        lines.extend(["", title, "", f"| {column} | seconds of the run | share |",
+                      "|---|---|---|"])
+        best = sorted(secs.items(), key=lambda kv: -kv[1])[:n]
+        lines.extend(f"| `{k}` | {t:.1f} | {_pct(t, steps_s)} |" for k, t in best)
+        return best
+
+    top_ops = top("aten", 10, "Top 10 ATen ops by self CPU time (all phases, in seconds of the "
+                  "run):", "op")
+    top_nodes = top("backward", 8, "Largest backward nodes (inclusive):", "autograd node")
     summary = {"steps_s": steps_s, "parts": parts, "components": comps, "ops": top_ops,
                "nodes": top_nodes, "run_ms": [1000 * s / n for s, n in
                                               zip(run_secs, n_steps, strict=True)],

@@ -28,19 +28,15 @@ from pathlib import Path
 
 import torch
 from _machine import cpu_name, peak_rss_gb, write_results
+from fast_preset import _score_ply
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _score_mesh(scene: Path, mesh: Path, views: list[int]) -> dict:
-    """Synthetic-protocol Chamfer of a mesh's vertices (`svolsdf evaluate`'s scoring)."""
-    from svolsdf.evaluate.synthetic import synthetic_chamfer
-    from svolsdf.io.ply import read_ply
-
-    if not mesh.is_file():
-        return {"error": "no mesh"}
-    r = synthetic_chamfer(read_ply(mesh)["points"], scene, views, on_empty="clip")
-    return {k: r[k] for k in ("accuracy", "completeness", "overall", "overall_dtu_rule")}
+    """Synthetic-protocol Chamfer of a mesh's vertices (`fast_preset._score_ply`, as
+    `svolsdf evaluate` scores it)."""
+    return _score_ply(scene, mesh, views) if mesh.is_file() else {"error": "no mesh"}
 
 
 def _grid(scene: Path, out: Path, res: int) -> dict:

@@ -64,24 +64,6 @@ def test_reconstruct_mvs_only_and_config_roundtrip(scene, tmp_path, capsys):
     assert "reconstruct" not in capsys.readouterr().err
 
 
-@pytest.fixture
-def seen(monkeypatch):
-    """The config `reconstruct` builds: the pipeline is replaced by a recorder (no run)."""
-    import svolsdf.pipeline as pl
-
-    got = {}
-
-    class Recorder:
-        def __init__(self, cfg, out, progress=True):
-            got["cfg"] = cfg
-
-        def run(self):
-            return {"points": "p", "mesh": None, "timing": {}}
-
-    monkeypatch.setattr(pl, "Pipeline", Recorder)
-    return got
-
-
 def test_background_flag_reaches_the_config(seen, tmp_path):
     # the flag sets field.background
     for flag, want in (("--background", True), ("--no-background", False), (None, False)):

@@ -34,24 +34,6 @@ def _param(flag: str):
     return next(p for p in cmd.params if flag in p.opts)
 
 
-@pytest.fixture
-def seen(monkeypatch):
-    """The config `reconstruct` builds: the pipeline is replaced by a recorder (no run)."""
-    import svolsdf.pipeline as pl
-
-    got = {}
-
-    class Recorder:
-        def __init__(self, cfg, out, progress=True):
-            got["cfg"] = cfg
-
-        def run(self):
-            return {"points": "p", "mesh": None, "timing": {}}
-
-    monkeypatch.setattr(pl, "Pipeline", Recorder)
-    return got
-
-
 def _other_value(key: str, default):
     """A value of option ``key`` that is not ``default``, as typed on the command line."""
     allowed = option_choices(key)
