@@ -29,3 +29,21 @@ def shared_path(*parts: str) -> Path:
 def _seed_and_threads():
     torch.manual_seed(0)
     yield
+
+
+@pytest.fixture
+def seen(monkeypatch):
+    """CLI tests: the config `reconstruct` builds; the pipeline is replaced by a recorder."""
+    import svolsdf.pipeline as pl
+
+    got = {}
+
+    class Recorder:
+        def __init__(self, cfg, out, progress=True):
+            got["cfg"] = cfg
+
+        def run(self):
+            return {"points": "p", "mesh": None, "timing": {}}
+
+    monkeypatch.setattr(pl, "Pipeline", Recorder)
+    return got

@@ -141,3 +141,10 @@ def test_a_missing_document_is_reported(tmp_path):
     docs = {**_docs(), "style": ""}
     msgs = problems("x.py", f"({_S} habit 5)", docs)
     assert any("docs/style.md does not exist" in m for m in msgs), msgs
+
+
+def test_one_conftest_under_tests():
+    """Tests import `shared_path` from the top-level conftest by name; a second conftest.py below
+    tests/ would be imported under the same name first and break that import in a full run."""
+    tests = Path(__file__).resolve().parent
+    assert [p.relative_to(tests).as_posix() for p in tests.rglob("conftest.py")] == ["conftest.py"]
