@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import torch
@@ -164,7 +163,6 @@ def test_pipeline_runs_with_background(tmp_path):
     cfg.field.grid_start_resolution = cfg.field.grid_resolution = 12
     cfg.field.sphere_start_resolution = 8  # volsdf starts from the sphere
     cfg.output.mesh_resolution = 24
-    t0 = time.perf_counter()
     p = Pipeline(cfg, tmp_path / "out", progress=False)
     p.run()
     model = p.model()
@@ -181,4 +179,3 @@ def test_pipeline_runs_with_background(tmp_path):
     for (n, a), (_, b) in zip(model.state_dict().items(), p2.model().state_dict().items(),
                               strict=True):
         assert torch.equal(a.cpu(), b.cpu()), n
-    assert time.perf_counter() - t0 < 30
