@@ -30,6 +30,22 @@ Real DTU scans (IDR layout, as ../shared/data/dtu_scan65):
   e.g. dtu_scan24), also (a) the MVS backbone alone, and both scored by the DTU protocol
   (`svolsdf evaluate --dtu-gt`), with the ratio (d)/(a).
 
+Side by side with a baseline commit (issue 39; benchmarks/_side_by_side.py):
+  --against REV            the fast preset of this checkout ("new") and of REV ("old", a detached
+                           git worktree in OUT/baseline_src), each in fresh `svolsdf reconstruct`
+                           processes with its own code and the same arguments, old then new per
+                           scene, on --scenes (synthetic), --dtu / --dtu-scenes (DTU); per scene
+                           and commit: stage times, wall, peak memory, points and mesh Chamfer
+                           (DTU: with --pgt NAME=DIR, the pseudo ground truth of dtu_pseudo_gt.py,
+                           as mesh_study.py scores it) and held-out PSNR; then the issue's
+                           targets, pass or fail. Only the side-by-side runs (not (a)-(d)).
+  --many-views SCENE       also the fast preset on all --many-views-n (9) views of SCENE (new
+                           only; --many-views-old: old too)
+  --set KEY=VALUE          passed to both sides' `svolsdf reconstruct` (e.g. a tiny smoke test)
+  e.g. python benchmarks/fast_preset.py --against REV --out OUT --scenes SYNTH ... \
+           --dtu --pgt dtu_scan65=PGT_DIR --many-views SYNTH \
+           --results benchmarks/results/fast_preset_side_by_side.md
+
 Usage:
     python benchmarks/fast_preset.py [--size 768x576] [--seed 0] [--out /tmp/fast_bench]
         [--results benchmarks/results/fast_preset.md] [--only a,b,c,d]
@@ -325,7 +341,32 @@ def main() -> None:
                          "DTU scans and score (a) and (d) by the DTU protocol")
     ap.add_argument("--dtu-test-views", type=int, default=5,
                     help="held-out DTU views rendered and scored")
+    sbs = ap.add_argument_group("side by side with a baseline commit (issue 39)")
+    sbs.add_argument("--against", default=None, metavar="REV",
+                     help="baseline commit: run the fast preset of REV and of this checkout side "
+                          "by side on --scenes / --dtu / --dtu-scenes (nothing else runs)")
+    sbs.add_argument("--pgt", nargs="*", default=[], metavar="NAME=DIR",
+                     help="pseudo ground truth folder (dtu_pseudo_gt.py --out) per DTU scene "
+                          "folder name, e.g. dtu_scan65=DIR")
+    sbs.add_argument("--many-views", type=Path, default=None, metavar="SCENE",
+                     help="also a run on --many-views-n views of this scene (new only)")
+    sbs.add_argument("--many-views-n", type=int, default=9)
+    sbs.add_argument("--many-views-old", action="store_true",
+                     help="the many-view run for the baseline too")
+    sbs.add_argument("--held-out-views", type=int, default=3,
+                     help="held-out test views rendered and scored per scene")
+    sbs.add_argument("--held-out-scale", type=float, default=0.5,
+                     help="held-out renders at this fraction of the working size")
+    sbs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="passed as --set to both sides' svolsdf reconstruct")
     args = ap.parse_args()
+    if args.against is not None:
+        from _side_by_side import side_by_side
+
+        if args.results == ap.get_default("results"):
+            args.results = REPO / "benchmarks/results/fast_preset_side_by_side.md"
+        side_by_side(args, sys.argv[1:])
+        return
 
     import svolsdf  # noqa: F401
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
