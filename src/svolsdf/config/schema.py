@@ -346,22 +346,29 @@ class Config:
 
 
 def choices(option: str) -> tuple[str, ...]:
-    """The strings an option's ``Literal`` allows, in their declared order: the one list of a
-    choice (``choices("train.mode")``, ``choices("train.ablation")``; None, where the option
-    takes it, is not among them).
+    """The strings an option allows, in their declared order: the one list of a choice
+    (``choices("train.mode")``, ``choices("train.ablation")``; None, where the option takes it,
+    is not among them). A ``Literal``'s values, or for an option whose ``choices`` limit names a
+    registry (``choices("mvs.backbone")``) the names registered now.
 
     Raises:
-        KeyError: ``option`` is no option, or takes no ``Literal``.
+        KeyError: ``option`` is no option, or takes no ``Literal`` and names no registry.
     """
     cls, *path = (Config, *option.split("."))
     tp: Any = None
+    owner: Any = None
     for name in path:
         hints = get_type_hints(cls)
         if name not in hints:
             raise KeyError(f"{option}: no such option")
-        tp = cls = hints[name]
+        owner, tp = cls, hints[name]
+        cls = tp
     args = get_args(tp) if get_origin(tp) in (Union, types.UnionType) else (tp,)
     found = tuple(a for t in args if get_origin(t) is Literal for a in get_args(t))
+    if not found and dataclasses.is_dataclass(owner):
+        field = next(f for f in dataclasses.fields(owner) if f.name == path[-1])
+        registry = field.metadata.get("limits", {}).get("choices")
+        found = tuple(registry()) if registry is not None else ()
     if not found:
-        raise KeyError(f"{option}: not a choice (no Literal)")
+        raise KeyError(f"{option}: not a choice (no Literal or registry)")
     return found
