@@ -35,6 +35,12 @@ def _backbone_names() -> list[str]:
     return available_backbones()
 
 
+def _sampler_names() -> list[str]:
+    from svolsdf.render.sampler_registry import registered_samplers
+
+    return registered_samplers()
+
+
 def _mesh_method_names() -> list[str]:
     from svolsdf.fusion.mesh_methods import registered_mesh_methods
 
@@ -196,7 +202,8 @@ class TrainConfig:
     """Warm-up steps: Gaussian-smoothed RGB target and sparsity loss (docs/method.md 4.4)."""
     warmup_mask_supervised: bool = False
     """Released code: no RGB loss on MVS-supervised rays in the warm-up (docs/method.md 9.2.6)."""
-    sampler: Literal["mvs", "error_bounded"] = "mvs"
+    # the names registered with svolsdf.render.sampler_registry.register_sampler
+    sampler: str = _limited("mvs", choices=_sampler_names)
     """mvs: samples near P' and the current surface (fast) | error_bounded (docs/method.md 5.4)."""
     samples_uniform: int = _limited(32, min=1)
     """mvs sampler: stratified samples along the ray."""

@@ -158,23 +158,16 @@ def grid_schedule(cfg: Config) -> list[tuple[int, int]]:
 
 
 def build_sampler(cfg: Config, prior=None, training: bool = True):
-    """The configured ray sampler: VolSDF's error-bounded one, or the MVS-guided one (with
-    ``prior`` in training; a lighter one without a prior for rendering)."""
-    from svolsdf.render.guided import GuidedSamplerConfig, MVSGuidedSampler
-    from svolsdf.render.samplers import ErrorBoundSampler
+    """The configured ray sampler (`svolsdf.render.sampler_registry`): the MVS-guided one (with
+    ``prior`` in training; a lighter one without a prior for rendering), VolSDF's error-bounded
+    one, or any registered with ``@register_sampler``.
 
-    t = cfg.train
-    if t.sampler == "error_bounded":
-        return ErrorBoundSampler()
-    if t.sampler == "mvs":
-        if training:
-            gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
-        else:
-            # rendering: a converged field needs fewer probes
-            # (benchmarks/results/render_speed.md)
-            gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
-        return MVSGuidedSampler(prior if training else None, gc)
-    raise InputError(f"unknown sampler {t.sampler!r} (mvs or error_bounded)")
+    Raises:
+        InputError: ``train.sampler`` names no registered sampler.
+    """
+    from svolsdf.render.sampler_registry import SamplerInputs, get_sampler
+
+    return get_sampler(cfg.train.sampler)(SamplerInputs(cfg.train, prior, training))
 
 
 def unit_near_far(scene: Scene) -> torch.Tensor:
