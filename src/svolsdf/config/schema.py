@@ -41,6 +41,12 @@ def _sampler_names() -> list[str]:
     return registered_samplers()
 
 
+def _field_kind_names() -> list[str]:
+    from svolsdf.field.kinds import registered_field_kinds
+
+    return registered_field_kinds()
+
+
 def _mesh_method_names() -> list[str]:
     from svolsdf.fusion.mesh_methods import registered_mesh_methods
 
@@ -108,7 +114,8 @@ class MVSConfig:
 
 @dataclass
 class FieldConfig:
-    kind: Literal["grid", "mlp"] = "grid"
+    # the names registered with svolsdf.field.kinds.register_field_kind
+    kind: str = _limited("grid", choices=_field_kind_names)
     """grid (the fast preset's multi-resolution grid field) | mlp (the paper's VolSDF 8x256 MLP)."""
     mlp_depth: int = _limited(8, min=1)
     """mlp: hidden layers of the SDF MLP (docs/method.md 5.2)."""
