@@ -46,6 +46,10 @@ class Registry(Generic[T]):
         self._entries[name] = entry
         return entry
 
+    def remove(self, name: str) -> None:
+        """Withdraw ``name`` (a test's piece, say); unknown names are ignored."""
+        self._entries.pop(name, None)
+
     def _discover(self) -> None:
         """Import the package's modules that register pieces (once)."""
         if self._discovered:

@@ -1,6 +1,7 @@
 """The backbone registry (`svolsdf.mvs.backbone.register_backbone`): a backbone registered here,
 in the test file alone, is accepted by the config and runs as the MVS stages of a tiny pipeline;
-an unregistered name is refused naming the option and the registered ones."""
+an unregistered name is refused naming the option and the registered ones; a withdrawn name is
+refused again."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from svolsdf.mvs.backbone import (
     get_backbone,
     register_backbone,
     stage_cameras,
+    unregister_backbone,
     volume_from_prob,
 )
 from svolsdf.pipeline import Pipeline
@@ -38,7 +40,6 @@ class _ToyConfig:
     max_sources: int = 4
 
 
-@register_backbone("test-toy")
 class _ToyBackbone(MVSBackbone):
     """Stage 1: every pixel at the middle of its view's depth range; stages 2-3: the depth that
     centres them (the guide, else the previous stage's), so the cascade ends on the guide."""
@@ -69,6 +70,15 @@ class _ToyBackbone(MVSBackbone):
         return out
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _toy_registered():
+    """The toy is registered while this module's tests run, and withdrawn after them (the
+    command line's help, built once, names the backbones registered when it was built)."""
+    register_backbone("test-toy")(_ToyBackbone)
+    yield
+    unregister_backbone("test-toy")
+
+
 def test_builtin_backbones_and_the_toy_are_registered():
     names = available_backbones()
     assert {"planesweep", "casmvsnet", "patchmatchnet", "test-toy"} <= set(names)
@@ -87,6 +97,15 @@ def test_a_registered_backbone_is_a_valid_choice_and_others_are_refused():
         validate_config(cfg)
     with pytest.raises(InputError, match="unknown MVS backbone 'no-such-backbone'"):
         get_backbone("no-such-backbone")
+
+
+def test_a_withdrawn_backbone_is_refused():
+    register_backbone("test-withdrawn")(_ToyBackbone)
+    assert "test-withdrawn" in available_backbones()
+    unregister_backbone("test-withdrawn")
+    assert "test-withdrawn" not in available_backbones()
+    with pytest.raises(InputError, match="unknown MVS backbone 'test-withdrawn'"):
+        get_backbone("test-withdrawn")
 
 
 @pytest.mark.slow

@@ -47,6 +47,7 @@ __all__ = [
     "backbone_signature",
     "backbone_config_class",
     "register_backbone",
+    "unregister_backbone",
     "available_backbones",
     "mvs_size",
     "stage_size",
@@ -150,6 +151,11 @@ def register_backbone(name: str):
         return cls
 
     return deco
+
+
+def unregister_backbone(name: str) -> None:
+    """Withdraw the backbone registered as ``name`` (a test's, say); unknown names are ignored."""
+    _BACKBONES.remove(name)
 
 
 def available_backbones() -> list[str]:
