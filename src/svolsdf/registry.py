@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from svolsdf.errors import InputError
 
@@ -89,11 +89,12 @@ class Registry(Generic[T]):
         self._discover()
         return name in self._entries
 
-    def decorator(self, name: str, make: Callable[[object], T] = lambda obj: obj):  # type: ignore
-        """A decorator registering ``make(obj)`` under ``name`` and returning ``obj``."""
+    def decorator(self, name: str, make: Callable[[Any], T] | None = None):
+        """A decorator registering ``make(obj)`` (default: ``obj`` itself) under ``name`` and
+        returning ``obj`` unchanged."""
 
         def deco(obj):
-            self.add(name, make(obj))
+            self.add(name, make(obj) if make is not None else obj)
             return obj
 
         return deco
