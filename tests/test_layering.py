@@ -56,3 +56,10 @@ def test_components_do_not_import_the_pipeline_or_the_commands(package):
     bad = [f"{p.relative_to(SRC)}: {m}" for p in _modules(package) for m in _imports(p)
            if m.startswith(("svolsdf.pipeline", "svolsdf.commands", "svolsdf.cli"))]
     assert not bad, "; ".join(bad)
+
+
+def test_the_registry_machinery_imports_only_the_errors():
+    # svolsdf/registry.py sits beside errors.py, below every component whose registry uses it
+    bad = [m for m in _imports(SRC / "registry.py")
+           if m.startswith("svolsdf.") and m != "svolsdf.errors"]
+    assert not bad, "; ".join(bad)

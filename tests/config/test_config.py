@@ -19,6 +19,7 @@ from svolsdf.config import (
     PRESETS,
     Config,
     apply_overrides,
+    choices,
     config_from_dict,
     load_config,
     preset,
@@ -70,13 +71,15 @@ def test_presets_pass_validation_unchanged(name):
 
 
 def test_enumerations_are_literals():
-    # every str option with a fixed set of values is a Literal (the registry-backed backbone
-    # names are checked against the registry instead)
+    # every str option with a fixed set of values is a Literal; the pluggable kinds (backbones,
+    # field kinds, samplers, mesh methods) are checked against their registries instead
     kinds = {key: tp for key, tp, _ in LEAVES}
-    for key in ("preset", "device", "mvs.width", "field.kind", "field.init", "train.mode",
-                "train.gce_form", "train.sparse_norm", "train.sampler", "output.mesh_format",
+    for key in ("preset", "device", "mvs.width", "field.init", "train.mode",
+                "train.gce_form", "train.sparse_norm", "output.mesh_format",
                 "output.low_weight_rule"):
         assert get_origin(kinds[key]) is Literal, key
+    for key in ("mvs.backbone", "field.kind", "train.sampler", "output.mesh_method"):
+        assert kinds[key] is str and choices(key), key
     assert "ce" in get_args(next(a for a in get_args(kinds["train.ablation"])
                                  if get_origin(a) is Literal))
 

@@ -3,7 +3,7 @@
 A flag that sets one config option is declared once, as ``flag -> dotted option`` in a table
 such as `RECONSTRUCT_FLAGS`. Its type comes from the option's annotation, its help text from the
 first sentence of the option's docstring (`svolsdf.config.option_docs`) with its choices
-(`svolsdf.config.choices`, or a registry's ``choices`` limit) appended when that sentence does not
+(`svolsdf.config.choices`: a ``Literal``'s or a registry's) appended when that sentence does not
 name them all, and its default is None: the config's value stands unless the flag is given.
 `with_flags` adds the table's flags to a command's signature for typer, and `flag_overrides`
 turns the values typer passes back into the dotted overrides that `build_config` applies.
@@ -59,15 +59,14 @@ def _option_field(key: str) -> tuple[Any, dataclasses.Field]:
 
 
 def option_choices(key: str) -> tuple[str, ...]:
-    """The values option ``key`` allows: its ``Literal``'s, else its registry's; () for any."""
+    """The values option ``key`` allows: its ``Literal``'s, else its registry's
+    (`svolsdf.config.choices`); () for any."""
     from svolsdf.config import choices
 
     try:
         return choices(key)
     except KeyError:
-        pass
-    registry = _option_field(key)[1].metadata.get("limits", {}).get("choices")
-    return tuple(registry()) if registry is not None else ()
+        return ()
 
 
 def flag_type(flag: str, key: str) -> type:

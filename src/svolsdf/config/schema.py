@@ -35,6 +35,18 @@ def _backbone_names() -> list[str]:
     return available_backbones()
 
 
+def _sampler_names() -> list[str]:
+    from svolsdf.render.sampler_registry import registered_samplers
+
+    return registered_samplers()
+
+
+def _field_kind_names() -> list[str]:
+    from svolsdf.field.kinds import registered_field_kinds
+
+    return registered_field_kinds()
+
+
 def _mesh_method_names() -> list[str]:
     from svolsdf.fusion.mesh_methods import registered_mesh_methods
 
@@ -102,7 +114,8 @@ class MVSConfig:
 
 @dataclass
 class FieldConfig:
-    kind: Literal["grid", "mlp"] = "grid"
+    # the names registered with svolsdf.field.kinds.register_field_kind
+    kind: str = _limited("grid", choices=_field_kind_names)
     """grid (the fast preset's multi-resolution grid field) | mlp (the paper's VolSDF 8x256 MLP)."""
     mlp_depth: int = _limited(8, min=1)
     """mlp: hidden layers of the SDF MLP (docs/method.md 5.2)."""
@@ -196,7 +209,8 @@ class TrainConfig:
     """Warm-up steps: Gaussian-smoothed RGB target and sparsity loss (docs/method.md 4.4)."""
     warmup_mask_supervised: bool = False
     """Released code: no RGB loss on MVS-supervised rays in the warm-up (docs/method.md 9.2.6)."""
-    sampler: Literal["mvs", "error_bounded"] = "mvs"
+    # the names registered with svolsdf.render.sampler_registry.register_sampler
+    sampler: str = _limited("mvs", choices=_sampler_names)
     """mvs: samples near P' and the current surface (fast) | error_bounded (docs/method.md 5.4)."""
     samples_uniform: int = _limited(32, min=1)
     """mvs sampler: stratified samples along the ray."""
@@ -346,22 +360,29 @@ class Config:
 
 
 def choices(option: str) -> tuple[str, ...]:
-    """The strings an option's ``Literal`` allows, in their declared order: the one list of a
-    choice (``choices("train.mode")``, ``choices("train.ablation")``; None, where the option
-    takes it, is not among them).
+    """The strings an option allows, in their declared order: the one list of a choice
+    (``choices("train.mode")``, ``choices("train.ablation")``; None, where the option takes it,
+    is not among them). A ``Literal``'s values, or for an option whose ``choices`` limit names a
+    registry (``choices("mvs.backbone")``) the names registered now.
 
     Raises:
-        KeyError: ``option`` is no option, or takes no ``Literal``.
+        KeyError: ``option`` is no option, or takes no ``Literal`` and names no registry.
     """
     cls, *path = (Config, *option.split("."))
     tp: Any = None
+    owner: Any = None
     for name in path:
         hints = get_type_hints(cls)
         if name not in hints:
             raise KeyError(f"{option}: no such option")
-        tp = cls = hints[name]
+        owner, tp = cls, hints[name]
+        cls = tp
     args = get_args(tp) if get_origin(tp) in (Union, types.UnionType) else (tp,)
     found = tuple(a for t in args if get_origin(t) is Literal for a in get_args(t))
+    if not found and dataclasses.is_dataclass(owner):
+        field = next(f for f in dataclasses.fields(owner) if f.name == path[-1])
+        registry = field.metadata.get("limits", {}).get("choices")
+        found = tuple(registry()) if registry is not None else ()
     if not found:
-        raise KeyError(f"{option}: not a choice (no Literal)")
+        raise KeyError(f"{option}: not a choice (no Literal or registry)")
     return found

@@ -2,9 +2,10 @@
 
 A method is a function of one `MeshInputs` returning (vw (V, 3) world vertices, faces (F, 3),
 colours (V, 3) uint8 or None), registered with ``@register_mesh_method("name")``. Adding one is
-one file with one decorator: the config accepts its name once the file is imported, and the
-mesh stage (`svolsdf.pipeline.mesh.build_mesh`) runs it, falls back to the field's zero level
-when it gives no surface, and cleans what it returns like every other method.
+one file with one decorator: a module of `svolsdf.fusion` that uses it is imported the first
+time a method is asked for (one elsewhere when it is imported), the config accepts its name,
+and the mesh stage (`svolsdf.pipeline.mesh.build_mesh`) runs it, falls back to the field's
+zero level when it gives no surface, and cleans what it returns like every other method.
 
 Built in: "field" (the field's zero level), "poisson" (screened Poisson of the fused points),
 "tsdf" (the TSDF of the observed final depth); `svolsdf.fusion.meshing` holds their algorithms.
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from svolsdf.errors import InputError
+from svolsdf.registry import Registry
 from svolsdf.scene.scene import Scene
 
 __all__ = ["MeshInputs", "MeshMethod", "get_mesh_method", "register_mesh_method",
@@ -71,7 +72,9 @@ class MeshMethod:
     needs_observed: bool = False
 
 
-_METHODS: dict[str, MeshMethod] = {}
+#: name -> method; the modules of `svolsdf.fusion` that use ``@register_mesh_method(...)`` are
+#: imported the first time a name is asked for (`svolsdf.registry.Registry`)
+_METHODS: Registry[MeshMethod] = Registry("mesh method", "svolsdf.fusion", "register_mesh_method")
 
 
 def register_mesh_method(name: str, needs_points: bool = False, needs_observed: bool = False):
@@ -79,7 +82,7 @@ def register_mesh_method(name: str, needs_points: bool = False, needs_observed: 
 
     def deco(fn: Callable[[MeshInputs], MeshResult]):
         # the observed depth is the views' depth where the fused points confirm it
-        _METHODS[name] = MeshMethod(name, fn, needs_points or needs_observed, needs_observed)
+        _METHODS.add(name, MeshMethod(name, fn, needs_points or needs_observed, needs_observed))
         return fn
 
     return deco
@@ -88,7 +91,7 @@ def register_mesh_method(name: str, needs_points: bool = False, needs_observed: 
 def registered_mesh_methods() -> list[str]:
     """The names `OutputConfig.mesh_method` accepts, in registration order (the built-in ones
     first)."""
-    return list(_METHODS)
+    return _METHODS.names()
 
 
 def get_mesh_method(name: str) -> MeshMethod:
@@ -97,10 +100,7 @@ def get_mesh_method(name: str) -> MeshMethod:
     Raises:
         InputError: no method has that name.
     """
-    if name not in _METHODS:
-        raise InputError(f"unknown mesh method {name!r} "
-                         f"(available: {', '.join(registered_mesh_methods())})")
-    return _METHODS[name]
+    return _METHODS.get(name)
 
 
 # --------------------------------------------------------------------------- built in

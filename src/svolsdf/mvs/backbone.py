@@ -9,22 +9,22 @@ Stage k (1-based, of ``num_stages`` = 3) works at 1 / 2^(3 - k) of the backbone'
 The MVS size is a multiple of the scene's working size (`mvs_size`): 2x for the plane sweep and for
 CasMVSNet (x2_mvsres), as the released code runs (docs/method.md 9.2.2).
 
-Backbones are created by name with :func:`get_backbone`; the built-in names are resolved lazily
-(no import work happens until a backbone is requested):
+Backbones are created by name with :func:`get_backbone`. Each is a class decorated with
+``@register_backbone("name")``; the modules of `svolsdf.mvs` that use the decorator are imported the
+first time a name is asked for (no import work happens before), so adding a backbone is one
+module with one decorator. Built in:
 
 - ``planesweep``: `svolsdf.mvs.planesweep.PlaneSweepBackbone` (training-free, the default)
 - ``casmvsnet``: `svolsdf.mvs.casmvsnet.CasMVSNetBackbone` (docs/method.md 2; needs ``weights``)
 - ``patchmatchnet``: `svolsdf.mvs.adapters.PatchmatchNetBackbone` (TorchScript weights)
 
-Other backbones can be added with :func:`register_backbone`.
+A backbone written elsewhere (a test, a plugin) is registered when its module is imported.
 """
 
 from __future__ import annotations
 
-import importlib
 import inspect
 from abc import ABC, abstractmethod
-from collections.abc import Callable
 from dataclasses import asdict, fields, is_dataclass
 from pathlib import Path
 
@@ -34,6 +34,7 @@ from torch import Tensor
 
 from svolsdf.errors import InputError
 from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.registry import Registry
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Scene
 
@@ -46,6 +47,7 @@ __all__ = [
     "backbone_signature",
     "backbone_config_class",
     "register_backbone",
+    "unregister_backbone",
     "available_backbones",
     "mvs_size",
     "stage_size",
@@ -133,40 +135,36 @@ class MVSBackbone(ABC):
 
 
 # --------------------------------------------------------------------------- registry
-_BUILTIN: dict[str, str] = {
-    "planesweep": "svolsdf.mvs.planesweep:PlaneSweepBackbone",
-    "casmvsnet": "svolsdf.mvs.casmvsnet:CasMVSNetBackbone",
-    "patchmatchnet": "svolsdf.mvs.adapters:PatchmatchNetBackbone",
-}
-_REGISTERED: dict[str, Callable[..., MVSBackbone]] = {}
+#: name -> backbone class; the modules of `svolsdf.mvs` that use ``@register_backbone(...)`` are
+#: imported the first time a name is asked for (`svolsdf.registry.Registry`)
+_BACKBONES: Registry[type[MVSBackbone]] = Registry("MVS backbone", "svolsdf.mvs",
+                                                   "register_backbone", sort=True)
 
 
 def register_backbone(name: str):
-    """Class decorator adding a backbone under ``name`` (its ``create`` builds it)."""
+    """Class decorator adding a backbone under ``name`` (its ``create`` builds it); in a module
+    of `svolsdf.mvs` it is found without any other edit."""
 
     def deco(cls):
-        _REGISTERED[name] = cls
+        _BACKBONES.add(name, cls)
         cls.name = name
         return cls
 
     return deco
 
 
+def unregister_backbone(name: str) -> None:
+    """Withdraw the backbone registered as ``name`` (a test's, say); unknown names are ignored."""
+    _BACKBONES.remove(name)
+
+
 def available_backbones() -> list[str]:
-    """Names accepted by :func:`get_backbone`."""
-    return sorted(set(_BUILTIN) | set(_REGISTERED))
+    """Names accepted by :func:`get_backbone`, in alphabetical order."""
+    return _BACKBONES.names()
 
 
 def _backbone_class(name: str) -> type[MVSBackbone]:
-    cls = _REGISTERED.get(name)
-    if cls is None:
-        if name not in _BUILTIN:
-            raise InputError(
-                f"unknown MVS backbone {name!r} (available: {', '.join(available_backbones())})"
-            )
-        module, attr = _BUILTIN[name].split(":")
-        cls = getattr(importlib.import_module(module), attr)
-    return cls
+    return _BACKBONES.get(name)
 
 
 def backbone_config_class(name: str) -> type | None:

@@ -81,38 +81,20 @@ def build_network_backbone(cfg: Config, device=None):
 
 
 def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
-    """The configured `SurfaceModel` (grid field for fast, VolSDF MLP for paper).
+    """The configured `SurfaceModel` (`svolsdf.field.kinds`: the grid field for fast, the VolSDF
+    MLP for paper, or any kind registered with ``@register_field_kind``).
 
     Args:
         bounds: returns the (2, 3) unit-frame box of a grid field started from MVS
             (`svolsdf.field.bounds.field_bounds`); not called otherwise.
+
+    Raises:
+        InputError: ``field.kind`` names no registered kind.
     """
+    from svolsdf.field.kinds import FieldInputs, get_field_kind
+
     f = cfg.field
-    if f.kind == "grid":
-        from svolsdf.field.grid import GridFieldConfig, GridSDFField
-
-        if grid_from_sphere(cfg):
-            # VolSDF's start (docs/method.md 5.2): a sphere at the origin in the box of the
-            # bounding sphere; nothing from MVS
-            box = torch.tensor([[-1.0] * 3, [1.0] * 3])
-            res, radius, centre = f.sphere_start_resolution, f.sphere_radius, (0.0,) * 3
-        else:
-            box = bounds()
-            ext = (box[1] - box[0]).max()
-            res, radius = f.grid_start_resolution, float(0.35 * ext)
-            centre = tuple(((box[0] + box[1]) / 2).tolist())
-        gcfg = GridFieldConfig(resolution=res, init_radius=radius, init_centre=centre,
-                               # docs/method.md 5.5: no sphere clamp under a background model
-                               sphere_clamp_scale=None if f.background else 20.0)
-        model = GridSDFField(box, gcfg)
-    elif f.kind == "mlp":
-        from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig
-
-        model = VolSDFField(VolSDFFieldConfig(n_layers=f.mlp_depth, d_hidden=f.mlp_width,
-                                              render_hidden=f.mlp_width,
-                                              sphere_clamp=not f.background))
-    else:
-        raise InputError(f"unknown field kind {f.kind!r} (grid or mlp)")
+    model = get_field_kind(f.kind)(FieldInputs(f, grid_from_sphere(cfg), bounds))
     if f.background:
         attach_background(model, f.kind)
     if cfg.train.beta_min > 0 and hasattr(model, "laplace"):
@@ -158,23 +140,16 @@ def grid_schedule(cfg: Config) -> list[tuple[int, int]]:
 
 
 def build_sampler(cfg: Config, prior=None, training: bool = True):
-    """The configured ray sampler: VolSDF's error-bounded one, or the MVS-guided one (with
-    ``prior`` in training; a lighter one without a prior for rendering)."""
-    from svolsdf.render.guided import GuidedSamplerConfig, MVSGuidedSampler
-    from svolsdf.render.samplers import ErrorBoundSampler
+    """The configured ray sampler (`svolsdf.render.sampler_registry`): the MVS-guided one (with
+    ``prior`` in training; a lighter one without a prior for rendering), VolSDF's error-bounded
+    one, or any registered with ``@register_sampler``.
 
-    t = cfg.train
-    if t.sampler == "error_bounded":
-        return ErrorBoundSampler()
-    if t.sampler == "mvs":
-        if training:
-            gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
-        else:
-            # rendering: a converged field needs fewer probes
-            # (benchmarks/results/render_speed.md)
-            gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
-        return MVSGuidedSampler(prior if training else None, gc)
-    raise InputError(f"unknown sampler {t.sampler!r} (mvs or error_bounded)")
+    Raises:
+        InputError: ``train.sampler`` names no registered sampler.
+    """
+    from svolsdf.render.sampler_registry import SamplerInputs, get_sampler
+
+    return get_sampler(cfg.train.sampler)(SamplerInputs(cfg.train, prior, training))
 
 
 def unit_near_far(scene: Scene) -> torch.Tensor:

@@ -92,10 +92,10 @@ def check_scene(scene: Scene, use_masks: bool = True) -> None:
 
 
 def _scene_format(folder: Path) -> str | None:
-    from svolsdf.scene.formats import FORMATS
+    from svolsdf.scene.formats import scene_formats
 
     try:
-        return next((name for name, mod in FORMATS.items() if mod.detect(folder)), None)
+        return next((f.name for f in scene_formats() if f.detect(folder)), None)
     except (OSError, ValueError):
         return None
 

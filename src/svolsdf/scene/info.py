@@ -14,13 +14,12 @@ from svolsdf.scene.scene import Scene, SceneError, _id_summary
 
 __all__ = ["contact_sheet", "describe_scene"]
 
-_FORMAT_NAMES = {
-    "idr": "IDR / VolSDF / NeuS (world_mat + scale_mat)",
-    "dtu_raw": "DTU raw (Rectified + Calibration/cal18)",
-    "mvsnet": "MVSNet / BlendedMVS (cams/*_cam.txt)",
-    "colmap": "COLMAP sparse model",
-    "nerf": "NeRF transforms.json",
-}
+def _format_title(name: str) -> str:
+    """The registered format's title (`svolsdf.scene.formats.SceneFormat.title`), else its
+    name."""
+    from svolsdf.scene.formats import scene_formats
+
+    return next((f.title for f in scene_formats() if f.name == name and f.title), name)
 
 
 def _stats(x: torch.Tensor) -> str:
@@ -37,7 +36,7 @@ def describe_scene(scene: Scene, max_pairs: int = 5) -> str:
     """
     ex = scene.extras
     lines = [f"scene        {scene.path}"]
-    lines.append(f"format       {scene.format}: {_FORMAT_NAMES.get(scene.format, scene.format)}")
+    lines.append(f"format       {scene.format}: {_format_title(scene.format)}")
     if "cameras_file" in ex:
         lines.append(f"cameras      {ex['cameras_file']}")
     ids = scene.view_ids

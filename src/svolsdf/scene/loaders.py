@@ -1,6 +1,7 @@
 """`load_scene`: detect a scene folder's format and read it into a `Scene`.
 
-Formats (docs/method.md 1.1-1.3; readers in `svolsdf.scene.formats`):
+Formats (docs/method.md 1.1-1.3; readers in `svolsdf.scene.formats`, registered with
+``@register_scene_format``), in detection order:
 
 - ``idr``: IDR / VolSDF / NeuS, ``cameras.npz`` or ``cameras_sphere.npz`` + ``image(s)/``
   [+ ``mask/``]
@@ -35,7 +36,7 @@ from svolsdf.io.images import (
     resize_mask,
 )
 from svolsdf.scene.cameras import Cameras
-from svolsdf.scene.formats import FORMATS, SceneSource
+from svolsdf.scene.formats import SceneSource, get_scene_format, scene_formats
 from svolsdf.scene.normalize import (
     normalization_from_points,
     normalize_cameras,
@@ -55,17 +56,9 @@ DTU_DEPTH_MIN = 425.0
 DTU_DEPTH_INTERVAL = 2.65
 DTU_NUM_DEPTH = 192
 
-_LOOKED_FOR = (
-    "cameras.npz or cameras_sphere.npz with image/ or images/ (IDR/VolSDF/NeuS); "
-    "Rectified/scanN/ with Calibration/cal18/ (DTU raw); "
-    "cams/*_cam.txt with images/ or blended_images/ (MVSNet/BlendedMVS); "
-    "sparse/0/ or sparse/ with cameras, images, points3D (.txt or .bin) and images/ (COLMAP); "
-    "transforms.json (NeRF)"
-)
-
-
 def detect_format(path: str | Path) -> str:
-    """Name of the scene format found at ``path`` (a key of `svolsdf.scene.formats.FORMATS`).
+    """Name of the scene format found at ``path``: the first registered format, in detection
+    order, whose ``detect`` accepts it (`svolsdf.scene.formats.scene_formats`).
 
     Raises:
         SceneError: the folder is missing, or no known layout is found (the message lists what
@@ -76,16 +69,18 @@ def detect_format(path: str | Path) -> str:
         raise SceneError(f"scene folder {path} does not exist")
     if not path.is_dir():
         raise SceneError(f"{path} is not a folder; pass the scene folder")
-    for name, mod in FORMATS.items():
-        if mod.detect(path):
-            return name
-    raise SceneError(f"{path}: no known scene layout found (looked for {_LOOKED_FOR})")
+    formats = scene_formats()
+    for fmt in formats:
+        if fmt.detect(path):
+            return fmt.name
+    looked_for = "; ".join(f.looks_for for f in formats)
+    raise SceneError(f"{path}: no known scene layout found (looked for {looked_for})")
 
 
 def read_source(path: str | Path, lighting: int | str = 3) -> SceneSource:
     """Detect the format and read cameras and file lists, without pixels."""
     path = Path(path)
-    return FORMATS[detect_format(path)].read(path, lighting=lighting)
+    return get_scene_format(detect_format(path)).read(path, lighting=lighting)
 
 
 def _is_dtu(src: SceneSource, size: tuple[int, int]) -> bool:

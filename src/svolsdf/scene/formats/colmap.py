@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from svolsdf.scene.formats import register_scene_format
 from svolsdf.scene.formats._common import SceneSource, check_camera, find_dir
 from svolsdf.scene.scene import SceneError
 
@@ -242,6 +243,10 @@ def detect(path: Path) -> bool:
     return find_model(path) is not None and (path / "images").is_dir()
 
 
+@register_scene_format("colmap", detect, order=40,
+                       looks_for=("sparse/0/ or sparse/ with cameras, images, points3D (.txt "
+                                  "or .bin) and images/ (COLMAP)"),
+                       title="COLMAP sparse model")
 def read(path: Path, lighting=None) -> SceneSource:
     """Read cameras, poses and sparse points (no pixels)."""
     folder, ext = find_model(path)

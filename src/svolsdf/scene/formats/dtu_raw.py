@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from svolsdf.scene.cameras import decompose_projection
+from svolsdf.scene.formats import register_scene_format
 from svolsdf.scene.formats._common import SceneSource, check_camera, load_txt_matrix, scan_number
 from svolsdf.scene.scene import SceneError
 
@@ -47,6 +48,9 @@ def detect(path: Path) -> bool:
     return resolve(path) is not None
 
 
+@register_scene_format("dtu_raw", detect, order=20,
+                       looks_for="Rectified/scanN/ with Calibration/cal18/ (DTU raw)",
+                       title="DTU raw (Rectified + Calibration/cal18)")
 def read(path: Path, lighting: int | str = 3) -> SceneSource:
     """Read a DTU raw scan at ``lighting`` (0..6 or "max"; default 3, the MVSNet choice)."""
     root, scan_dir = resolve(path)

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from svolsdf.scene.cameras import decompose_projection
+from svolsdf.scene.formats import register_scene_format
 from svolsdf.scene.formats._common import (
     SceneSource,
     check_camera,
@@ -39,6 +40,10 @@ def detect(path: Path) -> bool:
         path, "image", "images") is not None
 
 
+@register_scene_format("idr", detect, order=10,
+                       looks_for=("cameras.npz or cameras_sphere.npz with image/ or images/ "
+                                  "(IDR/VolSDF/NeuS)"),
+                       title="IDR / VolSDF / NeuS (world_mat + scale_mat)")
 def read(path: Path, lighting=None) -> SceneSource:
     """Read the layout's cameras and file lists (no pixels). See the module docstring.
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from svolsdf.scene.formats import register_scene_format
 from svolsdf.scene.formats._common import (
     SceneSource,
     check_camera,
@@ -93,6 +94,10 @@ def write_cam_file(path: Path, w2c: np.ndarray, K: np.ndarray, depth_min: float,
     return Path(path)
 
 
+@register_scene_format("mvsnet", detect, order=30,
+                       looks_for=("cams/*_cam.txt with images/ or blended_images/ "
+                                  "(MVSNet/BlendedMVS)"),
+                       title="MVSNet / BlendedMVS (cams/*_cam.txt)")
 def read(path: Path, lighting=None) -> SceneSource:
     """Read the layout's cameras, depth ranges and pairs (no pixels)."""
     cams_dir = path / "cams"

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from svolsdf.io.images import ImageReadError, image_size
+from svolsdf.scene.formats import register_scene_format
 from svolsdf.scene.formats._common import SceneSource, check_camera
 from svolsdf.scene.scene import SceneError
 
@@ -47,6 +48,9 @@ def _image_file(base: Path, file_path: str) -> Path:
     return p
 
 
+@register_scene_format("nerf", detect, order=50,
+                       looks_for="transforms.json (NeRF)",
+                       title="NeRF transforms.json")
 def read(path: Path, lighting=None) -> SceneSource:
     """Read the frames' cameras (no pixels)."""
     f = next(path / n for n in FILES if (path / n).is_file())

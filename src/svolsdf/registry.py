@@ -1,0 +1,100 @@
+"""`Registry`: the names of one pluggable kind (MVS backbones, samplers, field kinds, scene
+formats) and what each name builds, filled by a decorator where the piece is written.
+
+A registry knows the package its pieces live in and the decorator that registers them: the first
+time it is read, it imports every module of that package whose source uses the decorator
+(``@register_backbone(`` in ``svolsdf/mvs/*.py``, say). Adding a piece is then one file with one
+decorator: no list of modules is edited, and no module is imported before a name is asked for.
+A piece written elsewhere (a test, a plugin) is registered when its module is imported.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+from svolsdf.errors import InputError
+
+__all__ = ["Registry"]
+
+T = TypeVar("T")
+
+
+class Registry(Generic[T]):
+    """Name -> entry of one kind, in registration order (or sorted by name).
+
+    Args:
+        kind: what a name names, for messages ("MVS backbone").
+        package: the package whose modules hold the built-in pieces ("svolsdf.mvs").
+        decorator: the registering decorator's name ("register_backbone"); a module of
+            ``package`` whose source contains ``@decorator(`` is imported on the first read.
+        sort: `names` in alphabetical order instead of registration order.
+    """
+
+    def __init__(self, kind: str, package: str, decorator: str, sort: bool = False):
+        self.kind = kind
+        self.package = package
+        self.marker = f"@{decorator}("
+        self.sort = sort
+        self._entries: dict[str, T] = {}
+        self._discovered = False
+
+    def add(self, name: str, entry: T) -> T:
+        """Register ``entry`` under ``name`` (a later entry of the same name replaces it)."""
+        self._entries[name] = entry
+        return entry
+
+    def remove(self, name: str) -> None:
+        """Withdraw ``name`` (a test's piece, say); unknown names are ignored."""
+        self._entries.pop(name, None)
+
+    def _discover(self) -> None:
+        """Import the package's modules that register pieces (once)."""
+        if self._discovered:
+            return
+        self._discovered = True  # before the imports: a module may read the registry
+        try:
+            pkg = importlib.import_module(self.package)
+            for path in sorted(Path(p) for d in pkg.__path__ for p in Path(d).glob("*.py")):
+                if path.stem != "__init__" and self.marker in path.read_text(encoding="utf-8"):
+                    importlib.import_module(f"{self.package}.{path.stem}")
+        except BaseException:
+            self._discovered = False
+            raise
+
+    def names(self) -> list[str]:
+        """The registered names (the built-in ones discovered first)."""
+        self._discover()
+        return sorted(self._entries) if self.sort else list(self._entries)
+
+    def items(self) -> Iterator[tuple[str, T]]:
+        """(name, entry) pairs in `names` order."""
+        return ((n, self._entries[n]) for n in self.names())
+
+    def get(self, name: str) -> T:
+        """The entry registered as ``name``.
+
+        Raises:
+            InputError: no entry has that name (the message lists the available ones).
+        """
+        if name not in self._entries:
+            self._discover()
+        if name not in self._entries:
+            raise InputError(f"unknown {self.kind} {name!r} (available: {', '.join(self.names())})")
+        return self._entries[name]
+
+    def __contains__(self, name: object) -> bool:
+        self._discover()
+        return name in self._entries
+
+    def decorator(self, name: str, make: Callable[[Any], T] | None = None):
+        """A decorator registering ``make(obj)`` (default: ``obj`` itself) under ``name`` and
+        returning ``obj`` unchanged."""
+
+        def deco(obj):
+            self.add(name, make(obj) if make is not None else obj)
+            return obj
+
+        return deco

@@ -1,0 +1,87 @@
+"""The ray samplers, by name: what `TrainConfig.sampler` may say and what each name builds.
+
+A sampler kind is a function of one `SamplerInputs` returning a sampler, a callable
+``sampler(model, rays, training=None) -> SamplerOutput`` (`svolsdf.render.samplers`), registered
+with ``@register_sampler("name")``. Adding one is one module of `svolsdf.render` with one
+decorator: `train.sampler` accepts the name and `svolsdf.pipeline.builders.build_sampler` builds
+it for training, the finer stage and rendering.
+
+Built in (in this order): "mvs" (`svolsdf.render.guided.MVSGuidedSampler`, the fast preset's)
+and "error_bounded" (VolSDF's, `svolsdf.render.samplers.ErrorBoundSampler`, docs/method.md 5.4).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from svolsdf.registry import Registry
+
+__all__ = ["SamplerInputs", "get_sampler", "register_sampler", "registered_samplers"]
+
+
+@dataclass
+class SamplerInputs:
+    """What a sampler kind may read.
+
+    Attributes:
+        train: the run's `TrainConfig` (the sampler's options are read from it).
+        prior: the `svolsdf.prior.consistency.MVSPrior` of the input views, or None (no MVS:
+            rendering, the volsdf mode).
+        training: the sampler serves the optimization (False: rendering a converged field).
+    """
+
+    train: Any
+    prior: Any = None
+    training: bool = True
+
+
+SamplerFactory = Callable[[SamplerInputs], Any]
+
+_SAMPLERS: Registry[SamplerFactory] = Registry("sampler", "svolsdf.render", "register_sampler")
+
+
+def register_sampler(name: str):
+    """Function decorator adding a sampler kind under ``name``: ``fn(SamplerInputs)`` returns
+    the sampler."""
+    return _SAMPLERS.decorator(name)
+
+
+def registered_samplers() -> list[str]:
+    """The names `TrainConfig.sampler` accepts, in registration order (the built-in ones
+    first)."""
+    return _SAMPLERS.names()
+
+
+def get_sampler(name: str) -> SamplerFactory:
+    """The sampler kind registered as ``name``.
+
+    Raises:
+        InputError: no sampler has that name.
+    """
+    return _SAMPLERS.get(name)
+
+
+# --------------------------------------------------------------------------- built in
+@register_sampler("mvs")
+def _mvs(s: SamplerInputs):
+    """Samples near P' and the current surface (`MVSGuidedSampler`; with the prior in
+    training, a lighter one without it for rendering)."""
+    from svolsdf.render.guided import GuidedSamplerConfig, MVSGuidedSampler
+
+    t = s.train
+    if s.training:
+        gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
+    else:
+        # rendering: a converged field needs fewer probes (benchmarks/results/render_speed.md)
+        gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
+    return MVSGuidedSampler(s.prior if s.training else None, gc)
+
+
+@register_sampler("error_bounded")
+def _error_bounded(s: SamplerInputs):
+    """VolSDF's error-bounded sampler (docs/method.md 5.4)."""
+    from svolsdf.render.samplers import ErrorBoundSampler
+
+    return ErrorBoundSampler()
