@@ -374,3 +374,10 @@ def test_saved_config_loads_back(tmp_path):
                             "scene": {"views": [1, 0]}})
     save_config(cfg, tmp_path / "c.yaml")
     assert asdict(load_config(tmp_path / "c.yaml")) == asdict(cfg)
+
+
+def test_draft_is_fast_with_half_the_steps():
+    fast, draft = asdict(preset("fast")), asdict(preset("draft"))
+    assert draft.pop("preset") == "draft" and fast.pop("preset") == "fast"
+    assert draft["train"].pop("steps") == fast["train"].pop("steps") // 2
+    assert draft == fast

@@ -340,8 +340,9 @@ class OutputConfig:
 
 @dataclass
 class Config:
-    preset: Literal["fast", "paper"] = "fast"
-    """fast (default; minutes on a CPU) | paper (docs/method.md constants; a GPU)."""
+    preset: Literal["fast", "draft", "paper"] = "fast"
+    """fast (default; minutes on a CPU) | draft (fast with half the field steps; docs/presets.md)
+    | paper (docs/method.md constants; a GPU)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto | cpu | cuda."""
     threads: int = _limited(0, min=0)
