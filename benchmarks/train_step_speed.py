@@ -6,19 +6,28 @@ the field at its full grid resolution. Variants, each with its own trainer, time
 blocks of steps (the machine is shared; ratios in one run are what counts):
 
 - "current": the code as it is;
-- "previous": the four parts below as they were before session 13;
+- "previous": the parts below (one set, ``--parts``) as they were;
 - "previous X": only part X as it was.
 
-Parts: "features" (the colour feature grids read with ``F.grid_sample`` instead of
-`trilinear_sample`), "prior" (each stage-1 volume read by one ``F.grid_sample`` batch entry,
-i.e. one thread, instead of one entry per thread), "clip" (the per-tensor finite check,
-``nan_to_num_`` and ``clip_grad_norm_``), "adam" (``torch.optim.Adam`` with the per-tensor loop
-instead of the fused kernel). A corner gather for the one-channel volumes was also tried and was
-slower than ``grid_sample`` (40 against 30 ms for the three volumes at a step's 41k samples).
+Parts before issue 39 (``--parts 39``, the default): "corners" (`trilinear_sample`
+differentiated by autograd through its corners-last (C, N, 8) expression instead of its own
+backward on corner-major tensors), "eikonal" (the eikonal points read with `sdf_and_grad`, the
+colour features computed and discarded, instead of `GridSDFField.sdf_grad`), "buffers" (the
+feature grids' gradients freed every step and allocated anew instead of reused,
+`GridSDFField.recycle_grads`).
+
+Parts before commit 467f395 (``--parts 467f395``): "features" (the colour feature grids read with
+``F.grid_sample`` instead of `trilinear_sample`), "prior" (each stage-1 volume read by one
+``F.grid_sample`` batch entry, i.e. one thread, instead of one entry per thread), "clip" (the
+per-tensor finite check, ``nan_to_num_`` and ``clip_grad_norm_``), "adam" (``torch.optim.Adam``
+with the per-tensor loop instead of the fused kernel). A corner gather for the one-channel
+volumes was also tried and was slower than ``grid_sample`` (40 against 30 ms for the three
+volumes at a step's 41k samples).
 
 Run (from the repo root), on a finished `svolsdf reconstruct` folder of the fast preset:
 
-    python benchmarks/train_step_speed.py --run OUT [--out benchmarks/results/train_step_speed.md]
+    python benchmarks/train_step_speed.py --run OUT [--phase 64|91|128] [--parts 39|467f395]
+        [--out benchmarks/results/train_step_speed.md]
 """
 
 from __future__ import annotations
@@ -45,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import cpu_name, write_results  # noqa: E402
 
 from svolsdf.config import load_config  # noqa: E402
+from svolsdf.field.grid_ops import _corners, device_vector  # noqa: E402
 from svolsdf.field.initial import init_grid_from_mvs  # noqa: E402
 from svolsdf.optimize.trainer import Trainer  # noqa: E402
 from svolsdf.pipeline import Pipeline  # noqa: E402
@@ -52,7 +62,8 @@ from svolsdf.pipeline.builders import build_sampler, grid_schedule  # noqa: E402
 from svolsdf.prior.consistency import _MIN_Z, _Z_LIMIT, MVSPrior, _depth_coord, _project  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-PARTS = ("features", "prior", "clip", "adam")
+PARTS = ("features", "prior", "clip", "adam")  # before commit 467f395
+PARTS_39 = ("corners", "eikonal", "buffers")  # before issue 39's changes
 
 
 # ---------------------------------------------------------------------- previous versions
@@ -83,6 +94,42 @@ def view_lookup_one_batch(self, i: int, pts: torch.Tensor):
     cost = F.grid_sample(view.prob[None, None], grid3, mode="bilinear", padding_mode="zeros",
                          align_corners=True)[0, 0, 0, 0]
     return torch.where(valid, cost, torch.zeros_like(cost)), valid
+
+
+def trilinear_sample_autograd(grid: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """The previous `trilinear_sample`: (C, Z, Y, X), (N, 3) -> (N, C), differentiated by
+    autograd through the gather, the product and the transposed sum."""
+    C = grid.shape[0]
+    idx, f = _corners(u, tuple(grid.shape[1:]))
+    wx, wy, wz = (torch.stack([1.0 - f[:, k], f[:, k]], dim=-1) for k in range(3))
+    w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(1, -1, 8)
+    c = grid.reshape(C, -1).index_select(1, idx.reshape(-1)).view(C, -1, 8)
+    return (c * w).sum(-1).T
+
+
+def features_autograd(self, p: torch.Tensor) -> torch.Tensor:
+    """The previous `GridSDFField._features`: p (N, 3) -> (N, F) with the autograd gather."""
+    lo, hi = self.bounds
+    t = (p - lo) / (hi - lo)
+    feats = []
+    for fg in self.feature_grids:
+        Z, Y, X = fg.shape[1:]
+        scale = device_vector([X - 1, Y - 1, Z - 1], t.device, t.dtype)
+        feats.append(trilinear_sample_autograd(fg, t * scale))
+    return torch.cat(feats, dim=1)
+
+
+def sdf_grad_with_features(self, x: torch.Tensor, create_graph: bool = True,
+                           clamp: bool = True):
+    """The previous eikonal lookup: `sdf_and_grad`, its colour features discarded; x (N, 3) ->
+    sdf (N,), grad (N, 3)."""
+    sdf, grad, _ = self.sdf_and_grad(x, create_graph=create_graph, clamp=clamp)
+    return sdf, grad
+
+
+def no_recycling() -> None:
+    """The previous gradient clearing: the feature grids' gradients freed, new ones allocated
+    by the next backward (instead of `GridSDFField.recycle_grads`)."""
 
 
 def safe_clip_previous(self, params: list[torch.Tensor]) -> None:
@@ -116,6 +163,12 @@ def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None
                        unverified_weight=cfg.field.init_unverified_weight)
     if "features" in previous:
         model._features = types.MethodType(features_grid_sample, model)
+    elif "corners" in previous:
+        model._features = types.MethodType(features_autograd, model)
+    if "eikonal" in previous:
+        model.sdf_grad = types.MethodType(sdf_grad_with_features, model)
+    if "buffers" in previous:
+        model.recycle_grads = no_recycling
     if "prior" in previous:
         prior.view_lookup = types.MethodType(view_lookup_one_batch, prior)
     t = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=build_sampler(p.cfg, prior),
@@ -125,12 +178,28 @@ def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None
     return t
 
 
-def make_trainer(run: Path, previous: set[str], warm_steps: int) -> Trainer:
-    """A fast-preset trainer on ``run``'s stage-1 volumes, past its grid growth, with the
-    ``previous`` parts swapped in."""
-    # the grid reaches its full resolution at half the steps
-    t = build_trainer(run, previous, steps=warm_steps)
-    t.fit(progress=False)  # warm-up: grid growth done, optimizer state built
+def make_trainer(run: Path, previous: set[str], warm_steps: int, phase: int | None = None
+                 ) -> Trainer:
+    """A fast-preset trainer on ``run``'s stage-1 volumes with the ``previous`` parts swapped
+    in, after ``warm_steps`` steps. ``phase`` None: a run of ``warm_steps`` steps (its grid
+    reaches the full resolution at half of them). ``phase`` = a grid resolution of the run's
+    schedule (or its start resolution): the run's own steps, the grid set to that resolution
+    and the step counter past the phase's start (the RGB warm-up over), so the warm-up steps
+    and the timed ones see that phase's losses, grid and schedules."""
+    if phase is None:
+        t = build_trainer(run, previous, steps=warm_steps)
+        t.fit(progress=False)  # warm-up: grid growth done, optimizer state built
+    else:
+        t = build_trainer(run, previous)
+        starts = {t.model.resolution: 0} | {r: k for k, r in t.grid_schedule}
+        if phase not in starts:
+            sys.exit(f"train_step_speed: --phase {phase} is not a grid resolution of the run "
+                     f"({sorted(starts)})")
+        if phase > t.model.resolution:
+            t.model.upsample(phase)
+            t._build_optimizer()
+        t.step = max(starts[phase], t.cfg.anneal_rgb) + 10
+        t.fit(steps=t.step + warm_steps, progress=False)
     if "adam" in previous:
         state = t.optimizer.state_dict()
         groups = [{"params": g["params"], "lr": g["lr"]} for g in t.optimizer.param_groups]
@@ -148,14 +217,22 @@ def main() -> None:
     ap.add_argument("--warm", type=int, default=24, help="warm-up steps per trainer")
     ap.add_argument("--block", type=int, default=10, help="steps per timed block")
     ap.add_argument("--repeats", type=int, default=5, help="timed blocks per variant")
+    ap.add_argument("--parts", choices=("39", "467f395"), default="39",
+                    help="which previous versions: before issue 39 (corners, eikonal, "
+                         "buffers) or before commit 467f395 (features, prior, clip, adam)")
+    ap.add_argument("--phase", type=int, default=None,
+                    help="time the steps at this grid resolution of the run's schedule (the "
+                         "run's own step count); default: a run of --warm steps, full grid")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/train_step_speed.md")
     args = ap.parse_args()
     if not (args.run / "config.yaml").is_file():
         sys.exit(f"train_step_speed: {args.run} has no config.yaml (not a run folder)")
     logging.disable(logging.INFO)
-    variants = {"current": set(), "previous": set(PARTS)}
-    variants.update({f"previous {k}": {k} for k in PARTS})
-    trainers = {k: make_trainer(args.run, v, args.warm) for k, v in variants.items()}
+    parts = PARTS if args.parts == "467f395" else PARTS_39
+    variants = {"current": set(), "previous": set(parts)}
+    variants.update({f"previous {k}": {k} for k in parts})
+    trainers = {k: make_trainer(args.run, v, args.warm, args.phase) for k, v in variants.items()}
+    first_step = trainers["current"].step - args.warm  # where the warm-up steps started
     times = {k: [] for k in trainers}
     cpu = {k: [] for k in trainers}
     for _ in range(args.repeats):
@@ -173,22 +250,29 @@ def main() -> None:
         "# Training-step speed of the fast preset (current vs previous code)",
         "",
         f"- command: `python benchmarks/train_step_speed.py --run {args.run} --warm {args.warm} "
-        f"--block {args.block} --repeats {args.repeats}`",
+        f"--block {args.block} --repeats {args.repeats} --parts {args.parts}"
+        + (f" --phase {args.phase}`" if args.phase is not None else "`"),
         f"- machine: {os.cpu_count()} logical cores, {cpu_name()}; torch "
         f"{torch.__version__}, {torch.get_num_threads()} threads; Python "
         f"{platform.python_version()}; shared machine (other jobs may run)",
         f"- field: grid {getattr(m, 'grid_shape', '?')} SDF nodes, {n_par:.1f} M parameters; "
         f"{trainers['current'].cfg.rays} rays per step; {len(trainers['current'].prior)} "
         f"stage-1 volumes",
-        f"- each variant: its own trainer, {args.warm} warm-up steps (past the grid growth), then "
-        f"{args.repeats} blocks of {args.block} steps, round-robin; median per step",
+        f"- each variant: its own trainer, {args.warm} warm-up steps ("
+        + ("past the grid growth" if args.phase is None else
+           f"from step {first_step} of the run's schedule")
+        + f"), then "
+        f"{args.repeats} blocks of {args.block} steps, round-robin; median per step (CPU: "
+        f"the process's CPU time, both threads)",
         "",
-        "| variant | wall ms / step | CPU ms / step | wall, current = 1 |",
-        "|---|---|---|---|",
+        "| variant | wall ms / step | CPU ms / step | wall, current = 1 | CPU, current = 1 "
+        "| fastest block's wall ms / step |",
+        "|---|---|---|---|---|---|",
     ]
     for k in trainers:
         lines.append(f"| {k} | {med[k] * 1000:.0f} | {medc[k] * 1000:.0f} | "
-                     f"{med[k] / med['current']:.2f} |")
+                     f"{med[k] / med['current']:.2f} | {medc[k] / medc['current']:.2f} | "
+                     f"{min(times[k]) * 1000:.0f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     write_results(args.out, text)

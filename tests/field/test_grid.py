@@ -73,6 +73,74 @@ def test_trilinear_sample_is_grid_sample_with_the_same_grid_gradient():
     torch.testing.assert_close(trilinear_sample(grid, far), border)
 
 
+def _trilinear_autograd(grid: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """`trilinear_sample` as plain autograd ops (its expression before the custom backward)."""
+    from svolsdf.field.grid_ops import _corners
+
+    C = grid.shape[0]
+    idx, f = _corners(u, tuple(grid.shape[1:]))
+    wx, wy, wz = (torch.stack([1.0 - f[:, k], f[:, k]], dim=-1) for k in range(3))
+    w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(1, -1, 8)
+    c = grid.reshape(C, -1).index_select(1, idx.reshape(-1)).view(C, -1, 8)
+    return (c * w).sum(-1).T
+
+
+def test_trilinear_sample_backward_is_autograd_and_twice_differentiable():
+    grid = torch.randn(4, 5, 6, 7, dtype=torch.float64, requires_grad=True)
+    u = torch.rand(90, 3, dtype=torch.float64) * torch.tensor([6.0, 5.0, 4.0],
+                                                              dtype=torch.float64)
+    w = torch.randn(90, 4, dtype=torch.float64)
+    v = trilinear_sample(grid, u)
+    ref = _trilinear_autograd(grid, u)
+    torch.testing.assert_close(v, ref, rtol=1e-12, atol=1e-12)  # (corner-major sums)
+    (a,) = torch.autograd.grad((v * w).sum(), grid)
+    (b,) = torch.autograd.grad((ref * w).sum(), grid)
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(lambda g: trilinear_sample(g, u), (grid,))
+    assert torch.autograd.gradgradcheck(lambda g: trilinear_sample(g, u).square(), (grid,))
+    # points that need a gradient (the residual SDF's x-gradient) take the autograd path
+    ur = u.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: trilinear_sample(grid.detach(), x), (ur,))
+
+
+def test_recycled_feature_gradients_reuse_their_memory_with_the_same_values():
+    f = _random_field()
+    x = torch.randn(300, 3, dtype=torch.float64) * 0.6
+    w = torch.randn(300, f.feature_dim, dtype=torch.float64)
+
+    def grads():
+        _, _, feat = f.sdf_and_grad(x)
+        (feat * w).sum().backward()
+        return [g.grad for g in f.feature_grids]
+
+    first = [g.clone() for g in grads()]
+    ptrs = [g.grad.data_ptr() for g in f.feature_grids]
+    f.recycle_grads()
+    assert all(g.grad is None for g in f.feature_grids)
+    again = grads()
+    # the same memory, zeroed and refilled (levels of equal shapes may swap buffers)
+    assert sorted(g.data_ptr() for g in again) == sorted(ptrs)
+    for a, b in zip(first, again, strict=True):
+        assert a.equal(b)
+    f.recycle_grads()
+    f.upsample(13)  # new grids: the kept buffers are dropped
+    assert not f._grad_buffers._free
+
+
+def test_sdf_grad_is_sdf_and_grad_without_features():
+    for residual in (False, True):
+        f = _random_field(residual=residual, clamp=20.0)
+        x = torch.randn(40, 3, dtype=torch.float64) * 0.8
+        for clamp in (False, True):
+            s, g = f.sdf_grad(x, create_graph=True, clamp=clamp)
+            s2, g2, _ = f.sdf_and_grad(x, create_graph=True, clamp=clamp)
+            torch.testing.assert_close(s, s2, rtol=0, atol=0)
+            torch.testing.assert_close(g, g2, rtol=0, atol=0)
+            (a,) = torch.autograd.grad(g.square().sum(), f.sdf_grid)
+            (b,) = torch.autograd.grad(g2.square().sum(), f.sdf_grid)
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
 def test_trilinear_at_nodes_returns_node_values():
     grid = torch.randn(1, 4, 4, 4, dtype=torch.float64)
     u = torch.tensor([[0.0, 0.0, 0.0], [3.0, 3.0, 3.0], [1.0, 2.0, 3.0]], dtype=torch.float64)

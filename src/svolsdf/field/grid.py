@@ -37,6 +37,7 @@ from svolsdf.field.base import SurfaceModel
 from svolsdf.field.density import LaplaceDensity
 from svolsdf.field.embedding import positional_encoding
 from svolsdf.field.grid_ops import (
+    GradBuffers,
     device_vector,
     laplacian_loss,
     resample_grid,
@@ -199,6 +200,7 @@ class GridSDFField(SurfaceModel):
             nn.init.zeros_(self.residual_net[-1].weight)  # residual starts at 0
             nn.init.zeros_(self.residual_net[-1].bias)
         self.laplace = LaplaceDensity(cfg.beta_init, cfg.beta_min)
+        self._grad_buffers = GradBuffers()  # the feature grids' gradients, reused
 
     # ------------------------------------------------------------------ grids
     def _node_coords(self, shape: tuple[int, int, int]) -> Tensor:
@@ -245,6 +247,7 @@ class GridSDFField(SurfaceModel):
         """
         if new_resolution < 3:
             raise ValueError(f"upsample: resolution must be >= 3, got {new_resolution}")
+        self._grad_buffers.clear()
         self.resolution = int(new_resolution)
         shape = _grid_shape(self.bounds[1] - self.bounds[0], self.resolution)
         self.sdf_grid = nn.Parameter(resample_grid(self.sdf_grid.data, shape))
@@ -289,6 +292,16 @@ class GridSDFField(SurfaceModel):
             {"params": grid, "lr": lr_grid, "name": "grid"},
             {"params": rest, "lr": lr_mlp, "name": "mlp"},
         ]
+
+    def recycle_grads(self) -> None:
+        """Clear the feature grids' gradients (``.grad = None``), keeping their memory for the
+        next backward (`grid_ops.GradBuffers`). For an optimizer loop that clears the gradients
+        after each step and keeps no reference to them (`svolsdf.optimize.trainer.Trainer`): a
+        kept reference would see the next step's gradient."""
+        for fg in self.feature_grids:
+            if fg.grad is not None:
+                self._grad_buffers.give(fg.grad.view(fg.shape[0], -1))
+                fg.grad = None
 
     def smoothness_loss(self, n_samples: int | None = 65536) -> Tensor:
         """() Laplacian regulariser of the SDF grid, in unit-frame units (see grid_ops).
@@ -337,7 +350,8 @@ class GridSDFField(SurfaceModel):
             for fg in self.feature_grids:
                 Z, Y, X = fg.shape[1:]
                 feats.append(trilinear_sample(fg, t * device_vector([X - 1, Y - 1, Z - 1],
-                                                                    t.device, t.dtype)))
+                                                                    t.device, t.dtype),
+                                              self._grad_buffers))
             return torch.cat(feats, dim=1)
 
     def _grid_sdf(self, x: Tensor, with_grad: bool) -> tuple[Tensor, Tensor | None, Tensor]:
@@ -411,6 +425,24 @@ class GridSDFField(SurfaceModel):
         if not create_graph:
             grad = grad.detach()
         return sdf, grad, feat
+
+    def sdf_grad(
+        self, x: Tensor, create_graph: bool = True, clamp: bool = True
+    ) -> tuple[Tensor, Tensor]:
+        """x: (N, 3) -> sdf (N,), gradient d sdf / d x (N, 3): `sdf_and_grad` without the
+        colour features (the eikonal term, docs/method.md 4.5, needs only the gradient; with
+        ``sdf_residual`` the features are part of the SDF and are computed)."""
+        if self.residual_net is not None:
+            sdf, grad, _ = self.sdf_and_grad(x, create_graph=create_graph, clamp=clamp)
+            return sdf, grad
+        self._check_points(x)
+        with record_function("svolsdf.sdf_lookup"):
+            sdf, grad, _ = self._grid_sdf(x, with_grad=True)
+        if clamp:
+            sdf, grad = self._clamp(x, sdf, grad)
+        if not create_graph:
+            grad = grad.detach()
+        return sdf, grad
 
     def colour(self, x: Tensor, view_dir: Tensor, normal: Tensor, feature: Tensor) -> Tensor:
         """x, view_dir, normal: (N, 3), feature: (N, feature_dim) -> rgb (N, 3) in [0, 1].

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
+    "GradBuffers",
     "trilinear_sample",
     "trilinear_with_grad",
     "trilinear_reference",
@@ -113,12 +114,45 @@ def _corners(u: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
     return base[:, None] + offs, f
 
 
-def trilinear_sample(grid: Tensor, u: Tensor) -> Tensor:
+class GradBuffers:
+    """Dense gradient buffers handed back after an optimizer step, reused by the next backward
+    of `trilinear_sample`.
+
+    A fresh (C, M) zero gradient of a fine feature grid (52 MB at the fast preset's final
+    resolution) is new memory every step: the allocator maps it and the zero fill pays a page
+    fault per 4 kB, ~4x the cost of zeroing memory already in use
+    (benchmarks/results/train_step_speed.md). The owner gives a gradient back only when nothing
+    else refers to it (`svolsdf.field.grid.GridSDFField.recycle_grads`, called by the trainer
+    before it clears the gradients).
+    """
+
+    def __init__(self) -> None:
+        self._free: dict[tuple, list[Tensor]] = {}
+
+    def give(self, t: Tensor) -> None:
+        """Keep the contiguous tensor t (any shape) for a later `take` of its shape."""
+        if t.is_contiguous():
+            self._free.setdefault((tuple(t.shape), t.dtype, t.device), []).append(t.detach())
+
+    def take(self, shape: tuple[int, ...], like: Tensor) -> Tensor:
+        """A zeroed tensor of ``shape`` with ``like``'s dtype and device: a kept one (no longer
+        kept) or a new one."""
+        kept = self._free.get((tuple(shape), like.dtype, like.device))
+        return kept.pop().zero_() if kept else like.new_zeros(shape)
+
+    def clear(self) -> None:
+        """Drop every kept tensor (e.g. after the grids changed shape)."""
+        self._free.clear()
+
+
+def trilinear_sample(grid: Tensor, u: Tensor, buffers: GradBuffers | None = None) -> Tensor:
     """Trilinear interpolation of a dense grid, as one weighted sum of the 8 gathered corners.
 
     Args:
         grid: (C, Z, Y, X) float node values.
         u: (N, 3) float continuous index coordinates (x, y, z), clamped to the grid.
+        buffers: where the backward takes its (C, Z Y X) gradient from (`GradBuffers`);
+            None: a new one.
 
     Returns:
         (N, C) values, equal to ``grid_sample(mode="bilinear", align_corners=True)``.
@@ -132,10 +166,51 @@ def trilinear_sample(grid: Tensor, u: Tensor) -> Tensor:
     _check_grid_points(grid, u)
     C = grid.shape[0]
     idx, f = _corners(u, tuple(grid.shape[1:]))
-    wx, wy, wz = (torch.stack([1.0 - f[:, k], f[:, k]], dim=-1) for k in range(3))  # (N, 2)
-    w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(1, -1, 8)
-    c = grid.reshape(C, -1).index_select(1, idx.reshape(-1)).view(C, -1, 8)
-    return (c * w).sum(-1).T
+    # corner-major (8, N): every product and sum below runs along the N points
+    wx, wy, wz = (torch.stack([1.0 - f[:, k], f[:, k]]) for k in range(3))  # (2, N)
+    w = (wz[:, None, None] * wy[None, :, None] * wx[None, None, :]).reshape(8, -1)
+    idx = idx.T.reshape(-1)  # (8 N,) corner k of point n at k N + n
+    flat = grid.reshape(C, -1)
+    if w.requires_grad and torch.is_grad_enabled():
+        # d value / d u is wanted (the residual SDF's x-gradient): plain autograd
+        return (flat.index_select(1, idx).view(C, 8, -1) * w).sum(1).T
+    return _CornerSum.apply(flat, idx, w.detach(), buffers)
+
+
+class _CornerSum(torch.autograd.Function):
+    """out (N, C) = sum_k w[k, n] flat[:, idx[k N + n]] for flat (C, M), idx (8 N,), w (8, N).
+
+    The autograd expression of `trilinear_sample` with a backward of one product on
+    contiguous (C, 8, N) tensors and one index-add into the (C, M) gradient. Under autograd
+    (corners last, (C, N, 8)) the transposed output's gradient reached the product in a
+    strided layout, and the product and the view before the index-add made strided passes over
+    C x N x 8 values (``aten::copy_`` and ``aten::mul``, then the largest ops of a training
+    step; benchmarks/results/train_step_speed.md). The weights are constants here (callers that
+    differentiate with respect to the points take the autograd expression); the backward is
+    made of differentiable ops, so a gradient of the grid's gradient is still available.
+    """
+
+    @staticmethod
+    def forward(ctx, flat: Tensor, idx: Tensor, w: Tensor, buffers: GradBuffers | None
+                ) -> Tensor:
+        ctx.save_for_backward(idx, w)
+        ctx.n_nodes = flat.shape[1]
+        ctx.buffers = buffers
+        c = flat.index_select(1, idx).view(flat.shape[0], 8, -1)
+        return (c * w).sum(1).T
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        idx, w = ctx.saved_tensors
+        if not ctx.needs_input_grad[0]:
+            return None, None, None, None
+        C = grad_out.shape[1]
+        gc = grad_out.T.contiguous()[:, None] * w  # (C, 8, N), contiguous
+        if ctx.buffers is None or torch.is_grad_enabled():  # (create_graph: a new tensor)
+            grad = gc.new_zeros(C, ctx.n_nodes)
+        else:
+            grad = ctx.buffers.take((C, ctx.n_nodes), gc)
+        return grad.index_add_(1, idx, gc.view(C, -1)), None, None, None
 
 
 def trilinear_reference(grid: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:

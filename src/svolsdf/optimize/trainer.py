@@ -250,7 +250,10 @@ class Trainer:
             # eikonal (docs/method.md 4.5): R uniform points in the box + one sample per ray
             lo, hi = self._eikonal_box()
             u = torch.rand(R, 3, device=self.device) * (hi - lo) + lo
-            _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp)
+            if hasattr(model, "sdf_grad"):  # without the colour features it would discard
+                _, g_u = model.sdf_grad(u, create_graph=True, **self._noclamp)
+            else:
+                _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp)
             g_all = torch.cat([g_u, out.grad[torch.arange(R, device=self.device),
                                              s.eik_index.clamp_max(out.grad.shape[1] - 1)]], 0)
             terms["eikonal"] = L.eikonal_loss(g_all)
@@ -310,6 +313,9 @@ class Trainer:
             self._maybe_grow_grid()
             self._anneal_beta()
             self.model.train()
+            recycle = getattr(self.model, "recycle_grads", None)
+            if recycle is not None:  # the grid field reuses its dense gradients' memory
+                recycle()
             self.optimizer.zero_grad(set_to_none=True)
             terms = self.losses()
             with record_function("svolsdf.backward"):
