@@ -6,7 +6,7 @@ stage read (tests/pipeline/stage_reads.py says how). For every leaf option of `C
 to each other valid value, the fast tests assert, stage by stage:
 
 (a) when the stage, or a stage whose output it consumes, read the option, its key changes
-    (unless `SAME_KEY` says why the change cannot alter the result);
+    (reads that cannot alter a result are set aside first: `INERT_READS` says which and why);
 (b) when none of them read it, its key does not change (unless `EXTRA_IN_KEY` says why the key
     holds it anyway; mostly whole config sections hashed into a key, which stay for the keys of
     existing run folders).
@@ -65,9 +65,10 @@ def always(cfg: Config) -> bool:
     return True
 
 
-#: (a) options a stage reads whose change leaves its key (and result) as it is: {option: (why,
-#: when it holds)}.
-SAME_KEY: dict[str, Rule] = {
+#: (a) reads that cannot alter the reading stage's result, set aside before the check:
+#: {"option" (by any stage) or "stage:option": (why, when it holds: for the recorded config and
+#: the changed one)}.
+INERT_READS: dict[str, Rule] = {
     "scene.view_selection": (
         "enters through the views it picks (stage_keys' views argument), not by name",
         always),
@@ -82,11 +83,18 @@ SAME_KEY: dict[str, Rule] = {
     "output.mesh_cull_tol": (
         "passed to the mesh methods, used only with mesh_cull_unseen",
         lambda c: not c.output.mesh_cull_unseen),
+    "output.mesh_fit_points": (
+        "read to ask whether the fit applies (options.wants_mesh_fit); it does not here",
+        lambda c: not opt.wants_mesh_fit(c)),
+    "guide:output.use_masks": (
+        "the field's PSNR over the masks, for timing.json only, when the guide is rendered on "
+        "every pixel", lambda c: c.output.guide_mask_dilation is None),
 }
 
 #: (b) options a stage's key holds although neither it nor the stages it consumes read them:
-#: {option or "prefix*": (why, when)}. None of them makes a stale result reused; each only reruns a
-#: stage, and dropping it would change the keys of existing run folders.
+#: {option or "prefix*": (why, when: as `INERT_READS`)}. None of them makes a stale result
+#: reused; each only reruns a stage, and dropping it would change the keys of existing run
+#: folders.
 EXTRA_IN_KEY: dict[str, Rule] = {
     "mvs.*": ("the mvs section is hashed whole into the mvs1 key (which every key chains) and "
              "the mvs23 and unguided keys, also in modes that run no MVS", always),
@@ -174,17 +182,24 @@ def changed(cfg: Config, option: str, value: Any) -> Config:
     return c
 
 
-def _rule(rules: dict[str, Rule], option: str, cfg: Config) -> str | None:
-    """The rule of ``rules`` that names ``option`` ("train.*": every option it begins) and
-    holds for ``cfg``, or None."""
+def _rule(rules: dict[str, Rule], option: str, cfgs: tuple[Config, ...], stage: str = ""
+          ) -> str | None:
+    """The rule of ``rules`` that names ``option`` ("train.*": every option it begins;
+    "guide:option": the option read by that stage) and holds for each of ``cfgs`` (the
+    recorded config and the changed one), or None."""
+    def names(k: str) -> bool:
+        if ":" in k:
+            on, k = k.split(":")
+            if on != stage:
+                return False
+        return option == k or k.endswith("*") and option.startswith(k[:-1])
     return next((k for k, (_, when) in rules.items()
-                 if (option == k or k.endswith("*") and option.startswith(k[:-1]))
-                 and when(cfg)), None)
+                 if names(k) and all(when(c) for c in cfgs)), None)
 
 
 def violations(name: str, record: dict, keys_of=stage_keys
                ) -> tuple[list[str], set[str], set[str]]:
-    """([violations], {options another value of which was checked}, {rules of `SAME_KEY` and
+    """([violations], {options another value of which was checked}, {rules of `INERT_READS` and
     `EXTRA_IN_KEY` that excused one}) of the recorded run ``name`` under the key function
     ``keys_of`` (`stage_keys`)."""
     cfg, reads = base_configs(SCENE)[name], record["reads"]
@@ -204,12 +219,17 @@ def violations(name: str, record: dict, keys_of=stage_keys
             for stage in STAGES:
                 if not (runs(stage, cfg) and runs(stage, alt)):
                     continue
-                read = any(option in reads.get(u, ()) for u in upstream(stage, record))
+                ups = upstream(stage, record)
+                inert = {_rule(INERT_READS, option, (cfg, alt), u) for u in ups
+                         if option in reads.get(u, ())}
+                read = None in inert  # a read no rule sets aside
                 moved = keys[stage] != base[stage]
-                rule = (_rule(SAME_KEY, option, cfg) if read and not moved else
-                        _rule(EXTRA_IN_KEY, option, cfg) if moved and not read else "")
+                rule = (_rule(EXTRA_IN_KEY, option, (cfg, alt)) if moved and not read
+                        else "")
+                if not moved and not read:
+                    used |= inert  # the rules that kept these reads from a violation
                 used.add(rule or "")
-                if rule is None and read:
+                if read and not moved:
                     bad.append(f"{name}: stage {stage} reads {option} (directly or through "
                                f"what it consumes) but its key ignores {option}={v!r}")
                 if rule is None and not read:
@@ -241,10 +261,10 @@ def test_every_option_is_changed_in_some_run():
 
 
 def test_every_exception_is_needed():
-    """Each rule of `SAME_KEY` and `EXTRA_IN_KEY` excuses some change of some run: a rule the
+    """Each rule of `INERT_READS` and `EXTRA_IN_KEY` excuses some change of some run: a rule the
     keys no longer need goes."""
     used = set().union(*(_checked(name)[2] for name in TABLE))
-    assert used == set(SAME_KEY) | set(EXTRA_IN_KEY)
+    assert used == set(INERT_READS) | set(EXTRA_IN_KEY)
 
 
 def test_a_forgotten_option_is_found():
@@ -282,8 +302,9 @@ def test_the_table_covers_every_stage_and_the_setup_reads_are_known():
     every = set(leaf_options())
     for rules in (SETUP_READS, NOT_VARIED):
         assert set(rules) <= every, set(rules) - every
-    for rules in (SAME_KEY, EXTRA_IN_KEY):
+    for rules in (INERT_READS, EXTRA_IN_KEY):
         for k in rules:
+            k = k.split(":")[-1]
             assert k in every or k.endswith("*") and any(o.startswith(k[:-1]) for o in every), k
 
 
