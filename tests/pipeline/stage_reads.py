@@ -112,6 +112,12 @@ def base_configs(scene: Path) -> dict[str, Config]:
     c.scene.image_size = [64, 48]
     c.output.mesh_watertight = True
     cfgs["paper-watertight"] = c
+    # two of the paper's ablations: the guide from the stage-1 volumes' consistency (no
+    # field), and the field fitted to the filtered stage-1 depth
+    for ablation in ("soft-consistency-only", "mse"):
+        c = _tiny(preset("fast"), scene)
+        c.train.ablation = ablation
+        cfgs[f"ablation-{ablation.split('-')[0]}"] = c
     c = _tiny(preset("fast"), scene)
     c.train.mode = "volsdf"
     cfgs["volsdf"] = c

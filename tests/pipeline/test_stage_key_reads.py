@@ -109,9 +109,9 @@ EXTRA_IN_KEY: dict[str, Rule] = {
         "the field's marching cubes: a mesh method that fails (too few points) falls back to "
         "the field's zero level, which reads it", always),
     "output.guide_mask_dilation": (
-        "in the guide key, which the mvs23 key chains in every mode: mvs-only has no guide",
-        lambda c: not opt.has_guide(c)),
-    "output.low_weight_rule": ("ditto", lambda c: not opt.has_guide(c)),
+        "in the guide key, which the mvs23 key chains in every mode, also where no field renders "
+        "the guide (mvs-only, the soft-consistency ablation)", lambda c: not opt.has_field(c)),
+    "output.low_weight_rule": ("ditto", lambda c: not opt.has_field(c)),
 }
 
 #: options read outside every stage (`Pipeline`'s construction and `Pipeline._run` before its
