@@ -227,7 +227,8 @@ def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
     def loads(fn):
         @functools.wraps(fn)
         def inner(path, *a, **k):
-            consume(_producer(p.dir, path))
+            if "p" in run:
+                consume(_producer(run["p"].dir, path))
             return fn(path, *a, **k)
         return inner
 
@@ -248,10 +249,10 @@ def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
     # the attributes as stored (a class's classmethod itself)
     saved = {(o, n): (o.__dict__[n] if isinstance(o, type) else getattr(o, n), new)
              for (o, n), new in saved.items()}
+    Pipeline.__getattribute__ = getattribute
     try:
         for (owner, name), (_, new) in saved.items():
             setattr(owner, name, new)
-        Pipeline.__getattribute__ = getattribute
         with recording(reads):
             p = run["p"] = Pipeline(cfg, out, progress=False)
             p._check_options = reads.wrap(p._check_options, None)
