@@ -352,6 +352,9 @@ def test_use_masks_enters_the_stages_that_read_the_masks():
     cfg.train.object_ray_fraction = 0.5  # rays drawn inside the masks: the field reads them
     k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "output.use_masks", False), VIEWS)
     assert k_no["field"] != k["field"]
+    cfg.train.mode = "mvs-only"  # no field, no rendered guide: only fusion reads the masks
+    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "output.use_masks", False), VIEWS)
+    assert [s for s in ("mvs1", "mvs23", "unguided", "fusion") if k_no[s] != k[s]] == ["fusion"]
 
 
 @pytest.mark.slow
