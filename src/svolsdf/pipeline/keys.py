@@ -24,6 +24,7 @@ from svolsdf.config import Config
 from svolsdf.pipeline.builders import backbone_kwargs
 from svolsdf.pipeline.options import (
     grid_from_sphere,
+    has_field,
     is_baseline,
     mesh_from_points,
     wants_mesh_fit,
@@ -79,12 +80,21 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
             c["field"].pop(k)
         c["train"].pop("grid_eikonal_weight")
         c["train"]["lr_sdf_sphere"] = 1e-3
-    k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"])
+    # output.use_masks = false enters where the stage reads the masks (issue 40: it was left
+    # out): the field started from the MVS surface (its grid's start votes inside the masks)
+    # or drawing a share of its rays in them; the guide rendered within the dilated masks (a
+    # field's: mvs-only and the soft-consistency ablation render none). True, the default,
+    # stays out: run folders keep their keys
+    no_masks = [] if cfg.output.use_masks else ["no masks"]
+    reads_masks = has_field(cfg) and ((cfg.field.kind == "grid" and not grid_from_sphere(cfg))
+                                      or cfg.train.object_ray_fraction > 0)
+    k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],
+                    *(no_masks if reads_masks else []))
     # guide_mask_dilation enters only when set, so runs that render every pixel keep the
     # keys they had before the option existed (their stages are reused)
     gmd = c["output"]["guide_mask_dilation"]
-    k_guide = _hash(k_field, c["output"]["low_weight_rule"], *([gmd] if gmd is not None
-                                                                   else []))
+    k_guide = _hash(k_field, c["output"]["low_weight_rule"],
+                    *([gmd, *(no_masks if has_field(cfg) else [])] if gmd is not None else []))
     k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
                     *([guide_init] if guide_init is not None else []))
     k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")

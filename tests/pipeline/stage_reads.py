@@ -1,0 +1,297 @@
+"""Which config options each pipeline stage reads: a recorder of attribute reads on the config
+dataclasses, tiny runs of the pipeline's modes under it, and the recorded table
+(stage_reads.json beside this file) that tests/pipeline/test_stage_key_reads.py checks the stage
+keys against (issue 40).
+
+Regenerate the table after a stage starts or stops reading an option:
+
+    PYTHONPATH=src python tests/pipeline/stage_reads.py
+
+How reads are recorded: while a run records, every config dataclass (`Config`, `SceneConfig`,
+...) gets a ``__getattribute__`` that notes each read of one of its leaf fields ("train.steps";
+also through objects the stages hand the sections to, such as the `Trainer`'s ``TrainConfig``)
+under the stage the `Pipeline` is in (its ``_stage``). Reads while the pipeline loads the scene
+(`Run.load`) count as the pseudo-stage "scene", which every stage reads. Reads that decide nothing
+a stage computes are not recorded: the key and input-key computation itself, writing
+config.yaml, validation and the refusals before a stage (`validate_config`,
+`Pipeline._check_options`, `check_scene`). Other reads outside a stage (the device, which stages
+run, the log line, the thread count) count as "setup".
+
+Which earlier stages' outputs a stage consumes is recorded in the same runs: the files of the run
+folder it loads (`numpy.load`, `torch.load`, `read_ply`, `ProbabilityVolume.load`; each file's
+folder names the stage that writes it, `_producer`) and the results the `Pipeline` holds in
+memory (`IN_MEMORY`: the stage-1 volumes, the field). "ran" lists the stages that ran.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import json
+import sys
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from svolsdf.config import Config
+from svolsdf.config.schema import (
+    FieldConfig,
+    MVSConfig,
+    OutputConfig,
+    SceneConfig,
+    TrainConfig,
+)
+from svolsdf.pipeline.keys import STAGES
+
+TABLE = Path(__file__).with_name("stage_reads.json")
+
+SECTIONS = {Config: "", SceneConfig: "scene", MVSConfig: "mvs", FieldConfig: "field",
+            TrainConfig: "train", OutputConfig: "output"}
+
+
+def leaf_options() -> list[str]:
+    """Every leaf option of `Config` ("preset", "scene.path", ..., "output.finer_stage_...")."""
+    out = []
+    for cls, sec in SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            if cls is Config and f.name in SECTIONS.values():
+                continue
+            out.append(f"{sec}.{f.name}" if sec else f.name)
+    return out
+
+
+# --------------------------------------------------------------------------- the runs
+def _tiny(cfg: Config, scene: Path) -> Config:
+    """``cfg`` shortened for the tiny scene (seconds per run)."""
+    cfg.scene.path = str(scene)
+    cfg.train.steps = 12
+    cfg.train.rays = 64
+    cfg.train.anneal_rgb = 4
+    cfg.train.checkpoint_every = 0
+    cfg.field.grid_start_resolution = 16
+    cfg.field.grid_resolution = 32
+    cfg.field.sphere_start_resolution = 16
+    cfg.mvs.ndepths = [32, 8, 4]
+    cfg.output.mesh_resolution = 48
+    cfg.output.mesh_fit_points = 20
+    cfg.output.tsdf_resolution = 64
+    cfg.output.poisson_depth = 6
+    cfg.device = "cpu"
+    return cfg
+
+
+def base_configs(scene: Path) -> dict[str, Config]:
+    """The recorded runs: {name: config}. The fast preset in each mode and with each mesh
+    method (it turns on most conditional options: the unguided set, guide masks, culling,
+    free space), and the paper's ablation-free options that the fast preset leaves off."""
+    from svolsdf.config import preset
+
+    cfgs = {}
+    for method in ("poisson", "field", "tsdf"):
+        c = _tiny(preset("fast"), scene)
+        c.output.mesh_method = method
+        cfgs[f"svolsdf-{method}"] = c
+    # the other options the fast preset leaves off: finer-stage optimization, unseen culling
+    # off, support trimming, the object-ray share, the MLP field
+    c = _tiny(preset("fast"), scene)
+    c.output.mesh_method = "field"
+    c.output.mesh_fit_points = 0
+    c.output.mesh_cull_unseen = False
+    c.output.mesh_support = 3.0
+    c.output.finer_stage_optimization = True
+    c.train.object_ray_fraction = 0.5
+    cfgs["svolsdf-finer"] = c
+    # the paper preset: the MLP field from the sphere, the guide on every pixel, no unguided
+    # set, no culling (with the fast sampler: VolSDF's takes minutes on the whole guide); and
+    # the watertight mesh
+    c = _tiny(preset("paper"), scene)
+    c.field.mlp_depth, c.field.mlp_width = 4, 48
+    c.train.sampler = "mvs"
+    c.train.samples_uniform = c.train.samples_fine = 16  # the MLP renders the whole guide
+    c.scene.image_size = [64, 48]
+    c.output.mesh_watertight = True
+    cfgs["paper-watertight"] = c
+    # two of the paper's ablations: the guide from the stage-1 volumes' consistency (no
+    # field), and the field fitted to the filtered stage-1 depth
+    for ablation in ("soft-consistency-only", "mse"):
+        c = _tiny(preset("fast"), scene)
+        c.train.ablation = ablation
+        cfgs[f"ablation-{ablation.split('-')[0]}"] = c
+    c = _tiny(preset("fast"), scene)
+    c.train.mode = "volsdf"
+    cfgs["volsdf"] = c
+    c = _tiny(preset("fast"), scene)
+    c.train.mode = "mvs-only"
+    cfgs["mvs-only"] = c
+    return cfgs
+
+
+# --------------------------------------------------------------------------- the recorder
+class Reads:
+    """{stage: set of options} read while recording (`recording`)."""
+
+    def __init__(self):
+        self.by_stage: dict[str, set[str]] = defaultdict(set)
+        self.where: Callable[[], str | None] = lambda: None
+        self.override: list[str | None] = []  # innermost last; None = not recorded
+
+    def note(self, option: str) -> None:
+        stage = self.override[-1] if self.override else self.where()
+        if stage is not None:
+            self.by_stage[stage].add(option)
+
+    @contextlib.contextmanager
+    def as_stage(self, stage: str | None) -> Iterator[None]:
+        self.override.append(stage)
+        try:
+            yield
+        finally:
+            self.override.pop()
+
+    def wrap(self, fn: Callable, stage: str | None) -> Callable:
+        """``fn`` whose reads count as ``stage`` (None: not recorded)."""
+        @functools.wraps(fn)
+        def inner(*a, **k):
+            with self.as_stage(stage):
+                return fn(*a, **k)
+        return inner
+
+
+@contextlib.contextmanager
+def recording(reads: Reads) -> Iterator[Reads]:
+    """Record reads of the config dataclasses' leaf fields into ``reads`` while inside."""
+    leaves = {cls: {f.name for f in dataclasses.fields(cls)} - set(SECTIONS.values())
+              for cls in SECTIONS}
+    for cls, sec in SECTIONS.items():
+        def getattribute(self, name, _leaves=leaves[cls], _sec=sec):
+            if name in _leaves:
+                reads.note(f"{_sec}.{name}" if _sec else name)
+            return object.__getattribute__(self, name)
+        cls.__getattribute__ = getattribute
+    try:
+        yield reads
+    finally:
+        for cls in SECTIONS:
+            del cls.__getattribute__
+
+
+def _producer(d, path) -> str | None:
+    """The stage that writes ``path`` in the run folder ``d`` (a `RunDir`), or None."""
+    try:
+        rel = Path(path).resolve().relative_to(d.root.resolve()).as_posix()
+    except (TypeError, ValueError):  # a file object, or a file outside the run folder
+        return None
+    # the finer-stage optimization (field/stage2) runs in the mvs23 stage
+    for prefix, stage in (("mvs/stage1/", "mvs1"), ("field/stage2/", "mvs23"),
+                          ("field/render_depth/", "guide"), ("field/surface", "mesh"),
+                          ("field/", "field"), ("mvs/", "mvs23"), ("depth/", "mvs23"),
+                          ("confidence/", "mvs23"), ("unguided/", "unguided"),
+                          ("network/", "fusion"), ("points.ply", "fusion")):
+        if rel.startswith(prefix):
+            return stage
+    return None
+
+
+#: Pipeline attributes that hold a stage's result in memory: {attribute: stage}.
+IN_MEMORY = {"_volumes1": "mvs1", "_reg1": "mvs1", "_model": "field"}
+
+
+def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
+    """Run ``cfg`` into ``out``; returns {"reads": {stage: sorted options it read} (the stages
+    it ran, "scene" and "setup"), "consumes": {stage: sorted earlier stages whose outputs it
+    read, from the run folder's files or in memory}, "ran": [the stages that ran]} (see the
+    module docstring)."""
+    import numpy as np
+    import torch
+
+    import svolsdf.io.ply as ply
+    import svolsdf.scene.checks as checks
+    from svolsdf.mvs.volume import ProbabilityVolume
+    from svolsdf.pipeline import Pipeline, loaded_run, stages
+
+    reads, consumed = Reads(), defaultdict(set)
+    run: dict = {}  # the Pipeline, once made
+
+    def where() -> str | None:
+        stage = run["p"]._stage if "p" in run else "setup"
+        return stage if stage != "finish" else None
+
+    reads.where = where
+
+    def consume(stage: str | None) -> None:
+        now = reads.where()
+        if stage is not None and now in STAGES and stage != now:
+            consumed[now].add(stage)
+
+    def loads(fn):
+        @functools.wraps(fn)
+        def inner(path, *a, **k):
+            if "p" in run:
+                consume(_producer(run["p"].dir, path))
+            return fn(path, *a, **k)
+        return inner
+
+    def getattribute(self, name):
+        value = object.__getattribute__(self, name)
+        if name in IN_MEMORY and value is not None:
+            consume(IN_MEMORY[name])
+        return value
+
+    saved = {(loaded_run, "stage_keys"): reads.wrap(loaded_run.stage_keys, None),
+             (stages, "input_keys"): reads.wrap(stages.input_keys, None),
+             (stages, "save_config"): reads.wrap(stages.save_config, None),
+             (stages, "validate_config"): reads.wrap(stages.validate_config, None),
+             (checks, "check_scene"): reads.wrap(checks.check_scene, None),
+             (np, "load"): loads(np.load), (torch, "load"): loads(torch.load),
+             (ply, "read_ply"): loads(ply.read_ply),
+             (ProbabilityVolume, "load"): staticmethod(loads(ProbabilityVolume.load))}
+    # the attributes as stored (a class's classmethod itself)
+    saved = {(o, n): (o.__dict__[n] if isinstance(o, type) else getattr(o, n), new)
+             for (o, n), new in saved.items()}
+    Pipeline.__getattribute__ = getattribute
+    try:
+        for (owner, name), (_, new) in saved.items():
+            setattr(owner, name, new)
+        with recording(reads):
+            p = run["p"] = Pipeline(cfg, out, progress=False)
+            p._check_options = reads.wrap(p._check_options, None)
+            p.load = reads.wrap(p.load, "scene")
+            p.run()
+    finally:
+        del Pipeline.__getattribute__
+        for (owner, name), (old, _) in saved.items():
+            setattr(owner, name, old)
+    return {"reads": {s: sorted(o) for s, o in sorted(reads.by_stage.items())},
+            "consumes": {s: sorted(c) for s, c in sorted(consumed.items())},
+            "ran": [s for s in STAGES if s in p.timing]}
+
+
+def record_all(folder: Path) -> dict:
+    """{run name: `record_run`'s record} of every `base_configs` run of a tiny synthetic scene
+    made in ``folder``."""
+    from tiny_pipeline import make_tiny_scene
+
+    scene = make_tiny_scene(folder / "scene")
+    table = {}
+    for name, cfg in base_configs(scene).items():
+        table[name] = record_run(cfg, folder / name)
+    return table
+
+
+def load_table() -> dict:
+    return json.loads(TABLE.read_text())
+
+
+def main() -> None:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        table = record_all(Path(d))
+    TABLE.write_text(json.dumps(table, indent=1, sort_keys=True) + "\n")
+    print(f"wrote {TABLE}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
+    main()
