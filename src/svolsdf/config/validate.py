@@ -242,9 +242,9 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
                "points.ply): use output.mesh_method=poisson or another train.mode")
     if o.mesh_watertight and o.mesh_method != "field":
         refuse("output.mesh_watertight", True, "output.mesh_method", o.mesh_method,
-               "the watertight mesh is the field's closed zero level and a Poisson surface "
-               "opens at its octree's box: use output.mesh_method=field or drop "
-               "output.mesh_watertight")
+               "the watertight mesh is the field's closed zero level, and the meshes of the "
+               "points (poisson, tsdf, ...) open where no point is: use "
+               "output.mesh_method=field or drop output.mesh_watertight")
     if 0 < t.beta_start < t.beta_end:
         refuse("train.beta_start", t.beta_start, "train.beta_end", t.beta_end,
                "beta is annealed from beta_start down to beta_end (a sharper surface at the "

@@ -23,9 +23,9 @@ log = logging.getLogger("svolsdf.pipeline")
 
 def observed_depths_of(run: Run, points: np.ndarray) -> list[torch.Tensor] | None:
     """Each input view's final depth (OUT/depth) where the fused ``points`` (N, 3) confirm it,
-    the unguided set (OUT/unguided/depth) where the guided one is not confirmed
-    (`svolsdf.fusion.observe.observed_depths`): one (H, W) map per input view, or None when a
-    view's depth map is missing.
+    the unguided set (OUT/unguided/depth, when the config fuses it: files an earlier config left
+    are not read) where the guided one is not confirmed (`svolsdf.fusion.observe.observed_depths`):
+    one (H, W) map per input view, or None when a view's depth map is missing.
 
     Args:
         run: a `Run` whose depth stages are finished.
@@ -34,7 +34,9 @@ def observed_depths_of(run: Run, points: np.ndarray) -> list[torch.Tensor] | Non
 
     sets = []
     for v in run.views:
-        files = [run.out / "depth" / f"{v}.npy", run.dir.unguided_dir / "depth" / f"{v}.npy"]
+        files = [run.out / "depth" / f"{v}.npy"]
+        if options.wants_unguided(run.cfg):
+            files.append(run.dir.unguided_dir / "depth" / f"{v}.npy")
         if not files[0].is_file():
             return None
         sets.append([torch.from_numpy(np.load(f)).float() for f in files if f.is_file()])
