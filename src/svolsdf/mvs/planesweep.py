@@ -212,11 +212,20 @@ def guided_filter(guide: Tensor, p: Tensor, radius: int, eps: float,
         vI = box_filter(guide * guide, radius) - mI * mI
     else:
         mI, vI = guide_stats
+    if radius <= 0:  # the box filter returns its input: nothing may be written in place
+        cov = guide * p - mI * p
+        a = cov / (vI + eps)
+        return a * guide + (p - a * mI)
+    # in place where the old value is not needed again (the same operations in the same order)
     mp = box_filter(p, radius)
-    cov = box_filter(guide * p, radius) - mI * mp
-    a = cov / (vI + eps)
-    b = mp - a * mI
-    return box_filter(a, radius) * guide + box_filter(b, radius)
+    t = guide * p
+    cov = box_filter(t, radius)
+    torch.mul(mI, mp, out=t)
+    a = cov.sub_(t).div_(vI + eps)
+    torch.mul(a, mI, out=t)
+    b = mp.sub_(t)
+    del t
+    return box_filter(a, radius).mul_(guide).add_(box_filter(b, radius))
 
 
 def zncc_cost(ref: Tensor, warped: Tensor, radius: int, eps: float,
@@ -240,6 +249,10 @@ def zncc_cost(ref: Tensor, warped: Tensor, radius: int, eps: float,
         vR = (box_filter(ref * ref, radius) - mR * mR).clamp_min(0)
     else:
         mR, vR = ref_stats
+    if radius <= 0:  # the box filter returns its input: nothing may be written in place
+        vS = (warped * warped - warped * warped).clamp_min(0)
+        cross = warped * ref - mR * warped
+        return 1.0 - (cross / torch.sqrt((vR + eps) * (vS + eps))).clamp(-1, 1)
     # in place where the old value is not needed again: the same operations in the same order
     # as the out-of-place formula, without a fresh (D, H, W) allocation per step
     mS = box_filter(warped, radius)
