@@ -329,6 +329,9 @@ def _sgm_passes(c: Tensor, g: Tensor, p1: float, p2: float, sigma: float,
     """
     n, D, m = c.shape
     B = len(passes)
+    # one contiguous copy (``c`` is a moved view of the volume): each step then reads whole
+    # slices instead of a column of every row
+    c = c.contiguous()
     # a reverse pass = a forward pass over flipped slices with the opposite shift. The batch
     # holds the forward passes first: their slice i is c[i] and the reverse passes' is
     # c[n - 1 - i], read in place (no flipped copy of the volume)
