@@ -11,21 +11,28 @@ and the Python loop of the SGM scanline passes (another third). Both were rewrit
   constant column, which keeps C where a pass has no predecessor), so 8 directions take W + H
   Python steps instead of 2 W + 6 H, and the edge-aware P2 is computed once per volume.
 
-This script times the current functions against the previous ones, interleaved (round-robin,
-median of ``--repeats``) at the sizes the backbone uses at 768x576 (stage 1: 192 hypotheses at
-1/4 size, stage 2: 32 at 1/2, stage 3: 8 at full size; the box filter on a 24-hypothesis chunk),
-and checks that they agree. With ``--scene`` it also times a whole MVS-only run of the current
-code, ``svolsdf reconstruct SCENE --mode mvs-only`` (a fresh output folder), per stage.
+Issue 39 then took another pass at the same code without changing its arithmetic (the volumes
+are bit-identical): the SGM step writes into its output buffer (no per-step copies; the minima
+in place), the ZNCC moments and the box filter's first add reuse their buffers, two sources are
+merged by a minimum instead of a sort, and `ProbabilityVolume.save` deflates only the arrays that
+shrink.
+
+``--against REV`` (default: the commit before issue 39's) loads that revision's
+``svolsdf/mvs/planesweep.py`` and ``volume.py`` from git next to the current ones and times both
+on ``--scene`` (stages 1, 2, 3 of each ``--views`` view, interleaved old/new, ``--repeats``
+rounds), with the maximum differences of depth, probability and confidence, and the time and
+size of each stage's volume file. ``--micro`` also times the box filter and SGM against their
+versions before the rewrite above (random inputs at the MVS sizes of a 768x576 scene).
 
 Run (from the repo root):
 
-    python benchmarks/mvs_speed.py [--scene SCENE] [--out benchmarks/results/mvs_speed.md]
+    python benchmarks/mvs_speed.py --scene SCENE [--views 0 1 2] [--against REV] [--micro]
+        [--out benchmarks/results/mvs_speed.md]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -109,40 +116,139 @@ def _interleaved(fns: dict, repeats: int) -> dict[str, float]:
     return {k: statistics.median(v) for k, v in times.items()}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", type=Path, default=None,
-                    help="also time `svolsdf reconstruct SCENE --mode mvs-only` per stage")
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/mvs_speed.md")
-    args = ap.parse_args()
+def _module_at(rev: str, rel: str, name: str):
+    """The module ``src/svolsdf/mvs/<rel>`` of git revision ``rev``, imported as ``name``."""
+    import importlib.util
+
+    text = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:src/svolsdf/mvs/{rel}"],
+                          check=True, capture_output=True, text=True).stdout
+    tmp = Path(tempfile.mkdtemp()) / rel
+    tmp.write_text(text)
+    spec = importlib.util.spec_from_file_location(name, tmp)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _against(scene_path: Path, views: list[int], refs: list[int] | None, rev: str,
+             repeats: int) -> list[str]:
+    """Stages 1-3 of the current plane sweep and of revision ``rev``'s, interleaved, per
+    reference view (``refs``, default all ``views``); and their volumes' files (save time, size)."""
+    from svolsdf.mvs import backbone as bb_mod
+    from svolsdf.mvs import planesweep as new_ps
+    from svolsdf.mvs.volume import ProbabilityVolume
+    from svolsdf.scene.loaders import load_scene
+
+    registered = dict(bb_mod._REGISTERED)
+    old_ps = _module_at(rev, "planesweep.py", "planesweep_previous")
+    old_vol = _module_at(rev, "volume.py", "volume_previous")
+    bb_mod._REGISTERED.clear()
+    bb_mod._REGISTERED.update(registered)  # the old module registered its class over ours
+    scene = load_scene(scene_path, views=views)
+    refs = list(views if refs is None else refs)
+    impls = {"old": old_ps.PlaneSweepBackbone(), "new": new_ps.PlaneSweepBackbone()}
+    times = {k: {1: [], 2: [], 3: []} for k in impls}
+    cpu = {k: {1: [], 2: [], 3: []} for k in impls}
+    diffs = {k: [0.0, 0.0, 0.0, True] for k in (1, 2, 3)}
+    save = {k: {"old": [], "new": [], "size_old": 0, "size_new": 0} for k in (1, 2, 3)}
+    shapes = {}
+    with torch.no_grad():
+        for b in impls.values():  # the images at each stage's size, cached by the backbone
+            for k in (1, 2, 3):
+                b._stage_inputs(scene, k)
+        for rep in range(repeats):
+            for vid in refs:
+                res = {}
+                for name in (["old", "new"] if rep % 2 == 0 else ["new", "old"]):
+                    res[name] = {}
+                    for k in (1, 2, 3):
+                        prev = {vid: res[name][k - 1]} if k > 1 else None
+                        t0, c0 = time.perf_counter(), time.process_time()
+                        res[name][k] = impls[name].stage(k, scene, ref_ids=[vid], prev=prev)[0]
+                        times[name][k].append(time.perf_counter() - t0)
+                        cpu[name][k].append(time.process_time() - c0)
+                    print(rep, vid, name, {k: round(v[-1], 2) for k, v in times[name].items()},
+                          flush=True)
+                for k in (1, 2, 3):
+                    a, b = res["old"][k], res["new"][k]
+                    shapes[k] = tuple(a.prob.shape)
+                    d = diffs[k]
+                    d[0] = max(d[0], float((a.depth - b.depth).abs().max()))
+                    d[1] = max(d[1], float((a.prob - b.prob).abs().max()))
+                    d[2] = max(d[2], float((a.confidence - b.confidence).abs().max()))
+                    d[3] = d[3] and all(torch.equal(getattr(a, f), getattr(b, f)) for f in
+                                        ("depths", "prob", "depth", "confidence"))
+                    if rep == 0:  # the volume files, both writers on the new volume
+                        with tempfile.TemporaryDirectory() as tmp:
+                            for name, cls in (("old", old_vol.ProbabilityVolume),
+                                              ("new", ProbabilityVolume)):
+                                v = cls(b.depths, b.prob, b.depth, b.confidence, b.cameras,
+                                        b.view_id, b.stage, b.inverse_depth)
+                                f = Path(tmp) / f"{name}.npz"
+                                t0 = time.perf_counter()
+                                v.save(f)
+                                save[k][name].append(time.perf_counter() - t0)
+                                save[k][f"size_{name}"] += f.stat().st_size
+                            back = [ProbabilityVolume.load(Path(tmp) / f"{n}.npz")
+                                    for n in ("old", "new")]
+                            assert all(torch.equal(getattr(back[0], f), getattr(back[1], f))
+                                       for f in ("depths", "prob", "depth", "confidence"))
+    med = {n: {k: statistics.median(v) for k, v in t.items()} for n, t in times.items()}
+    mcpu = {n: {k: statistics.median(v) for k, v in t.items()} for n, t in cpu.items()}
+    lines = [
+        f"## Stages 1-3 against revision {rev}, on `{scene_path.name}` (views {views}, "
+        f"references {refs})", "",
+        f"Per stage and reference view, median over {len(refs)} view(s) x {repeats} "
+        "round(s), old and new interleaved in one process; the differences are the largest "
+        "over the views (depth in world units).", "",
+        "| stage | volume (D, H, W) | previous (s) | current (s) | speed-up | CPU-time speed-up "
+        "| max abs diff depth / prob / confidence | bit-identical |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for k in (1, 2, 3):
+        d = diffs[k]
+        lines.append(f"| {k} | {shapes[k]} | {med['old'][k]:.1f} | {med['new'][k]:.1f} | "
+                     f"{med['old'][k] / med['new'][k]:.2f}x | "
+                     f"{mcpu['old'][k] / mcpu['new'][k]:.2f}x | {d[0]:.1e} / {d[1]:.1e} / "
+                     f"{d[2]:.1e} | {'yes' if d[3] else 'no'} |")
+    tot = {n: sum(m.values()) for n, m in med.items()}
+    tcpu = {n: sum(m.values()) for n, m in mcpu.items()}
+    lines += [f"| 1-3 | | {tot['old']:.1f} | {tot['new']:.1f} | {tot['old'] / tot['new']:.2f}x "
+              f"| {tcpu['old'] / tcpu['new']:.2f}x | | |", "",
+              "Volume files (`ProbabilityVolume.save`, the current volumes written by both "
+              "writers, one round; sizes summed over the views; the arrays read back equal):", "",
+              "| stage | previous save (s) | current save (s) | previous size (MB) | "
+              "current size (MB) |", "|---|---|---|---|---|"]
+    for k in (1, 2, 3):
+        sv = save[k]
+        lines.append(f"| {k} | {statistics.median(sv['old']):.2f} | "
+                     f"{statistics.median(sv['new']):.2f} | {sv['size_old'] / 1e6:.0f} | "
+                     f"{sv['size_new'] / 1e6:.0f} |")
+    return lines
+
+
+def _micro(repeats: int) -> list[str]:
+    """The box filter and SGM against their versions before the first rewrite."""
     g = torch.Generator().manual_seed(0)
     lines = [
-        "# Plane-sweep speed: box filter and SGM, current against previous",
-        "",
-        f"- machine: {cpu_name()}, nproc = {os.cpu_count()}, torch threads = "
-        f"{torch.get_num_threads()}, torch {torch.__version__}, Python "
-        f"{platform.python_version()}; shared machine, timings interleaved, median of "
-        f"{args.repeats}",
-        f"- command: `python benchmarks/mvs_speed.py {' '.join(sys.argv[1:])}`".replace("  ", " "),
-        "",
-        "## Box filter (radius 2, the ZNCC window and guided-filter radius of every stage)",
-        "",
-        "| input (N, C, H, W) | previous (ms) | current (ms) | speed-up | max abs diff |",
+        "## Box filter (radius 2), against `avg_pool2d`", "",
+        "| input (N, C, H, W) | avg_pool2d (ms) | current (ms) | speed-up | max abs diff |",
         "|---|---|---|---|---|",
     ]
-    for shape in [(1, 24, 144, 192), (1, 24, 288, 384), (1, 8, 576, 768), (1, 1, 576, 768)]:
+    for shape in [(1, 24, 288, 384), (1, 24, 576, 768), (1, 8, 1152, 1536)]:
         x = torch.rand(*shape, generator=g)
         diff = float((box_filter(x, 2) - box_filter_pool(x, 2)).abs().max())
         t = _interleaved({"old": lambda x=x: box_filter_pool(x, 2),
-                          "new": lambda x=x: box_filter(x, 2)}, args.repeats)
+                          "new": lambda x=x: box_filter(x, 2)}, repeats)
         lines.append(f"| {shape} | {1e3 * t['old']:.1f} | {1e3 * t['new']:.1f} | "
                      f"{t['old'] / t['new']:.1f}x | {diff:.1e} |")
         print(lines[-1], flush=True)
-    lines += ["", "## SGM, 8 directions (P1 0.03, P2 2.0, sigma 0.04: the backbone's defaults)", "",
-              "| cost volume (D, H, W) | previous (s) | current (s) | speed-up | max abs diff "
-              "| argmin differs |", "|---|---|---|---|---|---|"]
-    for shape in [(192, 144, 192), (32, 288, 384), (8, 576, 768)]:
+    lines += ["", "## SGM, 8 directions (P1 0.03, P2 2.0, sigma 0.04: the backbone's defaults), "
+              "against one pass at a time", "",
+              "| cost volume (D, H, W) | one pass at a time (s) | current (s) | speed-up "
+              "| max abs diff | argmin differs |", "|---|---|---|---|---|---|"]
+    for shape in [(192, 288, 384), (32, 576, 768), (8, 1152, 1536)]:
         c = 2 * torch.rand(*shape, generator=g)
         gd = torch.rand(*shape[1:], generator=g)
         a, b = sgm_aggregate(c, gd, 0.03, 2.0, 0.04, 8), sgm_loop(c, gd, 0.03, 2.0, 0.04, 8)
@@ -150,25 +256,67 @@ def main() -> None:
         flips = int((a.argmin(0) != b.argmin(0)).sum())
         t = _interleaved({"old": lambda c=c, gd=gd: sgm_loop(c, gd, 0.03, 2.0, 0.04, 8),
                           "new": lambda c=c, gd=gd: sgm_aggregate(c, gd, 0.03, 2.0, 0.04, 8)},
-                         max(1, args.repeats // 2))
+                         max(1, repeats // 2))
         lines.append(f"| {shape} | {t['old']:.2f} | {t['new']:.2f} | {t['old'] / t['new']:.1f}x "
                      f"| {diff:.1e} | {flips} of {shape[1] * shape[2]} |")
         print(lines[-1], flush=True)
+    return lines
+
+
+def _command(args) -> str:
+    """The command line's arguments, the scene and output named without their folders."""
+    parts = []
     if args.scene is not None:
-        with tempfile.TemporaryDirectory() as tmp:
-            out = Path(tmp) / "run"
-            t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "svolsdf", "reconstruct", str(args.scene),
-                            "-o", str(out), "--mode", "mvs-only", "--no-progress"], check=True,
-                           stdout=subprocess.DEVNULL)
-            wall = time.perf_counter() - t0
-            stages = json.loads((out / "timing.json").read_text())
-        st = {k: round(v["seconds"], 1) for k, v in stages.items() if isinstance(v, dict)}
-        lines += ["", f"## Whole MVS-only run of the current code on `{args.scene}`", "",
-                  f"- `svolsdf reconstruct {args.scene} --mode mvs-only`: {wall:.0f} s wall "
-                  f"(process start included); stages (s): {st}"]
-        print(lines[-1], flush=True)
-    write_results(args.out, "\n".join(lines) + "\n")
+        parts += ["--scene", args.scene.name, "--views", *map(str, args.views),
+                  *(["--refs", *map(str, args.refs)] if args.refs else []),
+                  "--against", args.against]
+    parts += ["--repeats", str(args.repeats)]
+    parts += ["--threads", str(args.threads)] if args.threads else []
+    parts += ["--micro"] if args.micro else []
+    return " ".join(parts)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", type=Path, default=None,
+                    help="time stages 1-3 on this scene against --against")
+    ap.add_argument("--views", type=int, nargs="+", default=[0, 1, 2],
+                    help="the scene's views to load")
+    ap.add_argument("--refs", type=int, nargs="+", default=None,
+                    help="reference views to time (default all --views)")
+    ap.add_argument("--against", default="4ce07e5",
+                    help="git revision whose planesweep.py and volume.py are the 'previous'")
+    ap.add_argument("--micro", action="store_true",
+                    help="also time the box filter and SGM against their first versions")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads (default torch's); 1 makes timings on a loaded shared "
+                    "machine steadier")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/mvs_speed.md")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip()
+    dirty = bool(subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "src"],
+                                capture_output=True, text=True).stdout.strip())
+    lines = [
+        "# Plane-sweep speed: current against previous",
+        "",
+        f"- machine: {cpu_name()}, nproc = {os.cpu_count()}, torch threads = "
+        f"{torch.get_num_threads()}, torch {torch.__version__}, Python "
+        f"{platform.python_version()}; shared machine, old and new interleaved",
+        f"- command: `python benchmarks/mvs_speed.py {_command(args)}`",
+        f"- date: {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC; commit {commit}"
+        + (" with uncommitted changes under src/" if dirty else ""),
+        "",
+    ]
+    if args.scene is not None:
+        lines += _against(args.scene, args.views, args.refs, args.against,
+                          args.repeats) + [""]
+    if args.micro:
+        lines += _micro(args.repeats) + [""]
+    write_results(args.out, "\n".join(lines))
     print(f"wrote {args.out}")
 
 

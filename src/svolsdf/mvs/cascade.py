@@ -96,10 +96,10 @@ def save_cascade(result: dict[int, list[ProbabilityVolume]], out_dir: Path | str
                  picture=None, volumes: bool = True) -> dict[int, dict[str, Path]]:
     """Write the cascade's outputs under ``out_dir``.
 
-    Files: ``mvs/stage{k}/{view_id}.npz`` (`ProbabilityVolume.save`, compressed) for every stage
-    when ``volumes``; for the last stage run: ``depth/{view_id}.npy`` (z-depth, world units,
-    float32, at its size), ``confidence/{view_id}.npy`` (product over stages, docs/method.md 6.2)
-    and, when ``picture`` is given, ``depth/{view_id}.png`` written by
+    Files: ``mvs/stage{k}/{view_id}.npz`` (`ProbabilityVolume.save`, deflated where it pays) for
+    every stage when ``volumes``; for the last stage run: ``depth/{view_id}.npy`` (z-depth, world
+    units, float32, at its size), ``confidence/{view_id}.npy`` (product over stages,
+    docs/method.md 6.2) and, when ``picture`` is given, ``depth/{view_id}.png`` written by
     ``picture(depth (H,W) ndarray, path)``.
 
     Returns:

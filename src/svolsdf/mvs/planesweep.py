@@ -147,9 +147,16 @@ class PlaneSweepConfig:
 # --------------------------------------------------------------------------- filters
 def _window_sum(x: Tensor, radius: int, dim: int) -> Tensor:
     """Sum of ``x`` over [i - radius, i + radius] along ``dim``, entries outside left out."""
-    out = x.clone()
     n = x.shape[dim]
-    for s in range(1, min(radius, n - 1) + 1):
+    if radius <= 0 or n <= 1:
+        return x.clone()
+    # the first add writes the output (x[i] + x[i-1], x[0] copied): one pass less than a clone
+    # followed by the add, with the same sums in the same order
+    out = torch.empty_like(x)
+    torch.add(x.narrow(dim, 1, n - 1), x.narrow(dim, 0, n - 1), out=out.narrow(dim, 1, n - 1))
+    out.narrow(dim, 0, 1).copy_(x.narrow(dim, 0, 1))
+    out.narrow(dim, 0, n - 1).add_(x.narrow(dim, 1, n - 1))
+    for s in range(2, min(radius, n - 1) + 1):
         out.narrow(dim, s, n - s).add_(x.narrow(dim, 0, n - s))
         out.narrow(dim, 0, n - s).add_(x.narrow(dim, s, n - s))
     return out
@@ -205,11 +212,20 @@ def guided_filter(guide: Tensor, p: Tensor, radius: int, eps: float,
         vI = box_filter(guide * guide, radius) - mI * mI
     else:
         mI, vI = guide_stats
+    if radius <= 0:  # the box filter returns its input: nothing may be written in place
+        cov = guide * p - mI * p
+        a = cov / (vI + eps)
+        return a * guide + (p - a * mI)
+    # in place where the old value is not needed again (the same operations in the same order)
     mp = box_filter(p, radius)
-    cov = box_filter(guide * p, radius) - mI * mp
-    a = cov / (vI + eps)
-    b = mp - a * mI
-    return box_filter(a, radius) * guide + box_filter(b, radius)
+    t = guide * p
+    cov = box_filter(t, radius)
+    torch.mul(mI, mp, out=t)
+    a = cov.sub_(t).div_(vI + eps)
+    torch.mul(a, mI, out=t)
+    b = mp.sub_(t)
+    del t
+    return box_filter(a, radius).mul_(guide).add_(box_filter(b, radius))
 
 
 def zncc_cost(ref: Tensor, warped: Tensor, radius: int, eps: float,
@@ -233,11 +249,25 @@ def zncc_cost(ref: Tensor, warped: Tensor, radius: int, eps: float,
         vR = (box_filter(ref * ref, radius) - mR * mR).clamp_min(0)
     else:
         mR, vR = ref_stats
+    if radius <= 0:  # the box filter returns its input: nothing may be written in place
+        vS = (warped * warped - warped * warped).clamp_min(0)
+        cross = warped * ref - mR * warped
+        return 1.0 - (cross / torch.sqrt((vR + eps) * (vS + eps))).clamp(-1, 1)
+    # in place where the old value is not needed again: the same operations in the same order
+    # as the out-of-place formula, without a fresh (D, H, W) allocation per step
     mS = box_filter(warped, radius)
-    vS = (box_filter(warped * warped, radius) - mS * mS).clamp_min(0)
-    cross = box_filter(warped * ref, radius) - mR * mS
-    ncc = cross / torch.sqrt((vR + eps) * (vS + eps))
-    return 1.0 - ncc.clamp(-1, 1)
+    t = warped * warped
+    vS = box_filter(t, radius)
+    torch.mul(mS, mS, out=t)
+    vS.sub_(t).clamp_min_(0)
+    torch.mul(warped, ref, out=t)
+    cross = box_filter(t, radius)
+    torch.mul(mR, mS, out=t)
+    cross.sub_(t)
+    del t, mS
+    vS.add_(eps).mul_(vR + eps).sqrt_()  # sqrt((var S + eps)(var R + eps)), a commuted product
+    ncc = cross.div_(vS).clamp_(-1, 1)
+    return ncc.neg_().add_(1.0)
 
 
 def sgm_aggregate(cost: Tensor, guide: Tensor, p1: float, p2: float, sigma: float,
@@ -286,36 +316,71 @@ def _sgm_passes(c: Tensor, g: Tensor, p1: float, p2: float, sigma: float,
     A forward pass with shift s takes the predecessor of column x in slice i from column x - s
     of slice i - 1 (columns without one keep C); a reverse pass walks from the last slice, with
     the predecessor at column x + s of slice i + 1. Hirschmüller's recursion, see
-    `sgm_aggregate`."""
+    `sgm_aggregate`.
+
+    Args:
+        c: (n, D, m) cost slices.
+        g: (n, m) guide intensities of the slices.
+        p1, p2, sigma: as `sgm_aggregate`.
+        passes: (shift, reverse) per pass.
+
+    Returns:
+        (n, D, m) the passes' aggregated costs, summed.
+    """
     n, D, m = c.shape
     B = len(passes)
-    # a reverse pass = a forward pass over flipped slices with the opposite shift
-    C = torch.stack([c.flip(0) if rev else c for _, rev in passes])  # (B, n, D, m)
-    G = torch.stack([g.flip(0) if rev else g for _, rev in passes])  # (B, n, m)
-    shifts = torch.tensor([-s if rev else s for s, rev in passes], device=c.device)
-    # column of each predecessor in a buffer padded by one column per side; a padded
+    # one contiguous copy (``c`` is a moved view of the volume): each step then reads whole
+    # slices instead of a column of every row
+    c = c.contiguous()
+    # a reverse pass = a forward pass over flipped slices with the opposite shift. The batch
+    # holds the forward passes first: their slice i is c[i] and the reverse passes' is
+    # c[n - 1 - i], read in place (no flipped copy of the volume)
+    order = ([b for b, (_, rev) in enumerate(passes) if not rev]
+             + [b for b, (_, rev) in enumerate(passes) if rev])
+    nf = sum(1 for _, rev in passes if not rev)
+    rev_idx = torch.arange(n - 1, -1, -1, device=c.device)
+    gr = torch.index_select(g, 0, rev_idx)
+    G = torch.stack([gr if passes[b][1] else g for b in order])  # (B, n, m)
+    shifts = torch.tensor([-passes[b][0] if passes[b][1] else passes[b][0] for b in order],
+                          device=c.device)
+    # column of each predecessor in the output padded by one zero column per side; a padded
     # predecessor is constant over D, so the penalty term vanishes there (C is kept)
     cols = torch.arange(m, device=c.device)[None] - shifts[:, None] + 1  # (B, m)
     idx = cols[:, None, :].expand(B, D, m)
     Gp = F.pad(G, (1, 1), mode="replicate")
     g_prev = torch.gather(Gp[:, :-1], 2, cols[:, None, :].expand(B, n - 1, m))  # (B, n-1, m)
     pen2 = p1 + (p2 - p1) * torch.exp(-(G[:, 1:] - g_prev).abs() / sigma)  # (B, n-1, m)
-    out = torch.empty_like(C)
-    buf = c.new_zeros(B, D, m + 2)
-    out[:, 0] = C[:, 0]
-    buf[:, :, 1:-1] = C[:, 0]
+    del G, Gp, g_prev, gr
+    # the passes' outputs with a zero column on each side: slice i - 1 is slice i's buffer of
+    # predecessors, so no copy per step
+    out = c.new_empty(B, n, D, m + 2)
+    out[..., 0] = 0
+    out[..., -1] = 0
+    out[:nf, 0, :, 1:-1] = c[0]
+    out[nf:, 0, :, 1:-1] = c[n - 1]
+    # min is exact, so the order of the minima does not change the result:
+    # best = min(P, min_j P + pen2, P[k-1] + P1, P[k+1] + P1) at hypothesis k
     for i in range(1, n):
-        P = torch.gather(buf, 2, idx)  # (B, D, m) predecessors
-        mval = P.min(dim=1, keepdim=True).values
+        P = torch.gather(out[:, i - 1], 2, idx)  # (B, D, m) predecessors
+        mval = P.amin(dim=1, keepdim=True)
+        P1 = P + p1
         best = torch.minimum(P, mval + pen2[:, i - 1, None])
-        best[:, 1:] = torch.minimum(best[:, 1:], P[:, :-1] + p1)
-        best[:, :-1] = torch.minimum(best[:, :-1], P[:, 1:] + p1)
-        cur = C[:, i] + best - mval
-        out[:, i] = cur
-        buf[:, :, 1:-1] = cur
+        torch.minimum(best[:, 1:], P1[:, :-1], out=best[:, 1:])
+        torch.minimum(best[:, :-1], P1[:, 1:], out=best[:, :-1])
+        cur = out[:, i, :, 1:-1]
+        if nf:
+            torch.add(c[i], best[:nf], out=cur[:nf])
+        if nf < B:
+            torch.add(c[n - 1 - i], best[nf:], out=cur[nf:])
+        cur.sub_(mval)
+    # summed in the order of ``passes``; a reverse pass's slices are added back flipped
     total = torch.zeros_like(c)
-    for b, (_, rev) in enumerate(passes):
-        total += out[b].flip(0) if rev else out[b]
+    for b in range(B):
+        o = out[order.index(b), :, :, 1:-1]
+        if passes[b][1]:
+            total.index_add_(0, rev_idx, o)
+        else:
+            total += o
     return total
 
 
@@ -335,6 +400,14 @@ def aggregate_sources(costs: Tensor, valid: Tensor, keep_fraction: float,
     S = costs.shape[0]
     if S == 1:
         return torch.where(valid[0], costs[0], torch.full_like(costs[0], missing_cost))
+    if S == 2 and keep_fraction <= 0.5:
+        # k = 1 wherever a source is valid: the smaller valid cost, the value the sort below
+        # gives, without sorting along a dimension of 2 (slow on large volumes)
+        big = torch.finfo(costs.dtype).max / 4
+        a = torch.where(valid[0], costs[0], torch.full_like(costs[0], big))
+        b = torch.where(valid[1], costs[1], torch.full_like(costs[1], big))
+        best = torch.minimum(a, b)
+        return best.masked_fill_(best >= big, missing_cost)
     big = torch.finfo(costs.dtype).max / 4
     c = torch.where(valid, costs, torch.full_like(costs, big))
     c, _ = torch.sort(c, dim=0)
@@ -516,20 +589,26 @@ class PlaneSweepBackbone(MVSBackbone):
         g_stats = (mI, box_filter(g * g, frad) - mI * mI)
         cost = torch.empty(D, H, W, dtype=torch.float32, device=depths.device)
         weights = [1.0] + [cfg.gradient_weight] * (C - 1)
+        wsum = sum(weights)
         for d0 in range(0, D, cfg.depth_chunk):
             dh = depths[d0:d0 + cfg.depth_chunk][None]
-            per_src, valids = [], []
-            for s in src:
+            per_src = torch.empty(len(src), *dh.shape[1:], dtype=torch.float32,
+                                  device=depths.device)
+            valids = torch.empty(per_src.shape, dtype=torch.bool, device=depths.device)
+            for j, s in enumerate(src):
                 warped, valid = homo_warp(chans[s:s + 1], P[s:s + 1], P[r:r + 1], dh,
                                           padding_mode="border")
-                c_s = 0.0
+                # sum_c w_c cost_c / sum_c w_c, accumulated in channel order
+                c_s = None
                 for c in range(C):
-                    c_s = c_s + weights[c] * zncc_cost(ref[:, c:c + 1], warped[:, c], rad,
-                                                       cfg.zncc_eps, ref_stats[c])
-                per_src.append(c_s[0] / sum(weights))
-                valids.append(valid[0])
-            agg = aggregate_sources(torch.stack(per_src), torch.stack(valids),
-                                    cfg.keep_fraction, cfg.missing_cost)
+                    z = zncc_cost(ref[:, c:c + 1], warped[:, c], rad, cfg.zncc_eps, ref_stats[c])
+                    if weights[c] != 1.0:
+                        z.mul_(weights[c])
+                    c_s = z if c_s is None else c_s.add_(z)
+                del warped
+                torch.div(c_s[0], wsum, out=per_src[j])
+                valids[j] = valid[0]
+            agg = aggregate_sources(per_src, valids, cfg.keep_fraction, cfg.missing_cost)
             if cfg.filter == "guided":
                 agg = guided_filter(g, agg[None], frad, cfg.filter_eps, g_stats)[0]
             elif cfg.filter == "box":
