@@ -264,18 +264,23 @@ def _summary(out: Path, rec: dict) -> dict:
             "inputs": _views_json(out).get("inputs")}
 
 
+def _run_dir(sides: dict, name: str, tag: str) -> Path:
+    """OUT/<side folder>/<tag>: OUT/old, OUT/new, or OUT/new-<preset> with --new-preset."""
+    return sides["out"] / sides[name].get("folder", name) / tag
+
+
 def run_scene(sides: dict, scene: Path, tag: str, args: list[str], pgt: Path | None,
               n_held_out: int, scale: float, which=("old", "new")) -> dict:
     """Reconstruct (old, then new), render the held-out views and score one scene."""
     runs = {}
     for name in which:
-        out = sides["out"] / name / tag
-        rec = reconstruct(sides[name], scene, out, args)
+        out = _run_dir(sides, name, tag)
+        rec = reconstruct(sides[name], scene, out, [*args, *sides[name].get("extra", [])])
         runs[name] = _summary(out, rec)
     done = [n for n in which if runs[n]["error"] is None and runs[n]["inputs"]]
     if not done:
         return {"scene": scene.name, "tag": tag, "runs": runs}
-    ref = sides["out"] / done[-1] / tag  # the new side's views when it finished
+    ref = _run_dir(sides, done[-1], tag)  # the new side's views when it finished
     vj = _views_json(ref)
     inputs = vj["inputs"]
     w, h = vj.get("size") or _working_size(scene)
@@ -283,7 +288,7 @@ def run_scene(sides: dict, scene: Path, tag: str, args: list[str], pgt: Path | N
     rsize = (max(8, round(w * scale)), max(8, round(h * scale)))
     scorer = SceneScorer(scene, inputs, (w, h), pgt)
     for name in done:
-        out = sides["out"] / name / tag
+        out = _run_dir(sides, name, tag)
         r = runs[name]
         if r["inputs"] != inputs:
             r["error"] = f"input views {r['inputs']} differ from {inputs}"
@@ -369,7 +374,8 @@ def report(meta: dict, scenes: list[dict], many: list[dict], targets: dict) -> s
          f"- command: `python benchmarks/fast_preset.py {meta['command']}`",
          f"- old: {old['short']} ({old['date'][:10]}) {old['subject']}",
          f"- new: {new['short']} ({new['date'][:10]}) {new['subject']}"
-         + (" + uncommitted changes" if new.get("dirty") else ""),
+         + (" + uncommitted changes" if new.get("dirty") else "")
+         + (f"; the new side runs `--preset {new['preset']}`" if new.get("preset") else ""),
          "- each scene: old, then new, each a fresh `svolsdf reconstruct SCENE -o OUT "
          f"--no-progress{' ' + ' '.join(meta['args']) if meta['args'] else ''}` "
          "with its own checkout's code (fast preset); wall = the sum of the stages' times "
@@ -512,6 +518,9 @@ def side_by_side(args, argv: list[str]) -> None:
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     sides = {"old": old_side(args.against, out), "new": new_side(), "out": out}
+    if args.new_preset:
+        sides["new"].update(extra=["--preset", args.new_preset], folder=f"new-{args.new_preset}",
+                            preset=args.new_preset)
     for n in ("old", "new"):
         check_import(sides[n])
     pgt: dict[str, Path] = {}

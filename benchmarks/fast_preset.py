@@ -359,6 +359,9 @@ def main() -> None:
                      help="held-out renders at this fraction of the working size")
     sbs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                      help="passed as --set to both sides' svolsdf reconstruct")
+    sbs.add_argument("--new-preset", default=None, metavar="NAME",
+                     help="the new side runs this preset (e.g. draft), in OUT/new-NAME; the old "
+                          "side keeps the fast preset and its cached runs in OUT/old")
     args = ap.parse_args()
     if args.against is not None:
         from _side_by_side import side_by_side

@@ -4,7 +4,8 @@
 as the reference once (docs/method.md 0, 2.5; no field, so stage 2 is centred on stage 1's depth),
 and writes under ``out``::
 
-    mvs/stage{1,2,3}/<view id>.npz   compressed `ProbabilityVolume`s (prob as float16)
+    mvs/stage{1,2,3}/<view id>.npz   `ProbabilityVolume`s (prob as float16; arrays deflated only
+                                     where that halves them, `ProbabilityVolume.save`)
     depth/<view id>.npy              stage-3 z-depth, world units, float32 (H, W), MVS size (the
                                      backbone's scale x the working size: 2x for the plane
                                      sweep and CasMVSNet, docs/method.md 9.2.2)
