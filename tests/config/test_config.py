@@ -376,8 +376,9 @@ def test_saved_config_loads_back(tmp_path):
     assert asdict(load_config(tmp_path / "c.yaml")) == asdict(cfg)
 
 
-def test_draft_is_fast_with_half_the_steps():
+def test_draft_is_fast_with_half_the_steps_and_a_smaller_sweep():
     fast, draft = asdict(preset("fast")), asdict(preset("draft"))
     assert draft.pop("preset") == "draft" and fast.pop("preset") == "fast"
     assert draft["train"].pop("steps") == fast["train"].pop("steps") // 2
+    assert (draft["mvs"].pop("scale"), fast["mvs"].pop("scale")) == (1.5, None)
     assert draft == fast
