@@ -51,7 +51,7 @@ NOTES = """## Notes
   0.37 %; adding margin 4 and the gradient ZNCC term (weight 0.5) gave 0.21 %. Larger supports
   over-smooth stage 1 (the object's silhouette bleeds into the table and stages 2-3, which search
   only +-16 and +-2 base intervals, cannot recover). SGM on/off: 0.47 % without vs 0.37 % with.
-- Depth estimate (`depth_radius`, session 3): the full expectation of docs/method.md 2.4 lands
+- Depth estimate (`depth_radius`): the full expectation of docs/method.md 2.4 lands
   between the two modes where a training-free cost has a second, wrong match, and the next stage
   then searches around no surface. Averaging only the 2r+1 hypotheses around the argmax (r = 2,
   now the default) raised the DTU any-source consistency of stage 3 from 31.0 / 18.7 / 17.9 % to
@@ -60,7 +60,7 @@ NOTES = """## Notes
   of the three views' any-source share at each stage's resolution): expectation 0.43 / 0.29 /
   0.23 at stages 1 / 2 / 3; r = 2: 0.55 / 0.37 / 0.28; r = 1: 0.55 / 0.36 / 0.27; r = 2 with
   filter radii 2 / 4 / 8: 0.55 / 0.38 / 0.27; r = 2 with windows 5 / 7 / 9: 0.55 / 0.37 / 0.27.
-- SGM (session 4): 8 scanline directions instead of 4 and P2 = 2.0 instead of 0.3 (P1 = 0.03,
+- SGM: 8 scanline directions instead of 4 and P2 = 2.0 instead of 0.3 (P1 = 0.03,
   cost range [0, 2]). Measured side by side with /tmp scripts, 1 torch thread:
   - DTU, mean over views 25 / 22 / 28 of the any-source share at stages 1 / 2 / 3: 4 directions,
     P2 0.3 (before): 0.550 / 0.365 / 0.277; 8 directions: 0.551 / 0.363 / 0.280; P2 1.0:
