@@ -46,7 +46,8 @@ import torch
 import torch.nn.functional as F
 from _machine import cpu_name, write_results
 
-from svolsdf.mvs.planesweep import box_filter, sgm_aggregate
+from svolsdf.mvs.planesweep import box_filter
+from svolsdf.mvs.sgm import sgm_aggregate
 
 REPO = Path(__file__).resolve().parents[1]
 

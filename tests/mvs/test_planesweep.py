@@ -20,9 +20,9 @@ from svolsdf.mvs.planesweep import (
     box_filter,
     calibrate_temperature,
     guided_filter,
-    sgm_aggregate,
     zncc_cost,
 )
+from svolsdf.mvs.sgm import sgm_aggregate
 
 RANGE = (2.5, 6.0)
 
