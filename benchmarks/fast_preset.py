@@ -9,7 +9,7 @@ after another in fresh processes (`svolsdf reconstruct`):
                         wall time that (d) used (stage 1, then optimization until the budget is
                         spent, then its mesh; scored by the mesh)
   (d) fast              the S-VolSDF fast preset (the default)
-  (d')                  (d)'s points without the unguided set (`output.fusion_unguided`
+  (d')                  (d)'s points without the unguided set (`fusion.unguided`
                         off: the guided stages 2-3 alone, as the paper fuses); fusion
                         rerun on a copy of (d)'s folder
 
@@ -125,10 +125,10 @@ def _score(scene: Path, out: Path) -> dict:
 
 
 def _guided_only(scene: Path, d_out: Path) -> dict:
-    """(d)'s points without the unguided set (`output.fusion_unguided` off): the guided stages
+    """(d)'s points without the unguided set (`fusion.unguided` off): the guided stages
     2-3 alone, as the paper fuses. A copy of (d)'s folder in which only fusion reruns."""
     g = copy_run(d_out, d_out.parent / (d_out.name + "_guided_only"),
-                 lambda cfg: setattr(cfg.output, "fusion_unguided", False))
+                 lambda cfg: setattr(cfg.fusion, "unguided", False))
     _reconstruct(scene, g, "--config", str(g / "config.yaml"))
     views = json.loads((g / "views.json").read_text())["inputs"]
     timing = json.loads((g / "timing.json").read_text())
@@ -185,7 +185,7 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
         shutil.rmtree(out)
     cfg = preset("paper")
     cfg.scene.path = str(scene)
-    cfg.output.mesh_resolution = 128  # (d) extracts at 256; the MLP's evaluation is far slower
+    cfg.mesh.resolution = 128  # (d) extracts at 256; the MLP's evaluation is far slower
     t_start = time.perf_counter()
     p = Pipeline(cfg, out, progress=False)
     p.out.mkdir(parents=True, exist_ok=True)

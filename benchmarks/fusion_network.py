@@ -1,7 +1,7 @@
-"""A learned network's guided depth as a third fusion hypothesis (`output.fusion_network`).
+"""A learned network's guided depth as a third fusion hypothesis (`fusion.network`).
 
 For each finished fast-preset run (plane-sweep backbone) given, a copy of its folder is rerun
-with ``output.fusion_network: patchmatchnet`` (`benchmarks/_machine.copy_run`): only the fusion
+with ``fusion.network: patchmatchnet`` (`benchmarks/_machine.copy_run`): only the fusion
 stage reruns, with the network started from the field's guide depth in every input view
 (`svolsdf.mvs.adapters`) and its depth fused as a further hypothesis of each view beside the
 guided and unguided plane-sweep sets. Points are scored as benchmarks/fast_preset.py scores
@@ -35,8 +35,8 @@ def _with_network(d_run: Path, out: Path, weights: Path) -> Path:
     dst = out / (d_run.name + "_network")
 
     def edit(cfg) -> None:
-        cfg.output.fusion_network = "patchmatchnet"
-        cfg.output.fusion_network_weights = str(weights)
+        cfg.fusion.network = "patchmatchnet"
+        cfg.fusion.network_weights = str(weights)
 
     if not (dst / "points.ply").is_file() or not (dst / "network").is_dir():
         copy_run(d_run, dst, edit)
@@ -106,7 +106,7 @@ def main() -> None:
         f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}; shared machine",
         f"- command: `{cmd}`",
         f"- network: {args.weights.name} (PatchmatchNet, DTU-trained TorchScript, "
-        "../shared/weights), started from the field's guide depth (`output.fusion_network`)",
+        "../shared/weights), started from the field's guide depth (`fusion.network`)",
         "- points acc / comp / Chamfer in mm (DTU rule in brackets) against the ground-truth "
         "surface the input views observe, as benchmarks/fast_preset.py; ratio = to the MVS "
         "backbone alone (the plane sweep), clipped / DTU rule, without -> with the network",

@@ -2,9 +2,9 @@
 
 The guide (docs/method.md 6.1) is the field's rendered depth of each input view. With object masks,
 fusion keeps the field-guided depth only within a few pixels of the masks
-(`OutputConfig.fusion_guided_dilation`; the unguided set, which does not use the guide, within
-`OutputConfig.fusion_unguided_dilation`), so the fast preset
-renders only the masks dilated by `OutputConfig.guide_mask_dilation` pixels. This times
+(``fusion.guided_dilation``; the unguided set, which does not use the guide, within
+``fusion.unguided_dilation``), so the fast preset
+renders only the masks dilated by ``guide.mask_dilation`` pixels. This times
 `Pipeline.render_views` on a finished run's input views for each dilation, round-robin (the
 machine is shared; ratios in one run are what counts), and reports the share of pixels rendered.
 
@@ -56,7 +56,7 @@ def main() -> None:
     variants = {}
     for d in args.dilations:
         r = None if d == "none" else int(d)
-        p.cfg = replace(base, output=replace(base.output, guide_mask_dilation=r))
+        p.cfg = replace(base, guide=replace(base.guide, mask_dilation=r))
         variants[d] = p.guide_pixels()
     p.cfg = base
     times = {d: [] for d in variants}

@@ -133,14 +133,14 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
     from svolsdf.pipeline.mesh import observed_depths_of
 
     run = Run.open(out)
-    cfg, o = run.cfg, run.cfg.output
+    cfg = run.cfg
     scene = run.load()
     scorer = Scorer(run, pgt)
     d = read_ply(out / "points.ply")
     pts, cols = d["points"], d["colors"]
     pscore = scorer.points(pts)
     print(f"{name}: {len(pts):,} points, {json.dumps(pscore)}", flush=True)
-    use_masks = scene.masks is not None and o.use_masks
+    use_masks = scene.masks is not None and cfg.scene.use_masks
     step = final_depth_step(scene.depth_range, cfg.mvs.width)
     t0 = time.perf_counter()
     observed = observed_depths_of(run, pts)
@@ -158,7 +158,7 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
             t_method = float(json.loads((out / "timing.json").read_text())["mesh"]["seconds"])
         else:  # a registered points method, as the mesh stage runs it
             inputs = MeshInputs(points=pts, colours=cols, scene=scene, observed=observed,
-                                model=run.model(), field_mesh=None, output=o, depth_step=step,
+                                model=run.model(), field_mesh=None, mesh=cfg.mesh, depth_step=step,
                                 use_masks=use_masks, device=run.device)
             vw, f, _ = get_mesh_method(method).run(inputs)
         if method != "run" and (cached is None or not cached.is_file()):

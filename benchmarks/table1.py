@@ -6,7 +6,7 @@ ratios issue 28 checks (S-VolSDF / VolSDF points Chamfer, mesh / points, IBR PSN
 
 ``--bench``: folders written by `svolsdf benchmark` (their ``benchmark.json`` rows).
 ``--poisson``: a folder of ``<scene>/metrics.json`` of the svolsdf runs with
-``--set output.mesh_method=poisson`` (only the mesh stage rerun), scored by `svolsdf evaluate`;
+``--set mesh.method=poisson`` (only the mesh stage rerun), scored by `svolsdf evaluate`;
 its mesh becomes the "poisson mesh" column.
 """
 

@@ -6,7 +6,7 @@ Both start from the sphere with nothing from MVS and use the fast preset's rays 
 The grid runs its 1000 steps (`svolsdf reconstruct --mode volsdf`, in a fresh process); the MLP
 then gets the same seconds of optimization (its steps counted until the budget is spent, stopping
 before a step that would overrun it). Each field is scored by its mesh, the zero level by
-marching cubes at the same resolution (`output.mesh_method=field`, culled by the same views),
+marching cubes at the same resolution (`mesh.method=field`, culled by the same views),
 against the ground truth the input views observe (`svolsdf evaluate`'s synthetic protocol):
 VolSDF's fused points need the rendered depth of every input pixel, which the MLP cannot render
 within the budget on a CPU, so the mesh is the fair common output.
@@ -42,8 +42,8 @@ def _score_mesh(scene: Path, mesh: Path, views: list[int]) -> dict:
 def _grid(scene: Path, out: Path, res: int) -> dict:
     """The grid VolSDF, a whole `svolsdf reconstruct` (its field stage timed by the pipeline)."""
     cmd = [sys.executable, "-m", "svolsdf", "reconstruct", str(scene), "-o", str(out),
-           "--mode", "volsdf", "--no-progress", "--set", "output.mesh_method=field",
-           "--set", "output.mesh_free_space=false", "--set", f"output.mesh_resolution={res}"]
+           "--mode", "volsdf", "--no-progress", "--set", "mesh.method=field",
+           "--set", "mesh.free_space=false", "--set", f"mesh.resolution={res}"]
     print("$", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True)
     timing = json.loads((out / "timing.json").read_text())
@@ -64,9 +64,9 @@ def _mlp(scene: Path, out: Path, budget_s: float, res: int) -> dict:
     cfg.scene.path = str(scene)
     cfg.train.mode = "volsdf"
     cfg.field.kind = "mlp"
-    cfg.output.mesh_method = "field"
-    cfg.output.mesh_free_space = False
-    cfg.output.mesh_resolution = res
+    cfg.mesh.method = "field"
+    cfg.mesh.free_space = False
+    cfg.mesh.resolution = res
     p = Pipeline(cfg, out, progress=False)
     p.out.mkdir(parents=True, exist_ok=True)
     p.load()

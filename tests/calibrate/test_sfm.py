@@ -111,7 +111,7 @@ def _tiny_cfg(scene, views=None, steps=100):
     cfg.train.checkpoint_every = 100
     cfg.field.grid_start_resolution = 32
     cfg.field.grid_resolution = 64
-    cfg.output.mesh_resolution = 96
+    cfg.mesh.resolution = 96
     return cfg
 
 

@@ -269,7 +269,7 @@ def test_bad_option_values_exit_2_before_any_work(scene, tmp_path, capsys, argv,
     ("train: {lr: abc}", "train.lr = 'abc'"),
     ("scene: {image_size: 160x120}", "scene.image_size = '160x120'"),
     ("scene: {views: '0 1 2'}", "scene.views = '0 1 2'"),
-    ("output: {use_masks: 'no'}", "output.use_masks = 'no'"),
+    ("output: {use_masks: 'no'}", "scene.use_masks = 'no'"),
     ("train: {rays: -4}", "train.rays = -4"),
 ])
 def test_bad_config_values_exit_2_before_any_work(scene, tmp_path, capsys, text, key):
@@ -479,13 +479,13 @@ def test_calibrate_errors_exit_2_with_one_line(tmp_path, capsys):
 def test_set_reaches_any_option_and_is_applied_last(seen, tmp_path, capsys):
     # --set section.option=value (YAML values), applied after the flags
     main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), "--steps", "50",
-          "--set", "train.steps=70", "--set", "output.mesh_method=poisson",
-          "--set", "mvs.ndepths=[64, 16, 8]", "--set", "output.fusion_network_weights=null"])
+          "--set", "train.steps=70", "--set", "mesh.method=poisson",
+          "--set", "mvs.ndepths=[64, 16, 8]", "--set", "fusion.network_weights=null"])
     c = seen["cfg"]
-    assert (c.train.steps, c.output.mesh_method, c.mvs.ndepths) == (70, "poisson", [64, 16, 8])
-    assert c.output.fusion_network_weights is None
+    assert (c.train.steps, c.mesh.method, c.mvs.ndepths) == (70, "poisson", [64, 16, 8])
+    assert c.fusion.network_weights is None
     for item, msg in (("train.stepz=3", "did you mean train.steps"),
-                      ("output.mesh_method=poison", "'field', 'poisson'"),
+                      ("mesh.method=poison", "'field', 'poisson'"),
                       ("steps", "expected section.option=value")):
         with pytest.raises(SystemExit) as e:
             main(["reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), "--set", item])
@@ -505,7 +505,7 @@ def test_config_prints_every_option_with_its_doc(tmp_path, capsys):
         docs = option_docs()
         assert all(docs.values()), [k for k, v in docs.items() if not v]  # every option
         lines = text.splitlines()
-        for key in ("train.steps", "output.mesh_method"):  # the doc comment sits above the key
+        for key in ("train.steps", "mesh.method"):  # the doc comment sits above the key
             at = next(i for i, ln in enumerate(lines) if ln.startswith(f"  {key.split('.')[1]}:"))
             above = " ".join(ln.strip("# ") for ln in lines[:at][-6:])
             assert docs[key].split(".")[0][:40] in " ".join(above.split()), (key, above)

@@ -90,7 +90,7 @@ def test_passing_a_flag_sets_its_option(flag, seen, tmp_path):
     assert str(got) == str(value) or got == value or got == float(value), (flag, got, value)
     # nothing else changed but the scene
     cfg = seen["cfg"]
-    for section in ("mvs", "train", "field", "output"):
+    for section in ("mvs", "train", "field", "guide", "fusion", "mesh"):
         for f in dataclasses.fields(getattr(base, section)):
             k = f"{section}.{f.name}"
             if k != key:
@@ -111,10 +111,10 @@ def test_a_new_table_line_is_a_new_flag():
     def cmd(name: str = "x", **options) -> None:
         got.update(flag_overrides(table, options))
 
-    table = {"--rays": "train.rays", "--mesh-watertight": "output.mesh_watertight"}
+    table = {"--rays": "train.rays", "--mesh-watertight": "mesh.watertight"}
     toy.command()(with_flags(cmd, table))
     res = CliRunner().invoke(toy, ["--rays", "64", "--mesh-watertight"])
     assert res.exit_code == 0, res.output
-    assert got == {"train.rays": 64, "output.mesh_watertight": True}
+    assert got == {"train.rays": 64, "mesh.watertight": True}
     res = CliRunner().invoke(toy, ["--rays", "many"])
     assert res.exit_code == 2

@@ -35,7 +35,7 @@ def tiny_run(tmp_path_factory):
     cfg.train.beta_end = 0.005
     cfg.field.grid_start_resolution = 24
     cfg.field.grid_resolution = 24
-    cfg.output.mesh_resolution = 48
+    cfg.mesh.resolution = 48
     out = tmp_path_factory.mktemp("run")
     Pipeline(cfg, out, progress=False).run()
     return scene, out

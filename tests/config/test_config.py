@@ -75,10 +75,10 @@ def test_enumerations_are_literals():
     # field kinds, samplers, mesh methods) are checked against their registries instead
     kinds = {key: tp for key, tp, _ in LEAVES}
     for key in ("preset", "device", "mvs.width", "field.init", "train.mode",
-                "train.gce_form", "train.sparse_norm", "output.mesh_format",
-                "output.low_weight_rule"):
+                "train.gce_form", "train.sparse_norm", "mesh.format",
+                "guide.low_weight_rule"):
         assert get_origin(kinds[key]) is Literal, key
-    for key in ("mvs.backbone", "field.kind", "train.sampler", "output.mesh_method"):
+    for key in ("mvs.backbone", "field.kind", "train.sampler", "mesh.method"):
         assert kinds[key] is str and choices(key), key
     assert "ce" in get_args(next(a for a in get_args(kinds["train.ablation"])
                                  if get_origin(a) is Literal))
@@ -92,8 +92,8 @@ def test_enumerations_are_literals():
     ("scene: {views: '0 1 2'}", "scene.views", "'0 1 2'"),
     ("scene: {views: [0, 1, 1]}", "scene.views", "1 is repeated"),
     ("scene: {views: [3]}", "scene.views", "[3]"),
-    ("output: {use_masks: 'no'}", "output.use_masks", "'no'"),
-    ("output: {use_masks: 1}", "output.use_masks", "1"),
+    ("output: {use_masks: 'no'}", "scene.use_masks", "'no'"),
+    ("output: {use_masks: 1}", "scene.use_masks", "1"),
     ("train: {rays: -4}", "train.rays", "-4"),
     ("train: {steps: -5}", "train.steps", "-5"),
     ("threads: -2", "threads", "-2"),
@@ -108,7 +108,7 @@ def test_enumerations_are_literals():
     ("scene: {path: 3}", "scene.path", "3"),
     ("scene: {lighting: 7}", "scene.lighting", "7"),
     ("output: {finer_stage_optimization: true}\ntrain: {mode: volsdf}",
-     "output.finer_stage_optimization", "train.mode"),
+     "mvs.finer_stage_optimization", "train.mode"),
 ])
 def test_bad_values_name_the_key_the_value_and_what_is_allowed(tmp_path, text, key, value):
     p = tmp_path / "c.yaml"
@@ -157,12 +157,12 @@ def test_overrides_are_validated_and_name_their_option():
 @pytest.mark.parametrize("name, given, a, b", [
     ("fast", {"train.mode": "volsdf", "train.ablation": "mse"}, "train.mode", "train.ablation"),
     ("fast", {"train.mode": "mvs-only", "train.ablation": "ce"}, "train.mode", "train.ablation"),
-    ("fast", {"train.mode": "volsdf", "output.low_weight_rule": "mvs"}, "train.mode",
-     "output.low_weight_rule"),
-    ("fast", {"train.mode": "volsdf", "output.fusion_network": "patchmatchnet"}, "train.mode",
-     "output.fusion_network"),
-    ("fast", {"output.fusion_network_weights": "w.pt"}, "output.fusion_network_weights",
-     "output.fusion_network"),
+    ("fast", {"train.mode": "volsdf", "guide.low_weight_rule": "mvs"}, "train.mode",
+     "guide.low_weight_rule"),
+    ("fast", {"train.mode": "volsdf", "fusion.network": "patchmatchnet"}, "train.mode",
+     "fusion.network"),
+    ("fast", {"fusion.network_weights": "w.pt"}, "fusion.network_weights",
+     "fusion.network"),
     ("fast", {"field.grid_start_resolution": 256}, "field.grid_start_resolution",
      "field.grid_resolution"),
     ("fast", {"train.mode": "volsdf", "field.sphere_start_resolution": 64,
@@ -170,14 +170,14 @@ def test_overrides_are_validated_and_name_their_option():
      "field.grid_resolution"),
     ("fast", {"train.beta_start": 1e-3, "train.beta_end": 1e-2}, "train.beta_start",
      "train.beta_end"),
-    ("fast", {"output.mesh_watertight": True}, "output.mesh_watertight", "output.mesh_method"),
-    ("paper", {"train.mode": "mvs-only"}, "train.mode", "output.mesh_method"),
+    ("fast", {"mesh.watertight": True}, "mesh.watertight", "mesh.method"),
+    ("paper", {"train.mode": "mvs-only"}, "train.mode", "mesh.method"),
     ("fast", {"field.kind": "mlp"}, "field.kind", "field.init"),
     ("paper", {"field.init": "mvs"}, "field.kind", "field.init"),
     ("paper", {"field.mlp_depth": 2}, "field.kind", "field.mlp_depth"),
     ("paper", {"field.mlp_width": 32}, "field.kind", "field.mlp_width"),
-    ("fast", {"output.finer_stage_optimization": True, "train.ablation": "mse"},
-     "output.finer_stage_optimization", "train.ablation"),
+    ("fast", {"mvs.finer_stage_optimization": True, "train.ablation": "mse"},
+     "mvs.finer_stage_optimization", "train.ablation"),
 ])
 def test_contradicting_options_are_refused_naming_both(name, given, a, b):
     cfg = preset(name)
@@ -198,9 +198,9 @@ def test_contradictions_name_the_command_line_options():
         apply_overrides(preset("fast"), {"train.mode": "volsdf", "train.ablation": "mse"},
                         labels={"train.mode": "--mode", "train.ablation": "--ablation"})
     cfg = apply_overrides(preset("fast"), {"train.mode": "volsdf"})
-    with pytest.raises(InputError, match="--set output.low_weight_rule=mvs"):
-        apply_overrides(cfg, {"output.low_weight_rule": "mvs"},
-                        labels={"output.low_weight_rule": "--set output.low_weight_rule"})
+    with pytest.raises(InputError, match="--set guide.low_weight_rule=mvs"):
+        apply_overrides(cfg, {"guide.low_weight_rule": "mvs"},
+                        labels={"guide.low_weight_rule": "--set guide.low_weight_rule"})
 
 
 def test_cli_refuses_a_baseline_that_would_see_mvs(tmp_path, capsys):
@@ -208,7 +208,7 @@ def test_cli_refuses_a_baseline_that_would_see_mvs(tmp_path, capsys):
     from svolsdf.cli import main
 
     out = tmp_path / "out"
-    for extra in (["--ablation", "mse"], ["--set", "output.low_weight_rule=mvs"]):
+    for extra in (["--ablation", "mse"], ["--set", "guide.low_weight_rule=mvs"]):
         with pytest.raises(SystemExit) as e:
             main(["reconstruct", str(tmp_path), "-o", str(out), "--mode", "volsdf", *extra])
         err = capsys.readouterr().err.strip()
@@ -223,7 +223,7 @@ def test_cli_refuses_a_baseline_that_would_see_mvs(tmp_path, capsys):
     ("fast", {}), ("paper", {}),
     ("fast", {"train.mode": "volsdf", "field.kind": "mlp"}),  # the MLP baseline
     ("fast", {"field.kind": "mlp", "field.init": "sphere"}),
-    ("fast", {"output.mesh_watertight": True, "output.mesh_method": "field"}),
+    ("fast", {"mesh.watertight": True, "mesh.method": "field"}),
     ("fast", {"train.beta_start": 0.0025, "train.beta_end": 0.0025}),  # a constant beta
     ("fast", {"train.beta_start": 0.0, "train.beta_end": 0.01}),  # learned: no anneal
     ("fast", {"train.mode": "mvs-only"}),
@@ -382,3 +382,62 @@ def test_draft_is_fast_with_half_the_steps_and_a_smaller_sweep():
     assert draft["train"].pop("steps") == fast["train"].pop("steps") // 2
     assert (draft["mvs"].pop("scale"), fast["mvs"].pop("scale")) == (1.5, None)
     assert draft == fast
+
+
+# --------------------------------------------------------------------------- old names
+def test_every_old_name_maps_to_an_option_and_every_option_has_one_name():
+    from svolsdf.config.io import RENAMED
+
+    leaves = {k for k, _, _ in LEAVES}
+    assert set(RENAMED.values()) <= leaves
+    assert len(set(RENAMED.values())) == len(RENAMED)
+    assert not any(k.startswith("output.") for k in leaves)
+
+
+def test_an_old_config_file_loads_with_one_deprecation_line(tmp_path, caplog):
+    p = tmp_path / "old.yaml"
+    p.write_text("output:\n  mesh_method: tsdf\n  poisson_depth: 8\n  fusion_views: 2\n"
+                 "  use_masks: false\n  finer_stage_optimization: true\n"
+                 "mesh:\n  resolution: 128\n")
+    with caplog.at_level("WARNING", logger="svolsdf.config"):
+        cfg = load_config(p)
+    assert (cfg.mesh.method, cfg.mesh.poisson.depth, cfg.fusion.min_views) == ("tsdf", 8, 2)
+    assert cfg.scene.use_masks is False and cfg.mvs.finer_stage_optimization is True
+    assert cfg.mesh.resolution == 128
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "old.yaml" in lines[0] and "output.mesh_method -> mesh.method" \
+        in lines[0] and "deprecated" in lines[0]
+
+
+def test_an_option_under_both_names_is_refused(tmp_path):
+    p = tmp_path / "both.yaml"
+    p.write_text("output:\n  mesh_method: tsdf\nmesh:\n  method: poisson\n")
+    with pytest.raises(InputError, match=r"both.yaml: option mesh.method given twice.*"
+                                         r"output.mesh_method"):
+        load_config(p)
+
+
+def test_an_unknown_old_key_is_named_as_such(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("output:\n  mesh_colour: red\n")
+    with pytest.raises(InputError, match="bad.yaml: unknown key 'output'"):
+        load_config(p)
+
+
+def test_old_names_on_the_command_line_set_the_new_options(caplog):
+    with caplog.at_level("WARNING", logger="svolsdf.config"):
+        cfg = apply_overrides(preset("fast"), {"output.poisson_trim": 3.0,
+                                               "output.low_weight_rule": "mvs"})
+    assert cfg.mesh.poisson.trim == 3.0 and cfg.guide.low_weight_rule == "mvs"
+    assert "output.poisson_trim -> mesh.poisson.trim" in caplog.text
+
+
+def test_the_old_layout_holds_every_option_once():
+    from svolsdf.config.io import legacy_layout
+
+    for name in PRESETS:
+        cfg = preset(name)
+        old = legacy_layout(cfg)
+        assert set(old) == {"preset", "device", "threads", "scene", "mvs", "field", "train",
+                            "output"}
+        assert config_from_dict(old) == cfg

@@ -162,7 +162,7 @@ def test_pipeline_runs_with_background(tmp_path):
     cfg.field.background = True
     cfg.field.grid_start_resolution = cfg.field.grid_resolution = 12
     cfg.field.sphere_start_resolution = 8  # volsdf starts from the sphere
-    cfg.output.mesh_resolution = 24
+    cfg.mesh.resolution = 24
     p = Pipeline(cfg, tmp_path / "out", progress=False)
     p.run()
     model = p.model()

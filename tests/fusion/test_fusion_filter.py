@@ -7,7 +7,7 @@ import pytest
 import torch
 from fusion_synth import CENTER, RADIUS, look_at_camera, sphere_depth, three_cameras
 
-from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
+from svolsdf.fusion.filter import FusionFilterConfig, fuse_depth_maps
 from svolsdf.geometry.masks import dilate_mask, mask_to_depth_resolution
 from svolsdf.geometry.reproject import check_geometric_consistency
 
@@ -16,7 +16,7 @@ def test_fusion_points_lie_on_the_sphere():
     cams = three_cameras()
     depths = {v: sphere_depth(c).float() for v, c in cams.items()}
     images = {v: torch.full((3, 40, 48), 0.25 * (v + 1)) for v in cams}
-    out = fuse_depth_maps(depths, cams, images, cfg=FusionConfig(estimate_normals=True))
+    out = fuse_depth_maps(depths, cams, images, cfg=FusionFilterConfig(estimate_normals=True))
     pts, cols, nrm, stats = out
     assert pts.shape[1] == 3 and pts.shape[0] > 1500
     r = (pts.double() - CENTER).norm(dim=-1)
@@ -41,8 +41,8 @@ def test_fusion_averages_and_min_consistent():
     depths = {v: sphere_depth(c).float() for v, c in cams.items()}
     # View 2's depth is corrupted everywhere: a second consistent view is required -> fewer points
     depths[2] = depths[2] * 1.1
-    one = fuse_depth_maps(depths, cams, cfg=FusionConfig(min_consistent=1))
-    two = fuse_depth_maps(depths, cams, cfg=FusionConfig(min_consistent=2))
+    one = fuse_depth_maps(depths, cams, cfg=FusionFilterConfig(min_views=1))
+    two = fuse_depth_maps(depths, cams, cfg=FusionFilterConfig(min_views=2))
     assert one.colors is None and one.normals is None
     assert one.stats[2]["kept"] < 0.01  # (almost) nothing agrees with the corrupted view
     assert two.points.shape[0] < one.points.shape[0]
@@ -75,19 +75,19 @@ def test_fusion_confidence_and_masks():
     depths = {v: sphere_depth(c).float() for v, c in cams.items()}
     conf = {v: torch.ones(40, 48) for v in cams}
     conf[0][:, :24] = 0.2
-    out = fuse_depth_maps(depths, cams, confidences=conf, cfg=FusionConfig(conf_thresh=0.5))
+    out = fuse_depth_maps(depths, cams, confidences=conf, cfg=FusionFilterConfig(conf=0.5))
     ref = fuse_depth_maps(depths, cams)
     assert 0 < out.stats[0]["points"] < ref.stats[0]["points"]
     # Masks at twice the depth resolution, covering only a small square of view 0.
     masks = {v: torch.ones(80, 96) for v in cams}
     masks[0] = torch.zeros(80, 96)
     masks[0][36:44, 44:52] = 1
-    cfg = FusionConfig(mask_dilation=4)
+    cfg = FusionFilterConfig(mask_dilation=4)
     mo = fuse_depth_maps(depths, cams, masks=masks, cfg=cfg)
     keep0 = mask_to_depth_resolution(dilate_mask(masks[0], 4), 40, 48)
     assert mo.stats[0]["points"] <= int(keep0.sum())
     assert 0 < mo.stats[0]["points"]
-    off = fuse_depth_maps(depths, cams, masks=masks, cfg=FusionConfig(use_masks=False))
+    off = fuse_depth_maps(depths, cams, masks=masks, cfg=FusionFilterConfig(use_masks=False))
     assert off.stats[0]["points"] == ref.stats[0]["points"]
 
 
@@ -107,7 +107,7 @@ def test_fusion_surface_counts_as_one_source():
     surface = {v: sphere_depth(c).float() for v, c in cams.items()}
     plain = fuse_depth_maps(depths, cams)
     assert plain.stats[0]["points"] == 0
-    cfg = FusionConfig(surface_rel_thresh=0.002)
+    cfg = FusionFilterConfig(surface=0.002)
     out = fuse_depth_maps(depths, cams, cfg=cfg, surface_depths=surface)
     n0 = out.stats[0]["points"]
     valid0 = int((depths[0] > 0).sum())
@@ -133,7 +133,7 @@ def test_a_depth_map_is_not_its_own_consistent_source():
     that only one view sees is dropped, and the multi-view check decides as for any map."""
     cams = three_cameras()
     depths = {v: sphere_depth(c).float() for v, c in cams.items()}
-    cfg = FusionConfig(surface_rel_thresh=5e-4, min_consistent=1)
+    cfg = FusionFilterConfig(surface=5e-4, min_views=1)
     alone = {0: depths[0], 1: torch.zeros_like(depths[1]), 2: torch.zeros_like(depths[2])}
     out = fuse_depth_maps(alone, cams, cfg=cfg, surface_depths=alone)
     assert out.stats[0]["points"] == 0 and out.stats[0]["surface_only"] == 0
@@ -158,7 +158,7 @@ def test_primary_and_alt_mask_dilation_narrow_only_their_hypothesis():
     for m in masks.values():
         m[18:22, 22:26] = 1  # a small square in the middle of the sphere in every view
     both = {v: d.clone() for v, d in exact.items()}
-    cfg = FusionConfig(mask_dilation=6, primary_mask_dilation=1)
+    cfg = FusionFilterConfig(mask_dilation=6, primary_mask_dilation=1)
     out = fuse_depth_maps(exact, cams, masks=masks, cfg=cfg, alt_depths=both)
     for v in cams:
         wide = dilate_mask(masks[v], 6) & (exact[v] > 0)
@@ -167,11 +167,11 @@ def test_primary_and_alt_mask_dilation_narrow_only_their_hypothesis():
         assert out.stats[f"{v}:alt"]["points"] == int(wide.sum())  # the second: 6 px
         assert int(narrow.sum()) < int(wide.sum())
     # None (the default) dilates every reference alike, as released
-    same = fuse_depth_maps(exact, cams, masks=masks, cfg=FusionConfig(mask_dilation=6),
+    same = fuse_depth_maps(exact, cams, masks=masks, cfg=FusionFilterConfig(mask_dilation=6),
                            alt_depths=both)
     assert all(same.stats[v]["points"] == same.stats[f"{v}:alt"]["points"] for v in cams)
     # alt_mask_dilation narrows the second hypothesis alone
-    cfg = FusionConfig(mask_dilation=6, alt_mask_dilation=1)
+    cfg = FusionFilterConfig(mask_dilation=6, alt_mask_dilation=1)
     out = fuse_depth_maps(exact, cams, masks=masks, cfg=cfg, alt_depths=both)
     for v in cams:
         wide = dilate_mask(masks[v], 6) & (exact[v] > 0)
@@ -199,7 +199,7 @@ def test_fusion_extra_hypotheses_per_view():
     masks = {v: torch.zeros(40, 48) for v in cams}
     for m in masks.values():
         m[18:22, 22:26] = 1
-    cfg = FusionConfig(mask_dilation=6, primary_mask_dilation=1)
+    cfg = FusionFilterConfig(mask_dilation=6, primary_mask_dilation=1)
     full = {v: d.clone() for v, d in exact.items()}
     out = fuse_depth_maps(full, cams, masks=masks, cfg=cfg, alt_depths=full,
                           extra_depths={"net": full})
@@ -237,8 +237,8 @@ def test_fusion_second_hypothesis_per_view():
     assert out.stats["1:alt"]["points"] > 50
     assert out.stats[2]["points"] == 0 and out.stats["2:alt"]["points"] == 0
     assert out.points.shape[0] == sum(s["points"] for s in out.stats.values())
-    # a source view counts once: with min_consistent 2, view 1's second map needs views 0 and 2
-    two = fuse_depth_maps(first, cams, alt_depths=alt, cfg=FusionConfig(min_consistent=2))
+    # a source view counts once: with min_views 2, view 1's second map needs views 0 and 2
+    two = fuse_depth_maps(first, cams, alt_depths=alt, cfg=FusionFilterConfig(min_views=2))
     assert two.stats["1:alt"]["points"] == 0
     with pytest.raises(ValueError, match="alt_confidences"):
         fuse_depth_maps(first, cams, confidences={v: torch.ones(40, 48) for v in cams},

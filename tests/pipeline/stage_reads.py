@@ -37,27 +37,38 @@ from pathlib import Path
 from svolsdf.config import Config
 from svolsdf.config.schema import (
     FieldConfig,
+    FusionConfig,
+    GuideConfig,
+    MeshConfig,
     MVSConfig,
-    OutputConfig,
+    PoissonConfig,
     SceneConfig,
     TrainConfig,
+    TSDFConfig,
 )
 from svolsdf.pipeline.keys import STAGES
 
 TABLE = Path(__file__).with_name("stage_reads.json")
 
 SECTIONS = {Config: "", SceneConfig: "scene", MVSConfig: "mvs", FieldConfig: "field",
-            TrainConfig: "train", OutputConfig: "output"}
+            TrainConfig: "train", GuideConfig: "guide", FusionConfig: "fusion",
+            MeshConfig: "mesh", PoissonConfig: "mesh.poisson", TSDFConfig: "mesh.tsdf"}
+
+
+def _leaves(cls) -> set[str]:
+    """The names of ``cls``'s fields that are options, not sections."""
+    return {f.name for f in dataclasses.fields(cls)
+            if not (f.default_factory is not dataclasses.MISSING
+                    and dataclasses.is_dataclass(f.default_factory()))}
 
 
 def leaf_options() -> list[str]:
-    """Every leaf option of `Config` ("preset", "scene.path", ..., "output.finer_stage_...")."""
+    """Every leaf option of `Config` ("preset", "scene.path", ..., "mesh.tsdf.resolution")."""
     out = []
     for cls, sec in SECTIONS.items():
         for f in dataclasses.fields(cls):
-            if cls is Config and f.name in SECTIONS.values():
-                continue
-            out.append(f"{sec}.{f.name}" if sec else f.name)
+            if f.name in _leaves(cls):
+                out.append(f"{sec}.{f.name}" if sec else f.name)
     return out
 
 
@@ -73,10 +84,10 @@ def _tiny(cfg: Config, scene: Path) -> Config:
     cfg.field.grid_resolution = 32
     cfg.field.sphere_start_resolution = 16
     cfg.mvs.ndepths = [32, 8, 4]
-    cfg.output.mesh_resolution = 48
-    cfg.output.mesh_fit_points = 20
-    cfg.output.tsdf_resolution = 64
-    cfg.output.poisson_depth = 6
+    cfg.mesh.resolution = 48
+    cfg.mesh.fit_points = 20
+    cfg.mesh.tsdf.resolution = 64
+    cfg.mesh.poisson.depth = 6
     cfg.device = "cpu"
     return cfg
 
@@ -90,16 +101,16 @@ def base_configs(scene: Path) -> dict[str, Config]:
     cfgs = {}
     for method in ("poisson", "field", "tsdf"):
         c = _tiny(preset("fast"), scene)
-        c.output.mesh_method = method
+        c.mesh.method = method
         cfgs[f"svolsdf-{method}"] = c
     # the other options the fast preset leaves off: finer-stage optimization, unseen culling
     # off, support trimming, the object-ray share, the MLP field
     c = _tiny(preset("fast"), scene)
-    c.output.mesh_method = "field"
-    c.output.mesh_fit_points = 0
-    c.output.mesh_cull_unseen = False
-    c.output.mesh_support = 3.0
-    c.output.finer_stage_optimization = True
+    c.mesh.method = "field"
+    c.mesh.fit_points = 0
+    c.mesh.cull_unseen = False
+    c.mesh.support = 3.0
+    c.mvs.finer_stage_optimization = True
     c.train.object_ray_fraction = 0.5
     cfgs["svolsdf-finer"] = c
     # the paper preset: the MLP field from the sphere, the guide on every pixel, no unguided
@@ -110,7 +121,7 @@ def base_configs(scene: Path) -> dict[str, Config]:
     c.train.sampler = "mvs"
     c.train.samples_uniform = c.train.samples_fine = 16  # the MLP renders the whole guide
     c.scene.image_size = [64, 48]
-    c.output.mesh_watertight = True
+    c.mesh.watertight = True
     cfgs["paper-watertight"] = c
     # two of the paper's ablations: the guide from the stage-1 volumes' consistency (no
     # field), and the field fitted to the filtered stage-1 depth
@@ -161,8 +172,7 @@ class Reads:
 @contextlib.contextmanager
 def recording(reads: Reads) -> Iterator[Reads]:
     """Record reads of the config dataclasses' leaf fields into ``reads`` while inside."""
-    leaves = {cls: {f.name for f in dataclasses.fields(cls)} - set(SECTIONS.values())
-              for cls in SECTIONS}
+    leaves = {cls: _leaves(cls) for cls in SECTIONS}
     for cls, sec in SECTIONS.items():
         def getattribute(self, name, _leaves=leaves[cls], _sec=sec):
             if name in _leaves:

@@ -116,7 +116,7 @@ def test_a_registered_backbone_runs_as_the_mvs_stages(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
     cfg = tiny_cfg(scene, steps=40)
     cfg.mvs.backbone = "test-toy"
-    cfg.output.fusion_unguided = False
+    cfg.fusion.unguided = False
     p = Pipeline(cfg, out, progress=False)
     p.run()
     assert "backbone: test-toy" in (out / "config.yaml").read_text()

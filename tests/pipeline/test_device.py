@@ -33,7 +33,7 @@ def _cfg(scene):
     cfg.train.checkpoint_every = 1000
     cfg.field.grid_start_resolution = 16
     cfg.field.grid_resolution = 24
-    cfg.output.mesh_resolution = 32
+    cfg.mesh.resolution = 32
     return cfg
 
 

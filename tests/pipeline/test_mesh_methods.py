@@ -46,15 +46,15 @@ def test_builtin_methods_are_registered_in_the_documented_order():
 
 def test_a_registered_method_is_a_valid_choice():
     cfg = preset("fast")
-    cfg.output.mesh_method = "test-box"
+    cfg.mesh.method = "test-box"
     validate_config(cfg)
-    assert cfg.output.mesh_method == "test-box"
+    assert cfg.mesh.method == "test-box"
 
 
 def test_an_unregistered_method_is_refused_naming_the_option():
     cfg = preset("fast")
-    cfg.output.mesh_method = "no-such-method"
-    with pytest.raises(InputError, match=r"output\.mesh_method = 'no-such-method': expected "
+    cfg.mesh.method = "no-such-method"
+    with pytest.raises(InputError, match=r"mesh\.method = 'no-such-method': expected "
                                          r"one of 'field', 'poisson', 'tsdf'"):
         validate_config(cfg)
     with pytest.raises(InputError, match="unknown mesh method 'no-such-method'"):
@@ -68,7 +68,7 @@ def test_a_registered_method_runs_as_the_mesh_stage(tmp_path_factory, tmp_path):
     scene = make_tiny_scene(tmp_path_factory.mktemp("syn") / "scene")
     out = tmp_path_factory.mktemp("run")
     Pipeline(tiny_cfg(scene), out, progress=False).run()
-    p2 = rerun_on_copy(out, tmp_path / "box", mesh_method="test-box")
+    p2 = rerun_on_copy(out, tmp_path / "box", mesh__method="test-box")
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     timing = json.loads((tmp_path / "box" / "timing.json").read_text())
     assert timing["mesh"]["mesh_source"] == "test-box" == timing["mesh"]["method"]

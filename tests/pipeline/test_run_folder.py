@@ -96,7 +96,7 @@ def _mutate(path: Path) -> None:
 # --------------------------------------------------------------------------- 1: inputs' contents
 def test_mutating_any_input_file_changes_exactly_the_stages_that_read_it(scene, tmp_path):
     cfg = preset("fast")
-    assert cfg.output.use_masks and cfg.output.guide_mask_dilation is not None
+    assert cfg.scene.use_masks and cfg.guide.mask_dilation is not None
     base = _keys_of(scene, cfg)
     # what reads what: every stage the pictures and cameras of the input views (stage 1 first);
     # the masks every stage but stage 1 and the unguided stages 2-3 (the cascade takes none)
@@ -170,7 +170,7 @@ def test_outputs_of_an_earlier_config_are_refused_by_evaluate_and_report(mvs_run
     m = json.loads((out / "metrics.json").read_text())
     assert m["settings"]["provenance"] == {"points.ply": "config.yaml"}
     cfg = load_config(out / "config.yaml")
-    cfg.output.fusion_views = 2  # a rerun with a new option, killed before fusion
+    cfg.fusion.min_views = 2  # a rerun with a new option, killed before fusion
     monkeypatch.setattr(pl.Pipeline, "stage_fusion", lambda self: (_ for _ in ()).throw(
         KeyboardInterrupt))
     with pytest.raises(KeyboardInterrupt):
@@ -334,7 +334,7 @@ def _black_masks(sc: Path) -> None:
     ("black masks", "object mask of view 0 is empty"),
     ("tiny", "reconstruction needs at least 16 pixels a side"),
     ("bomb", "000001.png: the image declares too many pixels"),
-    ("mesh resolution", "output.mesh_resolution) = 100000"),
+    ("mesh resolution", "mesh.resolution) = 100000"),
     ("look away", "view 1's camera does not see the scene's bounding region"),
     ("left-handed", "view 1's camera does not see the scene's bounding region"),
     ("one point", "all have their camera at one point"),

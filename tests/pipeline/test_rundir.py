@@ -46,7 +46,7 @@ def test_timing_merges_and_atomic_saves(tmp_path):
     assert set(json.loads(rd.timing_file.read_text())) == {"mvs1", "field"}
     rd.save_npy(tmp_path / "a" / "x.npy", np.arange(3, dtype=np.float32))
     assert np.load(tmp_path / "a" / "x.npy").tolist() == [0, 1, 2]
-    # the mesh file follows output.mesh_format, in the run folder; the refined field's depth
+    # the mesh file follows mesh.format, in the run folder; the refined field's depth
     # (finer-stage optimization) does not overwrite the guide's
     assert rd.mesh("obj").suffix == ".obj" and rd.mesh().suffix == ".ply"
     assert rd.mesh("obj").parent == rd.mesh().parent == rd.root
@@ -103,7 +103,7 @@ def test_bad_inputs_name_the_problem(tiny_scene, tmp_path):
     with pytest.raises(InputError, match="stepz"):
         load_config(bad)
     cfg = tiny_cfg(tiny_scene)
-    cfg.output.finer_stage_optimization = True
+    cfg.mvs.finer_stage_optimization = True
     cfg.train.mode = "volsdf"
     with pytest.raises(InputError, match="finer_stage_optimization"):
         Pipeline(cfg, tmp_path / "b", progress=False).run()

@@ -80,15 +80,15 @@ INERT_READS: dict[str, Rule] = {
         "ditto: the rate of a grid started from a sphere (read by dataclasses.replace in the "
         "finer-stage optimization, whose field started from MVS)",
         lambda c: not opt.grid_from_sphere(c)),
-    "output.mesh_cull_tol": (
-        "passed to the mesh methods, used only with mesh_cull_unseen",
-        lambda c: not c.output.mesh_cull_unseen),
-    "output.mesh_fit_points": (
+    "mesh.cull_tol": (
+        "passed to the mesh methods, used only with mesh.cull_unseen",
+        lambda c: not c.mesh.cull_unseen),
+    "mesh.fit_points": (
         "read to ask whether the fit applies (options.wants_mesh_fit); it does not here",
         lambda c: not opt.wants_mesh_fit(c)),
-    "guide:output.use_masks": (
+    "guide:scene.use_masks": (
         "the field's PSNR over the masks, for timing.json only, when the guide is rendered on "
-        "every pixel", lambda c: c.output.guide_mask_dilation is None),
+        "every pixel", lambda c: c.guide.mask_dilation is None),
 }
 
 #: (b) options a stage's key holds although neither it nor the stages it consumes read them:
@@ -104,14 +104,14 @@ EXTRA_IN_KEY: dict[str, Rule] = {
                "samplers, ablations and fields)", always),
     "preset": ("its name is hashed into the field key; its values are the other options",
                always),
-    "output.fusion*": ("the fusion options are hashed whole into the fusion key", always),
-    "output.mesh_resolution": (
+    "fusion.*": ("the fusion section is hashed whole into the fusion key", always),
+    "mesh.resolution": (
         "the field's marching cubes: a mesh method that fails (too few points) falls back to "
         "the field's zero level, which reads it", always),
-    "output.guide_mask_dilation": (
+    "guide.mask_dilation": (
         "in the guide key, which the mvs23 key chains in every mode, also where no field renders "
         "the guide (mvs-only, the soft-consistency ablation)", lambda c: not opt.has_field(c)),
-    "output.low_weight_rule": ("ditto", lambda c: not opt.has_field(c)),
+    "guide.low_weight_rule": ("ditto", lambda c: not opt.has_field(c)),
 }
 
 #: options read outside every stage (`Pipeline`'s construction and `Pipeline._run` before its
@@ -124,13 +124,13 @@ SETUP_READS = {
     "preset": "the log line",
     "threads": "torch's thread count: how fast, not what is computed",
     "scene.path": "views.json records it (the scene is read by Run.load)",
-    "output.use_masks": "check_scene's refusal of empty masks; the stages read it themselves",
+    "scene.use_masks": "check_scene's refusal of empty masks; the stages read it themselves",
 }
 
 #: options no recorded run takes another value of: {option: why}.
 NOT_VARIED = {
-    "output.fusion_network_weights": (
-        "valid only with output.fusion_network, whose network no recorded run can start (no "
+    "fusion.network_weights": (
+        "valid only with fusion.network, whose network no recorded run can start (no "
         "weights ship with the package); both enter the fusion key when set (keys.py)"),
 }
 
@@ -178,7 +178,8 @@ def other_values(option: str, value: Any) -> list[Any]:
 def changed(cfg: Config, option: str, value: Any) -> Config:
     c = copy.deepcopy(cfg)
     sec, _, name = option.rpartition(".")
-    setattr(getattr(c, sec) if sec else c, name, value)
+    owner = functools.reduce(getattr, sec.split("."), c) if sec else c
+    setattr(owner, name, value)
     return c
 
 
@@ -207,7 +208,7 @@ def violations(name: str, record: dict, keys_of=stage_keys
     bad, checked, used = [], set(), set()
     for option in leaf_options():
         sec, _, field = option.rpartition(".")
-        value = getattr(getattr(cfg, sec) if sec else cfg, field)
+        value = getattr(functools.reduce(getattr, sec.split("."), cfg) if sec else cfg, field)
         for v in other_values(option, value):
             alt = changed(cfg, option, v)
             try:
@@ -269,23 +270,23 @@ def test_every_exception_is_needed():
 
 def test_a_forgotten_option_is_found():
     """A key function that forgets an option a stage reads (the mesh key without
-    output.poisson_trim) or holds one no stage reads is caught, with the stage named."""
+    mesh.poisson.trim) or holds one no stage reads is caught, with the stage named."""
     def forgets(cfg, views):
         c = copy.deepcopy(cfg)
-        c.output.poisson_trim = 5.0
+        c.mesh.poisson.trim = 5.0
         return stage_keys(c, views)
 
     bad = violations("svolsdf-poisson", TABLE["svolsdf-poisson"], forgets)[0]
-    assert bad == ["svolsdf-poisson: stage mesh reads output.poisson_trim (directly or through "
-                   "what it consumes) but its key ignores output.poisson_trim=10.0"]
+    assert bad == ["svolsdf-poisson: stage mesh reads mesh.poisson.trim (directly or through "
+                   "what it consumes) but its key ignores mesh.poisson.trim=10.0"]
 
     def holds(cfg, views):
         keys = stage_keys(cfg, views)
-        return {**keys, "fusion": keys["fusion"] + str(cfg.output.mesh_support)}
+        return {**keys, "fusion": keys["fusion"] + str(cfg.mesh.support)}
 
     bad = violations("svolsdf-poisson", TABLE["svolsdf-poisson"], holds)[0]
-    assert bad == ["svolsdf-poisson: the key of stage fusion changes with output.mesh_support"
-                   "=0.5 but neither it nor what it consumes reads output.mesh_support"]
+    assert bad == ["svolsdf-poisson: the key of stage fusion changes with mesh.support"
+                   "=0.5 but neither it nor what it consumes reads mesh.support"]
 
 
 def test_the_table_covers_every_stage_and_the_setup_reads_are_known():
@@ -334,26 +335,26 @@ def test_the_keys_of_existing_run_folders_stay(monkeypatch):
 
 
 def test_use_masks_enters_the_stages_that_read_the_masks():
-    """Issue 40: output.use_masks = false changes the field started from the MVS surface (its
+    """Issue 40: scene.use_masks = false changes the field started from the MVS surface (its
     start votes inside the masks) and the guide rendered within the dilated masks; it was in
     no key before fusion's. The default (true) adds nothing to any key."""
     from svolsdf.config import preset
 
     cfg = preset("fast")
     cfg.scene.path = SCENE
-    no = changed(cfg, "output.use_masks", False)
+    no = changed(cfg, "scene.use_masks", False)
     k, k_no = stage_keys(cfg, VIEWS), stage_keys(no, VIEWS)
     assert k_no["mvs1"] == k["mvs1"] and k_no["unguided"] == k["unguided"]
     assert all(k_no[s] != k[s] for s in ("field", "guide", "mvs23", "fusion", "mesh"))
     # VolSDF's field reads no mask (its sphere start, every ray uniform): only its guide does
     cfg.train.mode = "volsdf"
-    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "output.use_masks", False), VIEWS)
+    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "scene.use_masks", False), VIEWS)
     assert k_no["field"] == k["field"] and k_no["guide"] != k["guide"]
     cfg.train.object_ray_fraction = 0.5  # rays drawn inside the masks: the field reads them
-    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "output.use_masks", False), VIEWS)
+    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "scene.use_masks", False), VIEWS)
     assert k_no["field"] != k["field"]
     cfg.train.mode = "mvs-only"  # no field, no rendered guide: only fusion reads the masks
-    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "output.use_masks", False), VIEWS)
+    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "scene.use_masks", False), VIEWS)
     assert [s for s in ("mvs1", "mvs23", "unguided", "fusion") if k_no[s] != k[s]] == ["fusion"]
 
 

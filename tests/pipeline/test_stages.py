@@ -70,7 +70,7 @@ def test_zero_level_lies_near_the_ground_truth(tiny_run, tiny_scene):
     scene = p.load()
     init = p.build_model()
     init_grid_from_mvs(init, p.regressed_volumes1(), scene.normalization,
-                       scene.masks if p.cfg.output.use_masks else None,
+                       scene.masks if p.cfg.scene.use_masks else None,
                        unverified_weight=p.cfg.field.init_unverified_weight)
     gt = observed_gt_points(tiny_scene, views)
     gt_u = scene.normalization.to_unit(torch.from_numpy(gt)).float()
@@ -230,29 +230,29 @@ def test_mvs_native_images_reaches_the_backbone_and_its_keys(tiny_run, monkeypat
 
 
 def test_fusion_unguided_dilation_enters_only_the_fusion_key(tiny_run):
-    """output.fusion_unguided_dilation: the fast preset narrows the unguided set's mask to 4 px;
+    """fusion.unguided_dilation: the fast preset narrows the unguided set's mask to 4 px;
     the option changes only the fusion key."""
     from dataclasses import asdict, replace
 
 
-    assert preset("fast").output.fusion_unguided_dilation == 4
-    assert preset("paper").output.fusion_unguided_dilation is None
+    assert preset("fast").fusion.unguided_dilation == 4
+    assert preset("paper").fusion.unguided_dilation is None
     _, _, p = tiny_run
     base = p.cfg
     keys = {}
     try:
         for d in (None, 4, 8):
-            p.cfg = replace(base, output=replace(base.output, fusion_unguided_dilation=d))
+            p.cfg = replace(base, fusion=replace(base.fusion, unguided_dilation=d))
             keys[d] = p.stage_keys()
     finally:
         p.cfg = base
     for a, b in ((None, 4), (4, 8)):
         assert {k for k in keys[a] if keys[a][k] != keys[b][k]} == {"fusion"}
-    assert "fusion_unguided_dilation" in asdict(base.output)
+    assert "unguided_dilation" in asdict(base.fusion)
 
 
 def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
-    """output.fusion_network: a backbone that can start from a depth map is started from the
+    """fusion.network: a backbone that can start from a depth map is started from the
     guide; its depth joins fusion as a third set. Only the fusion stage reruns."""
     import shutil
 
@@ -274,7 +274,7 @@ def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
     out = tmp_path / "run"
     shutil.copytree(out0, out)
     cfg = load_config(out / "config.yaml")
-    cfg.output.fusion_network = "test_guide_echo"
+    cfg.fusion.network = "test_guide_echo"
     p = Pipeline(cfg, out, progress=False)
     p.run()
     assert set(p.timing) - {"total"} == {"fusion"}, p.timing
@@ -286,11 +286,11 @@ def test_fusion_network_adds_a_guided_hypothesis(tiny_run, tmp_path):
         guide = np.load(out / "field" / "render_depth" / f"{v}.npy")
         assert np.allclose(np.load(out / "network" / "depth" / f"{v}.npy"), guide)
     # checked before any stage runs
-    cfg.output.fusion_network = "planesweep"
+    cfg.fusion.network = "planesweep"
     with pytest.raises(InputError, match="cannot start from a depth map"):
         Pipeline(cfg, tmp_path / "run2", progress=False).run()
-    cfg.output.fusion_network = "patchmatchnet"
-    cfg.output.fusion_network_weights = str(tmp_path / "none.pt")
+    cfg.fusion.network = "patchmatchnet"
+    cfg.fusion.network_weights = str(tmp_path / "none.pt")
     with pytest.raises(InputError, match="none.pt"):
         Pipeline(cfg, tmp_path / "run3", progress=False).run()
     assert not (tmp_path / "run3" / "mvs").exists()
@@ -300,9 +300,9 @@ def test_fusion_surface_option_adds_points_on_the_surface(tiny_run, tmp_path):
     """The fast preset's fusion counts a depth on the rendered surface as a consistent view;
     turning it off reruns only fusion and keeps a subset of the points."""
     out, _, p = tiny_run
-    assert p.cfg.output.fusion_surface > 0
+    assert p.cfg.fusion.surface > 0
     out2 = tmp_path / "nosurf"
-    p2 = rerun_on_copy(out, out2, fusion_surface=0.0)
+    p2 = rerun_on_copy(out, out2, fusion__surface=0.0)
     assert set(p2.timing) - {"total"} == {"fusion"}
     n_with = len(read_ply(out / "points.ply")["points"])
     n_without = len(read_ply(out2 / "points.ply")["points"])
@@ -314,7 +314,7 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
     stage 3 around the re-rendered depth; reuses the finished field and stage-1 volumes."""
     out, _, p = tiny_run
     out2 = tmp_path / "finer"
-    p2 = rerun_on_copy(out, out2, finer_stage_optimization=True)
+    p2 = rerun_on_copy(out, out2, mvs__finer_stage_optimization=True)
     assert "field" not in p2.timing and "mvs23" in p2.timing and "mesh" in p2.timing
     assert (out2 / "field" / "stage2" / "model.pt").is_file()
     assert (out2 / "field" / "stage2" / "losses.csv").is_file()
@@ -329,15 +329,15 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
 
 
 def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
-    """`output.fusion_unguided` (fast preset): the second depth hypothesis is exactly what the
+    """`fusion.unguided` (fast preset): the second depth hypothesis is exactly what the
     backbone alone (`--mode mvs-only`) computes, the fused cloud holds both hypotheses' points,
     and turning it off reruns only fusion."""
 
     out, _, p = tiny_run
-    assert p.cfg.output.fusion_unguided
+    assert p.cfg.fusion.unguided
     cfg = load_config(out / "config.yaml")
     cfg.train.mode = "mvs-only"
-    cfg.output.mesh_method = "poisson"  # mvs-only has no field to mesh (and makes no mesh)
+    cfg.mesh.method = "poisson"  # mvs-only has no field to mesh (and makes no mesh)
     out_m = tmp_path / "mvs_only"
     Pipeline(cfg, out_m, progress=False).run()
     for v in p.views:
@@ -351,7 +351,7 @@ def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):
     # the same depth maps; the surface check (fusion_surface) can only add consistent pixels
     assert counts["unguided"] >= len(read_ply(out_m / "points.ply")["points"])
     out2 = tmp_path / "no_unguided"
-    p2 = rerun_on_copy(out, out2, fusion_unguided=False)
+    p2 = rerun_on_copy(out, out2, fusion__unguided=False)
     assert set(p2.timing) - {"total"} == {"fusion"}
     # without the unguided maps the guided depths have fewer sources to agree with
     assert len(read_ply(out2 / "points.ply")["points"]) <= counts["guided"]
@@ -376,7 +376,7 @@ def test_a_finished_field_loads_without_its_stage1_volumes(tiny_run, tmp_path):
 
 
 def test_guide_is_rendered_only_near_the_masks(tiny_run):
-    """`output.guide_mask_dilation`: `render_views` with ``pixels`` renders exactly those pixels
+    """`guide.mask_dilation`: `render_views` with ``pixels`` renders exactly those pixels
     (equal to the full render there, 0 elsewhere), and the guide's pixels are the dilated masks
     (None: every pixel; a view with an empty mask is rendered whole)."""
     from dataclasses import replace
@@ -385,10 +385,10 @@ def test_guide_is_rendered_only_near_the_masks(tiny_run):
 
     out, _, p = tiny_run
     scene = p.load()
-    assert p.guide_pixels() is None or p.cfg.output.guide_mask_dilation is not None
+    assert p.guide_pixels() is None or p.cfg.guide.mask_dilation is not None
     cfg = p.cfg
     try:
-        p.cfg = replace(cfg, output=replace(cfg.output, guide_mask_dilation=3))
+        p.cfg = replace(cfg, guide=replace(cfg.guide, mask_dilation=3))
         pix = p.guide_pixels()
         m = scene.masks[:, 0] > 0.5
         assert pix.shape == m.shape and pix.dtype == torch.bool
@@ -409,7 +409,7 @@ def test_guide_is_rendered_only_near_the_masks(tiny_run):
             assert p.guide_pixels()[0].all()
         finally:
             scene.masks = masks
-        p.cfg = replace(cfg, output=replace(cfg.output, guide_mask_dilation=None))
+        p.cfg = replace(cfg, guide=replace(cfg.guide, mask_dilation=None))
         assert p.guide_pixels() is None
     finally:
         p.cfg = cfg
@@ -445,12 +445,12 @@ def test_sphere_start_settings_stay_out_of_an_mvs_started_fields_key(tiny_run):
 
 
 def test_mesh_fitted_to_the_points(tiny_run, tmp_path):
-    """output.mesh_fit_points (the fast preset's 300): only the mesh reruns; the fitted surface
+    """mesh.fit_points (the fast preset's 300): only the mesh reruns; the fitted surface
     lies nearer the fused points than the field's own zero level."""
     from scipy.spatial import cKDTree
 
     out, _, p = tiny_run
-    p2 = rerun_on_copy(out, tmp_path / "fit", mesh_fit_points=150)
+    p2 = rerun_on_copy(out, tmp_path / "fit", mesh__fit_points=150)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     assert (tmp_path / "fit" / "field" / "surface.pt").is_file()
     pts = read_ply(out / "points.ply")["points"]
@@ -462,11 +462,11 @@ def test_mesh_fitted_to_the_points(tiny_run, tmp_path):
 
 
 def test_watertight_mesh_option(tiny_run, tmp_path):
-    """output.mesh_watertight: the closed zero level, no culling; only the mesh reruns."""
+    """mesh.watertight: the closed zero level, no culling; only the mesh reruns."""
     import trimesh
 
     out, _, p = tiny_run
-    p2 = rerun_on_copy(out, tmp_path / "wt", mesh_watertight=True)
+    p2 = rerun_on_copy(out, tmp_path / "wt", mesh__watertight=True)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     m = read_ply(tmp_path / "wt" / "mesh.ply")
     mesh = trimesh.Trimesh(m["points"], m["faces"], process=True)
@@ -474,20 +474,20 @@ def test_watertight_mesh_option(tiny_run, tmp_path):
     culled = read_ply(out / "mesh.ply")
     assert not trimesh.Trimesh(culled["points"], culled["faces"], process=True).is_watertight
     # free-space culling (the fast preset's) does not cut the closed surface, and says so
-    p3 = rerun_on_copy(out, tmp_path / "wt_free", mesh_watertight=True, mesh_free_space=True)
+    p3 = rerun_on_copy(out, tmp_path / "wt_free", mesh__watertight=True, mesh__free_space=True)
     m3 = read_ply(tmp_path / "wt_free" / "mesh.ply")
     assert trimesh.Trimesh(m3["points"], m3["faces"], process=True).is_watertight
-    assert "mesh_watertight" in p3.timing["mesh"]["cleanup"]["not_applied"]
+    assert "mesh.watertight" in p3.timing["mesh"]["cleanup"]["not_applied"]
 
 
 def test_poisson_mesh_option(tiny_run, tmp_path):
-    """output.mesh_method = poisson: only the mesh reruns; the mesh lies on the fused points
-    (nearer them than the field's zero level) and keeps colours; output.mesh_watertight with
+    """mesh.method = poisson: only the mesh reruns; the mesh lies on the fused points
+    (nearer them than the field's zero level) and keeps colours; mesh.watertight with
     it is refused."""
     from scipy.spatial import cKDTree
 
     out, _, p = tiny_run
-    p2 = rerun_on_copy(out, tmp_path / "pz", mesh_method="poisson", poisson_depth=8)
+    p2 = rerun_on_copy(out, tmp_path / "pz", mesh__method="poisson", mesh__poisson__depth=8)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     assert p2.timing["mesh"]["method"] == "poisson"
     tree = cKDTree(read_ply(out / "points.ply")["points"])
@@ -497,16 +497,16 @@ def test_poisson_mesh_option(tiny_run, tmp_path):
     assert m["colors"] is not None and len(m["faces"]) > 100
     # a watertight mesh is the field's closed zero level: with poisson it is refused, naming
     # both options (issue 38: Poisson was silently ignored)
-    with pytest.raises(InputError, match="mesh_watertight.*mesh_method"):
-        rerun_on_copy(out, tmp_path / "pzw", mesh_method="poisson", mesh_watertight=True)
+    with pytest.raises(InputError, match=r"mesh\.watertight.*mesh\.method"):
+        rerun_on_copy(out, tmp_path / "pzw", mesh__method="poisson", mesh__watertight=True)
 
 
 def test_poisson_mesh_falls_back_to_the_field(tiny_run, tmp_path):
     """A Poisson surface that cannot be made (here trimmed away entirely) leaves the field's
     zero level as the mesh, with the reason in the log and timing.json: the run still ends."""
     out, _, p = tiny_run
-    p2 = rerun_on_copy(out, tmp_path / "pzf", mesh_method="poisson", poisson_depth=6,
-                        poisson_trim=14)
+    p2 = rerun_on_copy(out, tmp_path / "pzf", mesh__method="poisson", mesh__poisson__depth=6,
+                        mesh__poisson__trim=14)
     src = p2.timing["mesh"]["mesh_source"]
     assert src.startswith("field (poisson failed: "), p2.timing["mesh"]
     assert len(read_ply(tmp_path / "pzf" / "mesh.ply")["faces"]) > 100
@@ -521,7 +521,7 @@ def test_poisson_mesh_falls_back_to_the_field(tiny_run, tmp_path):
 
 
 def test_tsdf_mesh_with_free_space_and_support(tiny_run, tmp_path):
-    """output.mesh_method = tsdf with free-space culling and support trimming: only the mesh
+    """mesh.method = tsdf with free-space culling and support trimming: only the mesh
     reruns; the mesh lies on the fused points (nearer them than the field's zero level), every
     face within k spacings of a point; metrics.json names the surface and its ratios to the
     points (issue 37)."""
@@ -531,8 +531,8 @@ def test_tsdf_mesh_with_free_space_and_support(tiny_run, tmp_path):
     from svolsdf.fusion.observe import point_spacing
 
     out, _, p = tiny_run
-    p2 = rerun_on_copy(out, tmp_path / "ts", mesh_method="tsdf", mesh_free_space=True,
-                        mesh_support=3.0)
+    p2 = rerun_on_copy(out, tmp_path / "ts", mesh__method="tsdf", mesh__free_space=True,
+                        mesh__support=3.0)
     assert set(p2.timing) - {"total"} == {"mesh"}, p2.timing
     t = p2.timing["mesh"]
     assert t["mesh_source"] == "tsdf" and t["cleanup"]["steps"] == ["free-space", "support 3"]

@@ -82,7 +82,7 @@ def test_volsdf_points_pass_the_multi_view_check(volsdf_run, tmp_path):
     from svolsdf.render.views import max_rule_filled
 
     out, _, p, _ = volsdf_run
-    assert p.cfg.output.fusion_surface > 0 and p.cfg.output.fusion_views == 1
+    assert p.cfg.fusion.surface > 0 and p.cfg.fusion.min_views == 1
     n_all = len(read_ply(out / "points.ply")["points"])
     valid = 0
     for v in p.views:
@@ -111,7 +111,7 @@ def test_volsdf_with_the_mlp_field_is_the_mlp_baseline(tiny_scene, tmp_path):
     cfg = apply_overrides(tiny_cfg(tiny_scene, steps=3), {
         "train.mode": "volsdf", "field.kind": "mlp", "field.mlp_depth": 4,
         "field.mlp_width": 64, "train.checkpoint_every": 0, "scene.image_size": [64, 48],
-        "output.mesh_resolution": 32})
+        "mesh.resolution": 32})
     out = tmp_path / "mlp"
     summary = Pipeline(cfg, out, progress=False).run()
     p = open_run(out)

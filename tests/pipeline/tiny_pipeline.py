@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import shutil
 from pathlib import Path
 
@@ -28,24 +29,26 @@ def tiny_cfg(scene, steps: int = 300) -> Config:
     cfg.train.checkpoint_every = 100
     cfg.field.grid_start_resolution = 32
     cfg.field.grid_resolution = 64
-    cfg.output.mesh_resolution = 96
+    cfg.mesh.resolution = 96
     # the mesh from the field alone: the key tests (test_stages.py) change fusion options, which the
     # fitted mesh follows (test_mesh_fitted_to_the_points covers it)
-    cfg.output.mesh_fit_points = 0
-    cfg.output.mesh_method = "field"  # the field's own mesh; Poisson has its own tests
+    cfg.mesh.fit_points = 0
+    cfg.mesh.method = "field"  # the field's own mesh; Poisson has its own tests
     # free-space culling reads the fused points too, so fusion options would rerun the mesh
     # (test_tsdf_mesh_with_free_space_and_support covers it)
-    cfg.output.mesh_free_space = False
+    cfg.mesh.free_space = False
     return cfg
 
 
-def rerun_on_copy(out: Path, dest: Path, **output) -> Pipeline:
-    """Copy the finished run ``out`` to ``dest``, set ``cfg.output.<key> = value`` for each of
-    ``output`` and run the pipeline there (finished stages are reused); returns the Pipeline."""
+def rerun_on_copy(out: Path, dest: Path, **options) -> Pipeline:
+    """Copy the finished run ``out`` to ``dest``, set ``cfg.<section>.<key> = value`` for each
+    ``section__key=value`` of ``options`` (``mesh__method="tsdf"``) and run the pipeline there
+    (finished stages are reused); returns the Pipeline."""
     shutil.copytree(out, dest)
     cfg = load_config(out / "config.yaml")
-    for k, v in output.items():
-        setattr(cfg.output, k, v)
+    for k, v in options.items():
+        *path, name = k.split("__")
+        setattr(functools.reduce(getattr, path, cfg), name, v)
     p2 = Pipeline(cfg, dest, progress=False)
     p2.run()
     return p2

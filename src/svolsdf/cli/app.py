@@ -130,8 +130,8 @@ def build_config(scene: Path | None, config: Path | None, preset_name: str | Non
 _RECONSTRUCT_OPTIONS = {
     **flag_labels(RECONSTRUCT_FLAGS),
     "scene.views": "--views", "scene.image_size": "--size",
-    "output.fusion_network": "--fusion-network",
-    "output.fusion_network_weights": "--fusion-network",
+    "fusion.network": "--fusion-network",
+    "fusion.network_weights": "--fusion-network",
 }
 
 

@@ -30,7 +30,7 @@ RECONSTRUCT_FLAGS: dict[str, str] = {
     "--steps": "train.steps",
     "--device": "device",
     "--threads": "threads",
-    "--mesh-resolution": "output.mesh_resolution",
+    "--mesh-resolution": "mesh.resolution",
     "--seed": "train.seed",
     "--background": "field.background",
 }

@@ -91,10 +91,10 @@ def reconstruct(
     fusion_network: Annotated[Path | None, typer.Option(
         "--fusion-network", help="Weights of a PatchmatchNet (TorchScript) to start from the "
                                  "field's depth and fuse as a further hypothesis "
-                                 "(output.fusion_network).")] = None,
+                                 "(fusion.network).")] = None,
     set_: Annotated[list[str] | None, typer.Option(
         "--set", help="Any option as section.option=value (YAML value), repeatable, applied "
-                      "last: --set train.steps=200 --set output.mesh_method=poisson; "
+                      "last: --set train.steps=200 --set mesh.method=poisson; "
                       "`svolsdf config` lists them all.")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
     **options,  # the flags of RECONSTRUCT_FLAGS (`with_flags`), by parameter name
@@ -112,8 +112,8 @@ def reconstruct(
         "scene.view_selection": "auto" if auto else None,
         "scene.num_views": auto or None, "scene.image_size": _parse_size(size),
         **flag_overrides(RECONSTRUCT_FLAGS, options),
-        "output.fusion_network": None if fusion_network is None else "patchmatchnet",
-        "output.fusion_network_weights": None if fusion_network is None else str(fusion_network),
+        "fusion.network": None if fusion_network is None else "patchmatchnet",
+        "fusion.network_weights": None if fusion_network is None else str(fusion_network),
     }, _RECONSTRUCT_OPTIONS, sets=set_)
     if auto:  # auto also replaces the views a --config file lists
         cfg.scene.views = None

@@ -284,10 +284,10 @@ def job_config(job: BenchmarkJob):
     c = preset(job.preset)
     c.scene.path = str(job.scene)
     c.train.mode = job.mode
-    if job.mode == "mvs-only" and c.output.mesh_method == "field":
+    if job.mode == "mvs-only" and c.mesh.method == "field":
         # mvs-only fits no field and makes points only; the preset's field mesh (paper) is
         # refused there (validate_config), and no mesh option changes an mvs-only run
-        c.output.mesh_method = "poisson"
+        c.mesh.method = "poisson"
     return apply_overrides(c, dict(job.overrides), labels=_OPTION_LABELS)
 
 

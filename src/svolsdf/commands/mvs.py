@@ -178,7 +178,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
 def _fuse(scene: Scene, files: dict, path: Path, device: str = "cpu") -> dict:
     """Fuse the stage-3 depth maps (docs/method.md 6.3) into ``path`` on ``device``; returns the
     stats."""
-    from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
+    from svolsdf.fusion.filter import FusionFilterConfig, fuse_depth_maps
     from svolsdf.io.ply import write_points_ply
 
     ids = list(files)
@@ -188,7 +188,7 @@ def _fuse(scene: Scene, files: dict, path: Path, device: str = "cpu") -> dict:
     images = {v: scene.images[scene.index(v)].cpu() for v in ids}
     masks = None if scene.masks is None else {v: scene.masks[scene.index(v)].cpu() for v in ids}
     fused = fuse_depth_maps(depths, cams, images=images, confidences=confs, masks=masks,
-                            cfg=FusionConfig(), device=device)
+                            cfg=FusionFilterConfig(), device=device)
     write_points_ply(path, fused.points.numpy(), fused.colors.numpy())
     stats = {str(v): s for v, s in fused.stats.items()}
     stats["points_total"] = int(len(fused.points))

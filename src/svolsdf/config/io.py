@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import logging
 import os
 import textwrap
 from collections.abc import Mapping
@@ -20,7 +21,116 @@ from svolsdf.config.validate import _short, validate_config
 from svolsdf.errors import InputError
 
 __all__ = ["load_config", "save_config", "config_from_dict", "apply_overrides", "parse_set",
-           "option_docs", "config_yaml"]
+           "option_docs", "config_yaml", "RENAMED", "legacy_layout"]
+
+log = logging.getLogger("svolsdf.config")
+
+#: option names before the component sections (issue 40) -> their names now. Config files, run
+#: folders' config.yaml and ``--set`` still take the old names: `config_from_dict` and
+#: `apply_overrides` read them as the new ones and say so in one deprecation line; the stage
+#: keys hash the options under these old names (`legacy_layout`), so run folders made before
+#: the change keep their finished stages.
+RENAMED: dict[str, str] = {
+    "output.mesh_method": "mesh.method",
+    "output.mesh_resolution": "mesh.resolution",
+    "output.mesh_format": "mesh.format",
+    "output.mesh_cull_unseen": "mesh.cull_unseen",
+    "output.mesh_cull_tol": "mesh.cull_tol",
+    "output.mesh_watertight": "mesh.watertight",
+    "output.mesh_fit_points": "mesh.fit_points",
+    "output.mesh_free_space": "mesh.free_space",
+    "output.mesh_free_space_steps": "mesh.free_space_steps",
+    "output.mesh_support": "mesh.support",
+    "output.poisson_depth": "mesh.poisson.depth",
+    "output.poisson_trim": "mesh.poisson.trim",
+    "output.tsdf_resolution": "mesh.tsdf.resolution",
+    "output.tsdf_truncation_steps": "mesh.tsdf.truncation_steps",
+    "output.fusion_dist": "fusion.dist",
+    "output.fusion_rel": "fusion.rel",
+    "output.fusion_views": "fusion.min_views",
+    "output.fusion_conf": "fusion.conf",
+    "output.fusion_surface": "fusion.surface",
+    "output.fusion_guided_dilation": "fusion.guided_dilation",
+    "output.fusion_unguided_dilation": "fusion.unguided_dilation",
+    "output.fusion_unguided": "fusion.unguided",
+    "output.fusion_network": "fusion.network",
+    "output.fusion_network_weights": "fusion.network_weights",
+    "output.use_masks": "scene.use_masks",
+    "output.guide_mask_dilation": "guide.mask_dilation",
+    "output.low_weight_rule": "guide.low_weight_rule",
+    "output.finer_stage_optimization": "mvs.finer_stage_optimization",
+}
+
+
+def _deprecated(where: str, old: list[str]) -> None:
+    """The one deprecation line for the old option names ``old`` read from ``where``."""
+    if old:
+        pairs = ", ".join(f"{k} -> {RENAMED[k]}" for k in old[:3])
+        more = f" and {len(old) - 3} more" if len(old) > 3 else ""
+        log.warning("%s: old option names read as the new ones (%s%s); they are deprecated: "
+                    "`svolsdf config` prints the current names", where, pairs, more)
+
+
+def _dotted(data: dict, prefix: str = "") -> dict[str, Any]:
+    """A nested dict as {dotted key: value} (mappings flattened)."""
+    out: dict[str, Any] = {}
+    for k, v in data.items():
+        if isinstance(v, dict):
+            out.update(_dotted(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _upgrade(data: dict, where: str) -> dict:
+    """``data`` (a nested config dict) with the old option names of `RENAMED` moved to their new
+    places (one deprecation line when there were any).
+
+    Raises:
+        InputError: an option given under both its old and its new name.
+    """
+    old = data.get("output")
+    if not isinstance(old, dict) or not old:
+        return data
+    data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
+    section = data.pop("output")
+    moved = []
+    for k, v in section.items():
+        new = RENAMED.get(f"output.{k}")
+        if new is None:  # unknown: reported as such by _from_dict, under its old section
+            data.setdefault("output", {})[k] = v
+            continue
+        node = data
+        *parents, leaf = new.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise InputError(f"{where}: {part} must be a mapping")
+        if leaf in node:
+            raise InputError(f"{where}: option {new} given twice, also as output.{k} (its "
+                             f"old name): keep {new}")
+        node[leaf] = v
+        moved.append(f"output.{k}")
+    _deprecated(where, moved)
+    return data
+
+
+def legacy_layout(cfg: Config) -> dict:
+    """``cfg`` as a nested dict in the layout before the component sections: the renamed options
+    of `RENAMED` under their old ``output.*`` names (in their old order), the rest as
+    `dataclasses.asdict`. The stage keys hash this, so the keys of run folders made before the
+    renaming stay the same (`svolsdf.pipeline.keys.stage_keys`)."""
+    c = asdict(cfg)
+    flat = _dotted(c)
+    for section in ("guide", "fusion", "mesh"):
+        c.pop(section)
+    c["output"] = {}
+    for old, new in RENAMED.items():
+        *parents, leaf = new.split(".")
+        if parents[0] in ("scene", "mvs"):
+            c[parents[0]].pop(leaf)
+        c["output"][old.split(".", 1)[1]] = flat[new]
+    return c
 
 
 def _from_dict(cls, data: dict, where: str, prefix: str = ""):
@@ -51,7 +161,7 @@ def config_from_dict(data: dict, where: str = "config") -> Config:
     if not isinstance(name, str) or name not in PRESETS:
         raise InputError(f"{where}: preset = {_short(name)}: expected one of "
                          f"{', '.join(repr(p) for p in PRESETS)}")
-    merged = _merge(asdict(preset(name)), data)
+    merged = _merge(asdict(preset(name)), _upgrade(data, where))
     return validate_config(_from_dict(Config, merged, where), where)
 
 
@@ -90,15 +200,15 @@ def save_config(cfg: Config, path: str | Path) -> None:
     os.replace(tmp, path)
 
 
-def _known_keys(cfg: Config) -> list[str]:
-    """Every dotted option key of ``cfg`` (``train.steps``, ``device``, ...)."""
+def _known_keys(cfg: Any, prefix: str = "") -> list[str]:
+    """Every dotted option key of ``cfg`` (``train.steps``, ``mesh.poisson.depth``, ...)."""
     out = []
     for f in fields(cfg):
         v = getattr(cfg, f.name)
         if dataclasses.is_dataclass(v):
-            out += [f"{f.name}.{g.name}" for g in fields(v)]
+            out += _known_keys(v, f"{prefix}{f.name}.")
         else:
-            out.append(f.name)
+            out.append(prefix + f.name)
     return out
 
 
@@ -122,7 +232,14 @@ def apply_overrides(cfg: Config, overrides: dict[str, Any],
         InputError: an unknown key (with the nearest known ones), or a value `validate_config`
             rejects.
     """
-    labels = labels or {}
+    labels = dict(labels or {})
+    old = [k for k in overrides if k in RENAMED]
+    if old:
+        overrides = {RENAMED.get(k, k): v for k, v in overrides.items()}
+        for k in old:
+            if k in labels:
+                labels[RENAMED[k]] = labels.pop(k)
+        _deprecated(", ".join(sorted({labels.get(RENAMED[k], "--set") for k in old})), old)
     for key, value in overrides.items():
         if value is None and skip_none:
             continue
@@ -184,13 +301,16 @@ def option_docs() -> dict[str, str]:
                     isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant) and \
                     isinstance(b.value.value, str):
                 docs[a.target.id] = " ".join(b.value.value.split())
-    out = {}
-    for f in fields(Config):
-        out[f.name] = by_class["Config"].get(f.name, "")
-        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
-        if dataclasses.is_dataclass(sub):
-            for g in fields(sub):
-                out[f"{f.name}.{g.name}"] = by_class.get(type(sub).__name__, {}).get(g.name, "")
+    out: dict[str, str] = {}
+
+    def walk(cls: Any, prefix: str) -> None:
+        for f in fields(cls):
+            out[prefix + f.name] = by_class.get(cls.__name__, {}).get(f.name, "")
+            sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+            if dataclasses.is_dataclass(sub):
+                walk(type(sub), f"{prefix}{f.name}.")
+
+    walk(Config, "")
     return out
 
 
@@ -204,15 +324,16 @@ def config_yaml(cfg: Config, width: int = 96) -> str:
         for ln in textwrap.wrap(text, width - len(indent) - 2) if text else []:
             lines.append(f"{indent}# {ln}")
 
-    for key, value in asdict(cfg).items():
-        comment(docs.get(key, ""), "")
-        if isinstance(value, dict):
-            lines.append(f"{key}:")
-            for k, v in value.items():
-                comment(docs.get(f"{key}.{k}", ""), "  ")
-                lines.append("  " + _yaml_item(k, v))
-        else:
-            lines.append(_yaml_item(key, value))
+    def section(data: dict, prefix: str, indent: str) -> None:
+        for key, value in data.items():
+            comment(docs.get(prefix + key, ""), indent)
+            if isinstance(value, dict):
+                lines.append(f"{indent}{key}:")
+                section(value, f"{prefix}{key}.", indent + "  ")
+            else:
+                lines.append(indent + _yaml_item(key, value))
+
+    section(asdict(cfg), "", "")
     return "\n".join(lines) + "\n"
 
 

@@ -3,7 +3,7 @@ was chosen, with the measurements: docs/presets.md."""
 
 from __future__ import annotations
 
-from svolsdf.config.schema import Config, FieldConfig, MVSConfig, OutputConfig, TrainConfig
+from svolsdf.config.schema import Config, FieldConfig, MeshConfig, MVSConfig, TrainConfig
 from svolsdf.errors import InputError
 
 __all__ = ["PRESETS", "preset"]
@@ -14,7 +14,7 @@ def _paper() -> Config:
     c.field = FieldConfig(kind="mlp", init="sphere")  # the MLP starts from VolSDF's sphere
     c.train = TrainConfig(steps=100_000, sampler="error_bounded", lr=5e-4, checkpoint_every=5000)
     c.mvs = MVSConfig(backbone="planesweep", width="paper")
-    c.output = OutputConfig(mesh_resolution=512)
+    c.mesh = MeshConfig(resolution=512)
     return c
 
 
@@ -24,15 +24,15 @@ def _fast() -> Config:
     c.train.beta_start = 0.05  # beta annealed, not learned: a short run cannot wait for it
     c.train.anneal_rgb = 50  # the paper's 200 warm-up steps would be 20 % of this run
     c.field.init_unverified_weight = 0.05  # one-view stage-1 depth votes in the initial surface
-    c.output.fusion_surface = 5e-4  # the optimized surface counts as one consistent view
-    c.output.fusion_guided_dilation = 4  # field-guided depth fused within 4 px of the masks
-    c.output.fusion_unguided_dilation = 4
-    c.output.fusion_unguided = True  # the unguided stages 2-3 as a second depth hypothesis
-    c.output.guide_mask_dilation = 32  # the guide rendered only near the object masks
-    c.output.mesh_cull_unseen = True  # the mesh keeps the surface the input views see
-    c.output.mesh_method = "poisson"  # the mesh of the fused points, not of the field
-    c.output.mesh_fit_points = 300  # with mesh_method field: that surface refined to the points
-    c.output.mesh_free_space = True  # no face in space an input view saw empty (docs/meshing.md)
+    c.fusion.surface = 5e-4  # the optimized surface counts as one consistent view
+    c.fusion.guided_dilation = 4  # field-guided depth fused within 4 px of the masks
+    c.fusion.unguided_dilation = 4
+    c.fusion.unguided = True  # the unguided stages 2-3 as a second depth hypothesis
+    c.guide.mask_dilation = 32  # the guide rendered only near the object masks
+    c.mesh.cull_unseen = True  # the mesh keeps the surface the input views see
+    c.mesh.method = "poisson"  # the mesh of the fused points, not of the field
+    c.mesh.fit_points = 300  # with mesh.method field: that surface refined to the points
+    c.mesh.free_space = True  # no face in space an input view saw empty (docs/meshing.md)
     return c
 
 

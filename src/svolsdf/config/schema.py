@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from dataclasses import field as dc_field
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
-__all__ = ["Config", "SceneConfig", "MVSConfig", "FieldConfig", "TrainConfig", "OutputConfig",
+__all__ = ["Config", "SceneConfig", "MVSConfig", "FieldConfig", "TrainConfig", "GuideConfig",
+           "FusionConfig", "MeshConfig", "PoissonConfig", "TSDFConfig",
            "DTU_TRAIN_IDS", "DTU_EXCLUDED_IDS", "choices"]
 
 
@@ -76,6 +77,8 @@ class SceneConfig:
     """Working size [W, H] for the field; default: 768 wide (4:3 -> 768x576), never upsampled."""
     lighting: int | Literal["max"] = _limited(3, min=0, max=6)
     """DTU raw layout only: the lighting index 0..6 of the rectified images, or max."""
+    use_masks: bool = True
+    """Apply (dilated) object masks when the scene has them (docs/method.md 6.3)."""
 
 
 @dataclass
@@ -105,6 +108,11 @@ class MVSConfig:
     """A cascade larger than the working size reads its images from the files when they are
     larger (`Scene.images_at`; a 1600x1200 photo gives stage 3 its own detail). false: the
     working-size images upsampled, as the released code (docs/method.md 9.2.2) and the default."""
+    finer_stage_optimization: bool = False
+    """Paper option (docs/method.md 9.2.13; the released code forbids it): after stage 2, optimize
+    the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
+    its depth again and centre stage 3 on it (svolsdf mode;
+    `svolsdf.pipeline.finer.finer_stage_cascade`)."""
     guide_network: bool = True
     """Backbones that can start from a depth map (patchmatchnet): rerun the network from the
     field's guide depth at the guided stage 2, so that the surface guides the network itself, as
@@ -231,111 +239,124 @@ class TrainConfig:
 
 
 @dataclass
-class OutputConfig:
-    mesh_resolution: int = _limited(256, min=8, max=2048)
-    """Marching-cubes grid resolution in the unit frame (at most 2048: its 2048^3 samples
-    already take tens of GB)."""
-    mesh_format: Literal["ply", "obj"] = "ply"
-    """ply | obj."""
-    mesh_cull_unseen: bool = False
-    """Mesh: also remove the faces no input view sees, i.e. whose centroid lies more than
-    ``mesh_cull_tol`` behind the field's rendered depth in every view that contains it
-    (`svolsdf.fusion.cull.cull_unseen`). Off as released (mask culling only, docs/method.md 8.3):
-    the interior of a sparse-view reconstruction is unconstrained and may hold cavities."""
-    mesh_cull_tol: float = _limited(0.01, min=0)
-    """Mesh: relative depth slack of ``mesh_cull_unseen``."""
-    mesh_watertight: bool = False
-    """Mesh: keep the whole closed zero level (its largest connected part) instead of the parts
-    the input views judge: no frustum, mask or visibility culling, so the mesh has no holes
-    (for printing or simulation). Parts no view sees are the field's guess, so it scores worse
-    against ground truth than the culled mesh."""
-    fusion_dist: float = _limited(1.0, min=0)
-    """Fusion: reprojection distance threshold in pixels (docs/method.md 6.3)."""
-    fusion_rel: float = _limited(0.01, min=0)
-    """Fusion: relative depth difference threshold (docs/method.md 6.3)."""
-    fusion_views: int = _limited(1, min=0)
-    """Fusion: minimum number of consistent source views (docs/method.md 6.3)."""
-    fusion_conf: float = _limited(0.0, min=0, max=1)
-    """Fusion: photometric confidence threshold (0 = off, as released; docs/method.md 9.2.9)."""
-    fusion_surface: float = _limited(0.0, min=0)
-    """Fusion: a depth within this relative difference of the optimized surface's rendered depth
-    (the guide) counts as one consistent source (`FusionConfig.surface_rel_thresh`; 0 = off, as
-    released). Not used without a field (mvs-only)."""
-    fusion_guided_dilation: int | None = _limited(None, min=0)
-    """Fusion: object-mask dilation, in pixels, for the field-guided depth maps (svolsdf mode);
-    None = the released 12 px for every depth map (docs/method.md 6.3). The unguided set
-    (``fusion_unguided``) takes ``fusion_unguided_dilation``. Near the silhouette the guided
-    stages 2-3 inherit the field's errors (a surface fattened into the background), and because
-    those errors form one 3D surface the multi-view check passes them
-    (`FusionConfig.primary_mask_dilation`)."""
-    fusion_unguided_dilation: int | None = _limited(None, min=0)
-    """Fusion: object-mask dilation, in pixels, for the unguided set of ``fusion_unguided``;
-    None = the released 12 px (`FusionConfig.alt_mask_dilation`)."""
-    fusion_unguided: bool = False
-    """Fusion: also run MVS stages 2-3 centred on the stage-1 depth, as the backbone alone does,
-    and give every view that unguided depth as a second hypothesis: each hypothesis is a
-    reference in turn, and a source view is consistent when either of its hypotheses agrees
-    (`fuse_depth_maps` ``alt_depths``). Where the field is wrong, its guide centres stages 2-3
-    away from the surface and their narrow search cannot find it; the unguided pass still can.
-    An extension: neither the paper nor the released code has it (svolsdf mode only).
-    OUT/unguided/{depth,confidence}/<view>.npy."""
-    fusion_network: str | None = _limited(None, choices=_backbone_names)
-    """Fusion: a learned backbone that can start from a depth map (patchmatchnet, with
-    ``fusion_network_weights``), started from the field's guide depth in every input view; its
-    depth joins fusion as a further hypothesis of each view, like ``fusion_unguided``'s (svolsdf
-    mode only; OUT/network/{depth,confidence}/<view>.npy): a second matcher adds multi-view
-    evidence where the main backbone fails. None = off (the paper; no weights ship with this
-    package)."""
-    fusion_network_weights: str | None = None
-    """Weights file of ``fusion_network``."""
-    use_masks: bool = True
-    """Apply (dilated) object masks when the scene has them (docs/method.md 6.3)."""
-    guide_mask_dilation: int | None = _limited(None, min=0)
+class GuideConfig:
+    mask_dilation: int | None = _limited(None, min=0)
     """Render the guide depth (docs/method.md 6.1) only inside the object masks dilated by this many
     pixels; the other pixels count as rendered with no surface (weight 0, so
-    ``low_weight_rule`` applies). None = every pixel (released). Scenes without masks render
+    ``guide.low_weight_rule`` applies). None = every pixel (released). Scenes without masks render
     every pixel."""
     low_weight_rule: Literal["max", "mvs"] = "max"
     """Rendered-depth pixels with weight < 0.2: max (the map's maximum depth, released) |
     mvs (keep the stage-1 MVS depth)."""
-    mesh_fit_points: int = _limited(0, min=0)
-    """Mesh: before marching cubes, refine the SDF grid for this many steps so that its zero
-    level passes through the fused points (`svolsdf.field.fit`; svolsdf mode with the grid
-    field; 0 = off, the paper: the mesh is the optimized field's zero level). The finer MVS
-    stages place depth more precisely than the surface that guided them, so the fused points
-    are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
-    mesh_method: str = _limited("field", choices=_mesh_method_names)
+
+
+@dataclass
+class FusionConfig:
+    dist: float = _limited(1.0, min=0)
+    """Reprojection distance threshold in pixels (docs/method.md 6.3)."""
+    rel: float = _limited(0.01, min=0)
+    """Relative depth difference threshold (docs/method.md 6.3)."""
+    min_views: int = _limited(1, min=0)
+    """Minimum number of consistent source views (docs/method.md 6.3)."""
+    conf: float = _limited(0.0, min=0, max=1)
+    """Photometric confidence threshold (0 = off, as released; docs/method.md 9.2.9)."""
+    surface: float = _limited(0.0, min=0)
+    """A depth within this relative difference of the optimized surface's rendered depth (the
+    guide) counts as one consistent source (`svolsdf.fusion.filter.FusionFilterConfig.surface`;
+    0 = off, as released). Not used without a field (mvs-only)."""
+    guided_dilation: int | None = _limited(None, min=0)
+    """Object-mask dilation, in pixels, for the field-guided depth maps (svolsdf mode); None =
+    the released 12 px for every depth map (docs/method.md 6.3). The unguided set
+    (``fusion.unguided``) takes ``fusion.unguided_dilation``. Near the silhouette the guided
+    stages 2-3 inherit the field's errors (a surface fattened into the background), and because
+    those errors form one 3D surface the multi-view check passes them
+    (`svolsdf.fusion.filter.FusionFilterConfig.primary_mask_dilation`)."""
+    unguided_dilation: int | None = _limited(None, min=0)
+    """Object-mask dilation, in pixels, for the unguided set of ``fusion.unguided``; None = the
+    released 12 px (`svolsdf.fusion.filter.FusionFilterConfig.alt_mask_dilation`)."""
+    unguided: bool = False
+    """Also run MVS stages 2-3 centred on the stage-1 depth, as the backbone alone does, and
+    give every view that unguided depth as a second hypothesis: each hypothesis is a reference
+    in turn, and a source view is consistent when either of its hypotheses agrees
+    (`fuse_depth_maps` ``alt_depths``). Where the field is wrong, its guide centres stages 2-3
+    away from the surface and their narrow search cannot find it; the unguided pass still can.
+    An extension: neither the paper nor the released code has it (svolsdf mode only).
+    OUT/unguided/{depth,confidence}/<view>.npy."""
+    network: str | None = _limited(None, choices=_backbone_names)
+    """A learned backbone that can start from a depth map (patchmatchnet, with
+    ``fusion.network_weights``), started from the field's guide depth in every input view; its
+    depth joins fusion as a further hypothesis of each view, like ``fusion.unguided``'s (svolsdf
+    mode only; OUT/network/{depth,confidence}/<view>.npy): a second matcher adds multi-view
+    evidence where the main backbone fails. None = off (the paper; no weights ship with this
+    package)."""
+    network_weights: str | None = None
+    """Weights file of ``fusion.network``."""
+
+
+@dataclass
+class PoissonConfig:
+    depth: int = _limited(10, min=5, max=14)
+    """Octree depth; the finest cell is the points' box / 2^depth."""
+    trim: float = _limited(5.0, min=0, max=14)
+    """Remove the surface whose sample density, in octree levels, is below this (0 = keep the
+    closed surface)."""
+
+
+@dataclass
+class TSDFConfig:
+    resolution: int = _limited(384, min=32, max=1024)
+    """Voxels along the longest side of the fused points' box (the voxel is at most half the
+    truncation)."""
+    truncation_steps: float = _limited(4.0, gt=0)
+    """Truncation distance in final-stage depth steps."""
+
+
+@dataclass
+class MeshConfig:
+    method: str = _limited("field", choices=_mesh_method_names)
     """Mesh source: field (the optimized field's zero level, the paper) | poisson (screened
     Poisson of OUT/points.ply, `svolsdf.fusion.poisson`) | tsdf (the final depth maps the fused
     points confirm, `svolsdf.fusion.tsdf`) | any method registered with
     `svolsdf.fusion.mesh_methods.register_mesh_method`. docs/meshing.md compares them."""
-    mesh_free_space: bool = False
-    """Mesh: remove faces that lie in space an input view saw as empty, i.e. more than
-    ``mesh_free_space_steps`` final depth steps in front of the depth that view observed there
+    resolution: int = _limited(256, min=8, max=2048)
+    """Marching-cubes grid resolution in the unit frame (at most 2048: its 2048^3 samples
+    already take tens of GB)."""
+    format: Literal["ply", "obj"] = "ply"
+    """ply | obj."""
+    cull_unseen: bool = False
+    """Also remove the faces no input view sees, i.e. whose centroid lies more than
+    ``mesh.cull_tol`` behind the field's rendered depth in every view that contains it
+    (`svolsdf.fusion.cull.cull_unseen`). Off as released (mask culling only, docs/method.md 8.3):
+    the interior of a sparse-view reconstruction is unconstrained and may hold cavities."""
+    cull_tol: float = _limited(0.01, min=0)
+    """Relative depth slack of ``mesh.cull_unseen``."""
+    watertight: bool = False
+    """Keep the whole closed zero level (its largest connected part) instead of the parts the
+    input views judge: no frustum, mask or visibility culling, so the mesh has no holes (for
+    printing or simulation). Parts no view sees are the field's guess, so it scores worse
+    against ground truth than the culled mesh."""
+    fit_points: int = _limited(0, min=0)
+    """Before marching cubes, refine the SDF grid for this many steps so that its zero level
+    passes through the fused points (`svolsdf.field.fit`; svolsdf mode with the grid field and
+    method field; 0 = off, the paper: the mesh is the optimized field's zero level). The finer
+    MVS stages place depth more precisely than the surface that guided them, so the fused points
+    are more accurate than the field; this brings the mesh to them. OUT/field/surface.pt."""
+    free_space: bool = False
+    """Remove faces that lie in space an input view saw as empty, i.e. more than
+    ``mesh.free_space_steps`` final depth steps in front of the depth that view observed there
     (its final depth where the fused points confirm it; `svolsdf.fusion.observe`). Every mesh
     method; off in the paper's protocol (docs/method.md 8.3: mask culling only)."""
-    mesh_free_space_steps: float = _limited(4.0, gt=0)
-    """Mesh: tolerance of ``mesh_free_space`` in final-stage depth steps (docs/method.md 2.5: half
+    free_space_steps: float = _limited(4.0, gt=0)
+    """Tolerance of ``mesh.free_space`` in final-stage depth steps (docs/method.md 2.5: half
     the base interval, 1.3 mm on DTU)."""
-    mesh_support: float = _limited(0.0, min=0)
-    """Mesh: remove faces farther than this many point spacings (the median distance between
+    support: float = _limited(0.0, min=0)
+    """Remove faces farther than this many point spacings (the median distance between
     neighbouring fused points) from every fused point; 0 = off. Surface that no point supports
     is a mesher's extrapolation over holes and past silhouettes."""
-    tsdf_resolution: int = _limited(384, min=32, max=1024)
-    """Mesh (tsdf): voxels along the longest side of the fused points' box (the voxel is at most
-    half the truncation)."""
-    tsdf_truncation_steps: float = _limited(4.0, gt=0)
-    """Mesh (tsdf): truncation distance in final-stage depth steps."""
-    poisson_depth: int = _limited(10, min=5, max=14)
-    """Mesh (poisson): octree depth; the finest cell is the points' box / 2^depth."""
-    poisson_trim: float = _limited(5.0, min=0, max=14)
-    """Mesh (poisson): remove the surface whose sample density, in octree levels, is below
-    this (0 = keep the closed surface)."""
-    finer_stage_optimization: bool = False
-    """Paper option (docs/method.md 9.2.13; the released code forbids it): after stage 2, optimize
-    the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
-    its depth again and centre stage 3 on it (svolsdf mode;
-    `svolsdf.pipeline.finer.finer_stage_cascade`)."""
+    poisson: PoissonConfig = dc_field(default_factory=PoissonConfig)
+    """method poisson: the screened Poisson reconstruction."""
+    tsdf: TSDFConfig = dc_field(default_factory=TSDFConfig)
+    """method tsdf: the truncated signed distance of the observed depth."""
 
 
 @dataclass
@@ -356,8 +377,12 @@ class Config:
     """The neural surface (SDF and colour) and its initialisation."""
     train: TrainConfig = dc_field(default_factory=TrainConfig)
     """The optimization: mode, losses, sampler, schedule."""
-    output: OutputConfig = dc_field(default_factory=OutputConfig)
-    """Fusion of the final depth into points.ply, and the mesh."""
+    guide: GuideConfig = dc_field(default_factory=GuideConfig)
+    """The guide: the optimized surface's rendered depth that centres MVS stages 2-3."""
+    fusion: FusionConfig = dc_field(default_factory=FusionConfig)
+    """Fusion of the final depth maps into points.ply."""
+    mesh: MeshConfig = dc_field(default_factory=MeshConfig)
+    """The mesh: its method, resolution and cleaning."""
 
 
 def choices(option: str) -> tuple[str, ...]:

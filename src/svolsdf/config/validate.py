@@ -200,7 +200,7 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
         InputError: one line naming both options (with the command-line option that set each,
             from ``labels``) and what to do.
     """
-    t, f, o = cfg.train, cfg.field, cfg.output
+    t, f = cfg.train, cfg.field
 
     def opt(key: str, value: Any) -> str:
         shown = value if isinstance(value, str) else _short(value)
@@ -212,9 +212,9 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
     def refuse(a: str, va: Any, b: str, vb: Any, why: str) -> None:
         raise InputError(f"{head}{opt(a, va)} with {opt(b, vb)}: {why}")
 
-    if o.finer_stage_optimization and (t.mode != "svolsdf" or t.ablation is not None):
+    if cfg.mvs.finer_stage_optimization and (t.mode != "svolsdf" or t.ablation is not None):
         which = ("train.mode", t.mode) if t.mode != "svolsdf" else ("train.ablation", t.ablation)
-        refuse("output.finer_stage_optimization", True, *which,
+        refuse("mvs.finer_stage_optimization", True, *which,
                "the finer-stage optimization needs train.mode svolsdf without train.ablation "
                "(it optimizes the field against the stage-2 volumes)")
     # a baseline never sees MVS (issue 38): the ablations run stage-1 MVS, and the mvs rule
@@ -224,27 +224,27 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
                "the ablations change S-VolSDF's prior; "
                + ("a VolSDF baseline must never see MVS" if t.mode == "volsdf"
                   else "mvs-only fits no field") + ": drop the ablation or use train.mode svolsdf")
-    if t.mode == "volsdf" and o.low_weight_rule == "mvs":
-        refuse("train.mode", t.mode, "output.low_weight_rule", o.low_weight_rule,
+    if t.mode == "volsdf" and cfg.guide.low_weight_rule == "mvs":
+        refuse("train.mode", t.mode, "guide.low_weight_rule", cfg.guide.low_weight_rule,
                "the mvs rule fills the guide with stage-1 MVS depth, which a VolSDF baseline "
-               "must never see: use output.low_weight_rule=max")
-    if o.fusion_network is not None and t.mode != "svolsdf":
-        refuse("train.mode", t.mode, "output.fusion_network", o.fusion_network,
+               "must never see: use guide.low_weight_rule=max")
+    if cfg.fusion.network is not None and t.mode != "svolsdf":
+        refuse("train.mode", t.mode, "fusion.network", cfg.fusion.network,
                "the fusion network starts from the field's guide in svolsdf mode only; "
-               "leave output.fusion_network unset")
-    if o.fusion_network_weights is not None and o.fusion_network is None:
-        refuse("output.fusion_network_weights", o.fusion_network_weights,
-               "output.fusion_network", None, "the weights are of the fusion network; set "
-               "output.fusion_network too or leave the weights out")
-    if t.mode == "mvs-only" and o.mesh_method == "field":
-        refuse("train.mode", t.mode, "output.mesh_method", o.mesh_method,
+               "leave fusion.network unset")
+    if cfg.fusion.network_weights is not None and cfg.fusion.network is None:
+        refuse("fusion.network_weights", cfg.fusion.network_weights,
+               "fusion.network", None, "the weights are of the fusion network; set "
+               "fusion.network too or leave the weights out")
+    if t.mode == "mvs-only" and cfg.mesh.method == "field":
+        refuse("train.mode", t.mode, "mesh.method", cfg.mesh.method,
                "mvs-only fits no field, so there is no field to mesh (its output is "
-               "points.ply): use output.mesh_method=poisson or another train.mode")
-    if o.mesh_watertight and o.mesh_method != "field":
-        refuse("output.mesh_watertight", True, "output.mesh_method", o.mesh_method,
+               "points.ply): use mesh.method=poisson or another train.mode")
+    if cfg.mesh.watertight and cfg.mesh.method != "field":
+        refuse("mesh.watertight", True, "mesh.method", cfg.mesh.method,
                "the watertight mesh is the field's closed zero level, and the meshes of the "
                "points (poisson, tsdf, ...) open where no point is: use "
-               "output.mesh_method=field or drop output.mesh_watertight")
+               "mesh.method=field or drop mesh.watertight")
     if 0 < t.beta_start < t.beta_end:
         refuse("train.beta_start", t.beta_start, "train.beta_end", t.beta_end,
                "beta is annealed from beta_start down to beta_end (a sharper surface at the "

@@ -5,14 +5,14 @@ Implements docs/method.md 6.3 (the released ``runner.py::filter_depth`` and
 
 1. Each view is the reference once; every other view is a source.
 2. A reference pixel is consistent with a source if its depth, carried to the source, sampled
-   there (bilinear) and carried back, lands within ``dist_thresh`` pixels of where it started and
-   within a relative depth difference ``rel_thresh`` (`svolsdf.geometry.reproject`).
-3. Optionally (not in docs/method.md; the fast preset's ``output.fusion_surface``), a pixel whose
+   there (bilinear) and carried back, lands within ``dist`` pixels of where it started and
+   within a relative depth difference ``rel`` (`svolsdf.geometry.reproject`).
+3. Optionally (not in docs/method.md; the fast preset's ``fusion.surface``), a pixel whose
    depth lies on the optimized surface (its rendered depth in the reference view, within a
    relative tolerance) counts as one more consistent source; not for a depth map that is the
    surface's own depth.
-4. Pixels with at least ``min_consistent`` consistent sources, a confidence above
-   ``conf_thresh`` and inside the dilated object mask are kept; their depth is the average of the
+4. Pixels with at least ``min_views`` consistent sources, a confidence above
+   ``conf`` and inside the dilated object mask are kept; their depth is the average of the
    reference depth and the consistent reprojected depths, back-projected to world coordinates
    and coloured from the reference image.
 
@@ -42,28 +42,28 @@ from svolsdf.geometry.reproject import (
 )
 from svolsdf.scene.cameras import Cameras
 
-__all__ = ["FusionConfig", "FusedPoints", "fuse_depth_maps"]
+__all__ = ["FusionFilterConfig", "FusedPoints", "fuse_depth_maps"]
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
-class FusionConfig:
+class FusionFilterConfig:
     """Depth-map filtering and fusion (docs/method.md 6.3)."""
 
-    dist_thresh: float = 1.0
+    dist: float = 1.0
     """Largest reprojection distance, in pixels of the reference depth map, for a source to count
     as consistent (the released ``filter_dist``)."""
 
-    rel_thresh: float = 0.01
+    rel: float = 0.01
     """Largest relative depth difference |d_reproj - d| / d for a source to count as consistent
     (the released ``filter_diff``)."""
 
-    min_consistent: int = 1
+    min_views: int = 1
     """Least number of consistent source views for a pixel to be kept (the released
     ``thres_view``; with three input views each reference has two sources)."""
 
-    conf_thresh: float = 0.0
+    conf: float = 0.0
     """Photometric filter: keep pixels whose confidence is strictly greater than this. The default
     0 reproduces the released code, where conf > 0 removes (almost) nothing (docs/method.md 9.2.9);
     the paper's probability-based check needs a positive value, e.g. 0.3 for conf1*conf2*conf3.
@@ -81,16 +81,16 @@ class FusionConfig:
     """Dilation radius for the references of ``depths`` (the first hypothesis) when it should
     differ from ``mask_dilation``; None = ``mask_dilation`` for every reference. The pipeline
     gives its field-guided depth a narrower rim than the unguided ``alt_depths``
-    (`OutputConfig.fusion_guided_dilation`): near the silhouette a guided depth inherits the
+    (``fusion.guided_dilation``): near the silhouette a guided depth inherits the
     field's errors, which are one 3D surface and so pass the multi-view check."""
 
     alt_mask_dilation: int | None = None
     """Dilation radius for the references of ``alt_depths`` (the second hypothesis); None =
     ``mask_dilation``. The pipeline narrows it for the unguided stages 2-3 in the fast preset
-    (`OutputConfig.fusion_unguided_dilation`): as a second hypothesis beside the guided depth,
+    (``fusion.unguided_dilation``): as a second hypothesis beside the guided depth,
     its points in the rim between the object and the dilated mask were mostly background."""
 
-    surface_rel_thresh: float = 0.0
+    surface: float = 0.0
     """With ``surface_depths`` (the optimized surface's depth rendered in each reference view): a
     pixel whose depth lies within this relative difference of the surface's depth counts as one
     more consistent source (its fused depth is not changed by it). The surface is fitted to all
@@ -162,7 +162,7 @@ def fuse_depth_maps(
     images: dict[int, Tensor] | None = None,
     confidences: dict[int, Tensor] | None = None,
     masks: dict[int, Tensor] | None = None,
-    cfg: FusionConfig | None = None,
+    cfg: FusionFilterConfig | None = None,
     surface_depths: dict[int, Tensor] | None = None,
     alt_depths: dict[int, Tensor] | None = None,
     alt_confidences: dict[int, Tensor] | None = None,
@@ -173,19 +173,19 @@ def fuse_depth_maps(
     """Filter every depth map against the others and fuse the survivors (docs/method.md 6.3).
 
     Each view is the reference once with all other views as sources. A pixel survives if
-    ``#consistent >= cfg.min_consistent`` (geometric), ``conf > cfg.conf_thresh`` (photometric,
+    ``#consistent >= cfg.min_views`` (geometric), ``conf > cfg.conf`` (photometric,
     when confidences are given) and it lies in the reference's dilated mask (when masks are given
     and ``cfg.use_masks``). Its fused depth is
     (d_ref + sum of consistent reprojected d) / (1 + #consistent), back-projected with the
     reference camera into world coordinates (the cameras' units).
 
     With ``alt_depths`` every view has a second depth hypothesis (the pipeline's unguided MVS
-    stages 2-3, `OutputConfig.fusion_unguided`; an extension of docs/method.md 6.3). Each hypothesis
+    stages 2-3, ``fusion.unguided``; an extension of docs/method.md 6.3). Each hypothesis
     of each view is a reference in turn; a source view is consistent when either of its
     hypotheses agrees (it still counts once, and its reprojected depth is the first hypothesis
     that agrees, ``depths`` before ``alt_depths``). The points of both are returned, the
     ``depths`` references' first. ``extra_depths`` adds further named hypotheses the same way
-    (after ``alt_depths``; the pipeline's `OutputConfig.fusion_network`); they are guided by the
+    (after ``alt_depths``; the pipeline's ``fusion.network``); they are guided by the
     field, so their references take ``cfg.primary_mask_dilation`` as ``depths`` does;
     ``alt_depths``' references take ``cfg.alt_mask_dilation`` (when set).
 
@@ -200,9 +200,9 @@ def fuse_depth_maps(
         images: view id -> (3, Hi, Wi) float in [0, 1] (or uint8), or None.
         confidences: view id -> (H, W) confidence at the depth resolution, or None.
         masks: view id -> (Hm, Wm) or (1, Hm, Wm) object masks, or None.
-        cfg: `FusionConfig`; defaults reproduce the released settings.
+        cfg: `FusionFilterConfig`; defaults reproduce the released settings.
         surface_depths: view id -> (Hs, Ws) z-depth of the optimized surface (<= 0 = none),
-            used when ``cfg.surface_rel_thresh > 0``; resized (nearest, so that no depth mixes
+            used when ``cfg.surface > 0``; resized (nearest, so that no depth mixes
             across an edge) to each hypothesis' depth size.
         alt_depths: view id -> (H2, W2) second z-depth hypothesis, or None.
         alt_confidences: view id -> (H2, W2) confidence of ``alt_depths``; needed with
@@ -219,11 +219,11 @@ def fuse_depth_maps(
         stats: keyed by view id, by "<view id>:alt" for the second hypotheses and by
         "<view id>:<name>" for ``extra_depths``).
     """
-    cfg = cfg or FusionConfig()
+    cfg = cfg or FusionFilterConfig()
     ids = list(depths)
     if len(ids) < 2:
         raise ValueError(f"fusion needs at least two depth maps, got {len(ids)}")
-    use_surface = surface_depths is not None and cfg.surface_rel_thresh > 0
+    use_surface = surface_depths is not None and cfg.surface > 0
     if alt_depths is not None and confidences is not None and alt_confidences is None:
         raise ValueError("alt_depths with confidences needs alt_confidences")
     use_alt = alt_depths is not None
@@ -299,7 +299,7 @@ def fuse_depth_maps(
 def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
                     cameras: dict[int, Cameras], images: dict[int, Tensor] | None,
                     confs: dict[int, list[Tensor]] | None, masks: dict[int, Tensor] | None,
-                    cfg: FusionConfig, surface_depths: dict[int, Tensor] | None,
+                    cfg: FusionFilterConfig, surface_depths: dict[int, Tensor] | None,
                     radius: int) -> dict:
     """Hypothesis ``h`` of view ``ref`` as the reference of `fuse_depth_maps`: its kept points
     (N, 3), colours (N, 3) uint8 or None, normals (N, 3) or None and stats. ``radius``: the
@@ -317,7 +317,7 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         for d_src in hyps[src]:
             m, d_rep, _ = check_geometric_consistency(
                 d_ref, cam_ref, d_src.float().to(d_ref.device), cameras[src],
-                cfg.dist_thresh, cfg.rel_thresh,
+                cfg.dist, cfg.rel,
             )
             new = m & ~agree
             d_sum += torch.where(new, d_rep.double(), torch.zeros_like(d_sum))
@@ -332,9 +332,9 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         # a hypothesis that is the surface's own depth (VolSDF's rendered depth, a network
         # echoing its guide) would lie on it at every pixel: the surface is no source for it
         if not _same_map(ds, d_ref):
-            on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface_rel_thresh * d_ref)
+            on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface * d_ref)
         support = count + on_surface.int()
-    geo = valid & (support >= cfg.min_consistent)
+    geo = valid & (support >= cfg.min_views)
     keep = geo.clone()
     photo = torch.ones_like(geo)
     if confs is not None:
@@ -343,7 +343,7 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         if tuple(conf.shape) != (H, W):
             raise ValueError(f"the confidence of hypothesis {h} of view {ref} is "
                              f"{tuple(conf.shape)} but its depth map is {(H, W)}")
-        photo = conf > cfg.conf_thresh
+        photo = conf > cfg.conf
         keep &= photo
     inside = torch.ones_like(geo)
     if masks is not None and cfg.use_masks:
@@ -369,7 +369,7 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
     stats = {
         "valid": float(valid.sum()) / n,
         "geo": float(geo.sum()) / n,
-        "surface_only": float((valid & on_surface & (count < cfg.min_consistent)).sum()) / n,
+        "surface_only": float((valid & on_surface & (count < cfg.min_views)).sum()) / n,
         "photo": float((photo & valid).sum()) / n,
         "mask": float((inside & valid).sum()) / n,
         "kept": float(keep.sum()) / n,

@@ -1,4 +1,4 @@
-"""The mesh methods, by name: what `OutputConfig.mesh_method` may say and what each name runs.
+"""The mesh methods, by name: what ``mesh.method`` may say and what each name runs.
 
 A method is a function of one `MeshInputs` returning (vw (V, 3) world vertices, faces (F, 3),
 colours (V, 3) uint8 or None), registered with ``@register_mesh_method("name")``. Adding one is
@@ -42,7 +42,8 @@ class MeshInputs:
         model: the optimized field (a `SurfaceModel`; the refined one after the finer stage).
         field_mesh: the field's zero level as the mesh stage makes it (fitted to the points,
             culled, coloured): () -> (vw, faces, colours).
-        output: the run's `OutputConfig` (the method's options are read from it).
+        mesh: the run's `svolsdf.config.MeshConfig` (the method's options are read from it:
+            ``mesh.poisson``, ``mesh.tsdf``, or a section of its own).
         depth_step: the final depth's step per view (`svolsdf.fusion.observe.final_depth_step`).
         use_masks: cull by the scene's masks.
         device: where the field is evaluated.
@@ -54,7 +55,7 @@ class MeshInputs:
     observed: list[Tensor] | None
     model: Any
     field_mesh: Callable[[], MeshResult]
-    output: Any
+    mesh: Any
     depth_step: Tensor
     use_masks: bool
     device: Any = None
@@ -89,7 +90,7 @@ def register_mesh_method(name: str, needs_points: bool = False, needs_observed: 
 
 
 def registered_mesh_methods() -> list[str]:
-    """The names `OutputConfig.mesh_method` accepts, in registration order (the built-in ones
+    """The names ``mesh.method`` accepts, in registration order (the built-in ones
     first)."""
     return _METHODS.names()
 
@@ -115,10 +116,10 @@ def _poisson(m: MeshInputs) -> MeshResult:
     """Screened Poisson of the fused points (`svolsdf.fusion.meshing.poisson_mesh`)."""
     from svolsdf.fusion.meshing import poisson_mesh
 
-    o = m.output
-    return poisson_mesh(m.points, m.colours, m.model, m.scene, o.poisson_depth, o.poisson_trim,
-                        use_masks=m.use_masks, unseen=o.mesh_cull_unseen,
-                        rel_tol=o.mesh_cull_tol, device=m.device)
+    o = m.mesh
+    return poisson_mesh(m.points, m.colours, m.model, m.scene, o.poisson.depth, o.poisson.trim,
+                        use_masks=m.use_masks, unseen=o.cull_unseen,
+                        rel_tol=o.cull_tol, device=m.device)
 
 
 @register_mesh_method("tsdf", needs_points=True, needs_observed=True)
@@ -129,8 +130,8 @@ def _tsdf(m: MeshInputs) -> MeshResult:
 
     if m.observed is None:
         raise RuntimeError("no final depth maps to fuse")
-    o = m.output
+    o = m.mesh
     return points_tsdf_mesh(m.points, m.colours, m.scene, m.observed,
-                            trunc=float(o.tsdf_truncation_steps * m.depth_step.mean()),
-                            resolution=o.tsdf_resolution, use_masks=m.use_masks,
-                            unseen=o.mesh_cull_unseen, rel_tol=o.mesh_cull_tol)
+                            trunc=float(o.tsdf.truncation_steps * m.depth_step.mean()),
+                            resolution=o.tsdf.resolution, use_masks=m.use_masks,
+                            unseen=o.cull_unseen, rel_tol=o.cull_tol)

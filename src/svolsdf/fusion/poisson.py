@@ -1,6 +1,6 @@
 """A mesh from the fused points: oriented normals and screened Poisson surface reconstruction.
 
-`OutputConfig.mesh_method` = "poisson". The fused points (docs/method.md 6.3) are placed by the
+``mesh.method`` = "poisson". The fused points (docs/method.md 6.3) are placed by the
 finer MVS stages and are more accurate than the optimized field's zero level; the screened
 Poisson surface (Kazhdan and Hoppe 2013) interpolates them, and trimming by the octree's sample
 density removes what the points do not support. The surface reconstruction itself is COLMAP's

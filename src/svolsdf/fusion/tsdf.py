@@ -1,5 +1,5 @@
 """A mesh of the final depth maps by truncated signed-distance fusion (TSDF; Curless and Levoy
-1996), `OutputConfig.mesh_method` = "tsdf".
+1996), ``mesh.method`` = "tsdf".
 
 Each view's observed depth (`svolsdf.fusion.observe.observed_depths`: the final depth where the
 fused points confirm it) is integrated into a dense voxel grid over the fused points' box: for a

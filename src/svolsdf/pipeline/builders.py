@@ -64,18 +64,17 @@ def build_backbone(cfg: Config, device=None):
 
 
 def build_network_backbone(cfg: Config, device=None):
-    """The `OutputConfig.fusion_network` backbone, its weights loaded and checked.
+    """The ``fusion.network`` backbone, its weights loaded and checked.
 
     Raises:
         InputError: the backbone cannot start from a depth map.
     """
     from svolsdf.mvs.backbone import get_backbone
 
-    o = cfg.output
-    bb = get_backbone(o.fusion_network, weights=o.fusion_network_weights,
+    bb = get_backbone(cfg.fusion.network, weights=cfg.fusion.network_weights,
                       max_sources=cfg.mvs.max_sources, device=device)
     if not getattr(bb, "can_start_from_depth", False):
-        raise InputError(f"output.fusion_network: the {o.fusion_network!r} backbone "
+        raise InputError(f"fusion.network: the {cfg.fusion.network!r} backbone "
                          "cannot start from a depth map (patchmatchnet can)")
     return bb
 
@@ -166,7 +165,7 @@ def build_train_data(cfg: Config, scene: Scene, mvs_depth: torch.Tensor | None =
     from svolsdf.optimize.trainer import TrainData
 
     focus = None
-    if cfg.train.object_ray_fraction > 0 and scene.masks is not None and cfg.output.use_masks:
+    if cfg.train.object_ray_fraction > 0 and scene.masks is not None and cfg.scene.use_masks:
         from svolsdf.geometry import dilate_mask
 
         r = cfg.train.object_ray_dilation

@@ -51,7 +51,7 @@ def finer_stage_cascade(p, guide: dict[int, torch.Tensor]) -> dict:
     save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
                                      "grid_resolution": getattr(model, "resolution", None)})
     guide2 = p._rendered_guide()
-    for v, d in guide2.items():  # the refined surface, for fusion (output.fusion_surface)
+    for v, d in guide2.items():  # the refined surface, for fusion (fusion.surface)
         save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",
                  d.numpy().astype(np.float32))
     res3 = run_cascade(bb, scene, guide_depth=guide2, stages=(3,),

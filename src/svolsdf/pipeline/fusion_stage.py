@@ -20,7 +20,7 @@ log = logging.getLogger("svolsdf.pipeline")
 
 def network_depths(p, guide: dict[int, torch.Tensor]
                    ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
-    """`OutputConfig.fusion_network`'s depth and confidence of every input view (H, W), the
+    """``fusion.network``'s depth and confidence of every input view (H, W), the
     network started from ``guide`` (world z-depth); also written to
     OUT/network/{depth,confidence}/<view>.npy.
 
@@ -49,31 +49,30 @@ def fuse(p, path: Path) -> tuple[int, dict]:
     Returns:
         (number of points, timing extras: ``points_per_set`` with several depth sets).
     """
-    from svolsdf.fusion.filter import FusionConfig, fuse_depth_maps
+    from svolsdf.fusion.filter import FusionFilterConfig, fuse_depth_maps
     from svolsdf.io.ply import write_points_ply
 
     scene = p.load()
     cfg, out, views = p.cfg, p.out, p.views
-    o = cfg.output
-    fcfg = FusionConfig(dist_thresh=o.fusion_dist, rel_thresh=o.fusion_rel,
-                        min_consistent=o.fusion_views, conf_thresh=o.fusion_conf,
-                        use_masks=o.use_masks, surface_rel_thresh=o.fusion_surface)
+    f = cfg.fusion  # the filter's options have the same names as the config's
+    fcfg = FusionFilterConfig(dist=f.dist, rel=f.rel, min_views=f.min_views, conf=f.conf,
+                              surface=f.surface, use_masks=cfg.scene.use_masks)
     if options.guided_mvs(cfg):  # OUT/depth is the field-guided depth
-        fcfg.primary_mask_dilation = o.fusion_guided_dilation
-        fcfg.alt_mask_dilation = o.fusion_unguided_dilation
+        fcfg.primary_mask_dilation = cfg.fusion.guided_dilation
+        fcfg.alt_mask_dilation = cfg.fusion.unguided_dilation
     # the refined surface after the finer-stage optimization
-    sdir = p.dir.render_depth_dir(refined=bool(cfg.output.finer_stage_optimization))
+    sdir = p.dir.render_depth_dir(refined=bool(cfg.mvs.finer_stage_optimization))
     # the rendered guide is the surface (the soft-consistency ablation's guide is not). In
     # volsdf mode OUT/depth is that guide itself: it must not count as its own consistent
     # source, so VolSDF's points pass the same multi-view check as every other mode's
     guide_is_depth = options.is_baseline(cfg)
-    use_surface = (o.fusion_surface > 0 and not options.guide_from_consistency(cfg)
+    use_surface = (cfg.fusion.surface > 0 and not options.guide_from_consistency(cfg)
                    and not guide_is_depth
                    and all((sdir / f"{v}.npy").is_file() for v in views))
     cams = {v: scene.cameras[[i]] for i, v in enumerate(views)}
     images = {v: scene.images[i] for i, v in enumerate(views)}
     masks = None
-    if scene.masks is not None and o.use_masks:
+    if scene.masks is not None and cfg.scene.use_masks:
         masks = {v: scene.masks[i, 0] for i, v in enumerate(views)}
 
     def load(d: Path, sub: str) -> dict[int, torch.Tensor] | None:
@@ -83,7 +82,7 @@ def fuse(p, path: Path) -> tuple[int, dict]:
         return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
 
     depths = load(out, "depth")
-    if guide_is_depth and depths is not None and o.low_weight_rule == "max":
+    if guide_is_depth and depths is not None and cfg.guide.low_weight_rule == "max":
         from svolsdf.render.views import max_rule_filled
 
         # the pixels docs/method.md 6.1 filled with the map's maximum depth are no surface of the
@@ -105,7 +104,7 @@ def fuse(p, path: Path) -> tuple[int, dict]:
         t1 = time.perf_counter()
         d, c = network_depths(p, p.stage_guide())
         net, net_confs = {"network": d}, ({"network": c} if confs is not None else None)
-        log.info("fusion network %s: %d view(s) in %.1f s", o.fusion_network, len(views),
+        log.info("fusion network %s: %d view(s) in %.1f s", cfg.fusion.network, len(views),
                  time.perf_counter() - t1)
     fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface,
                             alt_depths=alt, alt_confidences=alt_confs,

@@ -17,10 +17,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import asdict
 from pathlib import Path
 
 from svolsdf.config import Config
+from svolsdf.config.io import legacy_layout
 from svolsdf.pipeline.builders import backbone_kwargs
 from svolsdf.pipeline.options import (
     grid_from_sphere,
@@ -53,7 +53,9 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     from svolsdf import __version__
     from svolsdf.mvs.backbone import backbone_signature
 
-    c = asdict(cfg)
+    # the options under the names they had when the first run folders were written (the
+    # output section's flat prefixes, `svolsdf.config.io.RENAMED`): their keys stay the same
+    c = legacy_layout(cfg)
     # the backbone's full config (defaults included) and weights file: a changed default
     # or a replaced checkpoint must not reuse cached volumes
     sig = backbone_signature(cfg.mvs.backbone, weights=cfg.mvs.weights,
@@ -80,12 +82,12 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
             c["field"].pop(k)
         c["train"].pop("grid_eikonal_weight")
         c["train"]["lr_sdf_sphere"] = 1e-3
-    # output.use_masks = false enters where the stage reads the masks (issue 40: it was left
+    # scene.use_masks = false enters where the stage reads the masks (issue 40: it was left
     # out): the field started from the MVS surface (its grid's start votes inside the masks)
     # or drawing a share of its rays in them; the guide rendered within the dilated masks (a
     # field's: mvs-only and the soft-consistency ablation render none). True, the default,
     # stays out: run folders keep their keys
-    no_masks = [] if cfg.output.use_masks else ["no masks"]
+    no_masks = [] if cfg.scene.use_masks else ["no masks"]
     reads_masks = has_field(cfg) and ((cfg.field.kind == "grid" and not grid_from_sphere(cfg))
                                       or cfg.train.object_ray_fraction > 0)
     k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],
@@ -103,8 +105,8 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
           and not (k in _FUSION_KEYS_WHEN_SET and v is None)}
     net = None
     if wants_network(cfg):
-        net = backbone_signature(cfg.output.fusion_network,
-                                 weights=cfg.output.fusion_network_weights,
+        net = backbone_signature(cfg.fusion.network,
+                                 weights=cfg.fusion.network_weights,
                                  max_sources=cfg.mvs.max_sources)
     k_fusion = _hash(k_mvs23, fo, k_unguided if wants_unguided(cfg) else None,
                      *([net] if net is not None else []),
@@ -208,21 +210,19 @@ def input_manifest(scene, previous: dict | None = None) -> dict[str, dict]:
 def input_keys(cfg: Config, manifest: dict[str, dict]) -> dict[str, str]:
     """{stage: 12-hex key} of the inputs each stage reads, directly or through the stages it
     follows (chained as `stage_keys` chains the config)."""
-    o = cfg.output
-
     def part(kind: str) -> list:
         return sorted((k, e.get("sha1")) for k, e in manifest.items() if k.startswith(kind))
 
     images, cams = part("image:"), part("cameras")
-    masks = part("mask:") if o.use_masks else []
+    masks = part("mask:") if cfg.scene.use_masks else []
     i_mvs1 = _hash("mvs1", images, cams)
     i_field = _hash(i_mvs1, images, cams, masks)  # rays in the masks, the grid's start
-    i_guide = _hash(i_field, masks if o.guide_mask_dilation is not None else [])
+    i_guide = _hash(i_field, masks if cfg.guide.mask_dilation is not None else [])
     i_mvs23 = _hash(i_guide, i_mvs1)
     i_unguided = _hash(i_mvs1, "unguided")
     i_fusion = _hash(i_mvs23, i_unguided if wants_unguided(cfg) else None, images, cams, masks)
-    i_mesh = _hash(i_field, cams, masks, i_mvs23 if o.finer_stage_optimization else None,
-                   i_guide if o.mesh_cull_unseen else None,
+    i_mesh = _hash(i_field, cams, masks, i_mvs23 if cfg.mvs.finer_stage_optimization else None,
+                   i_guide if cfg.mesh.cull_unseen else None,
                    i_fusion if (wants_mesh_fit(cfg) or wants_poisson(cfg)) else None)
     return {"mvs1": i_mvs1, "field": i_field, "guide": i_guide, "mvs23": i_mvs23,
             "unguided": i_unguided, "fusion": i_fusion, "mesh": i_mesh}

@@ -125,7 +125,7 @@ class Run:
             log.warning("%s: the stored field was trained under another config hash (edited "
                         "config or newer package); rendering the stored field/model.pt as it "
                         "is", out)
-        if cfg.output.finer_stage_optimization and self.dir.refined_model.is_file():
+        if cfg.mvs.finer_stage_optimization and self.dir.refined_model.is_file():
             # the field after the finer-stage optimization (as the mesh uses)
             model_path = self.dir.refined_model
         model = self.build_model()
@@ -258,9 +258,9 @@ class Run:
 
     def guide_pixels(self) -> torch.Tensor | None:
         """(V, H, W) bool: the pixels whose guide depth is rendered
-        (`svolsdf.render.views.guide_pixels` of ``output.guide_mask_dilation``), or None."""
+        (`svolsdf.render.views.guide_pixels` of ``guide.mask_dilation``), or None."""
         from svolsdf.render.views import guide_pixels
 
         scene = self.load()
-        masks = scene.masks if self.cfg.output.use_masks else None
-        return guide_pixels(masks, self.cfg.output.guide_mask_dilation)
+        masks = scene.masks if self.cfg.scene.use_masks else None
+        return guide_pixels(masks, self.cfg.guide.mask_dilation)

@@ -1,4 +1,4 @@
-"""The mesh stage's inputs: the method `OutputConfig.mesh_method` names in the registry
+"""The mesh stage's inputs: the method ``mesh.method`` names in the registry
 (`svolsdf.fusion.mesh_methods`: the field's zero level, the Poisson surface of the fused points,
 the TSDF of the observed final depth, or any registered one), what it falls back to when that
 fails (and says so), and the culling every method gets (`svolsdf.fusion.meshing` holds the
@@ -44,10 +44,10 @@ def observed_depths_of(run: Run, points: np.ndarray) -> list[torch.Tensor] | Non
 
 
 def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
-    """The run's mesh as `OutputConfig` asks: (vw (V, 3) world vertices, faces (F, 3), colours
+    """The run's mesh as ``mesh`` section asks: (vw (V, 3) world vertices, faces (F, 3), colours
     (V, 3) uint8 or None, timing extras: ``mesh_source``, ``method``, ``cleanup``, ``points``).
 
-    The method is `OutputConfig.mesh_method`'s in the registry (`svolsdf.fusion.mesh_methods`;
+    The method is ``mesh.method``'s in the registry (`svolsdf.fusion.mesh_methods`;
     the field's with a watertight mesh). ``mesh_source`` is its name ("field", "poisson",
     "tsdf", ...), or "field (poisson failed: REASON)" (the same for any other method) when it
     gave no surface and the field's zero level, which always exists, replaced it.
@@ -63,28 +63,28 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
     from svolsdf.fusion.observe import final_depth_step
     from svolsdf.io.ply import read_ply
 
-    o = p.cfg.output
     model = p.model()
-    if o.finer_stage_optimization and p.dir.refined_model.is_file():
+    if p.cfg.mvs.finer_stage_optimization and p.dir.refined_model.is_file():
         # the field after the finer-stage optimization
         load_model(model, p.dir.refined_model)
     scene = p.load()
-    use_masks = scene.masks is not None and o.use_masks
+    mc = p.cfg.mesh
+    use_masks = scene.masks is not None and p.cfg.scene.use_masks
     step = final_depth_step(scene.depth_range, p.cfg.mvs.width)
     # the watertight mesh is the field's closed zero level, whatever the method
-    chosen = get_mesh_method("field" if o.mesh_watertight else o.mesh_method)
+    chosen = get_mesh_method("field" if mc.watertight else mc.method)
     method = options.mesh_from_points(p.cfg)
     pts = cols_pts = observed = None
-    if method is not None or o.mesh_free_space or o.mesh_support > 0:
+    if method is not None or mc.free_space or mc.support > 0:
         d = read_ply(p.stage_fusion())
         pts, cols_pts = d["points"], d["colors"]
-    if (chosen.needs_observed or o.mesh_free_space) and len(pts):
+    if (chosen.needs_observed or mc.free_space) and len(pts):
         observed = observed_depths_of(p, pts)
     source = "field"
     vw = f = cols = None
     inputs = MeshInputs(points=pts, colours=cols_pts, scene=scene, observed=observed,
                         model=model, field_mesh=lambda: _field_mesh(p, model, scene, use_masks),
-                        output=o, depth_step=step, use_masks=use_masks, device=p.device)
+                        mesh=mc, depth_step=step, use_masks=use_masks, device=p.device)
     if chosen.name != "field":
         try:
             if chosen.needs_points and len(pts) < 100:
@@ -105,18 +105,18 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
         vw, f, cols = get_mesh_method("field").run(inputs)
     # the watertight mesh is the whole closed zero level by definition: no face is cut from it,
     # and timing.json / metrics.json say so (docs/meshing.md)
-    closed = o.mesh_watertight and source == "field"
-    free = o.mesh_free_space and not closed
+    closed = mc.watertight and source == "field"
+    free = mc.free_space and not closed
     vw, f, cols, cleanup = clean_mesh(
         vw, f, cols, scene, observed=observed if free else None,
-        free_space_tol=o.mesh_free_space_steps * step if free else None,
-        points=pts, support_k=0.0 if closed else o.mesh_support)
+        free_space_tol=mc.free_space_steps * step if free else None,
+        points=pts, support_k=0.0 if closed else mc.support)
     if len(f) == 0:
         raise RuntimeError("mesh: no face left after free-space culling and trimming")
     info = {"mesh_source": source, "method": source.split(" ")[0],
             "cleanup": cleanup.as_dict()}
-    if closed and (o.mesh_free_space or o.mesh_support > 0):
-        info["cleanup"]["not_applied"] = ("mesh_watertight: the closed surface is kept whole "
+    if closed and (mc.free_space or mc.support > 0):
+        info["cleanup"]["not_applied"] = ("mesh.watertight: the closed surface is kept whole "
                                           "(no free-space culling or support trimming)")
     if method is not None:
         info["points"] = int(len(pts))
@@ -128,7 +128,6 @@ def _field_mesh(p, model, scene, use_masks: bool):
     its colour network: (vw (V, 3), faces (F, 3), colours (V, 3) or None)."""
     from svolsdf.fusion.meshing import field_mesh, field_mesh_colours
 
-    o = p.cfg.output
     fit = options.wants_mesh_fit(p.cfg)
     if fit:
         model = _surface_fitted_to_points(p, model)
@@ -137,10 +136,11 @@ def _field_mesh(p, model, scene, use_masks: bool):
     bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else p.field_bounds()
     # the fitted surface moved away from the rendered depth: the views' depth of the mesh
     # itself decides what they see
-    depths = "mesh" if fit else (lambda: _mesh_cull_depths(p, o.finer_stage_optimization))
-    v, vw, f = field_mesh(model, bounds, scene, o.mesh_resolution, watertight=o.mesh_watertight,
-                          use_masks=use_masks, unseen=o.mesh_cull_unseen, depths=depths,
-                          rel_tol=o.mesh_cull_tol, device=p.device, progress=p.progress)
+    mc = p.cfg.mesh
+    depths = "mesh" if fit else (lambda: _mesh_cull_depths(p, p.cfg.mvs.finer_stage_optimization))
+    v, vw, f = field_mesh(model, bounds, scene, mc.resolution, watertight=mc.watertight,
+                          use_masks=use_masks, unseen=mc.cull_unseen, depths=depths,
+                          rel_tol=mc.cull_tol, device=p.device, progress=p.progress)
     return vw, f, field_mesh_colours(model, v, f, device=p.device)
 
 
@@ -162,7 +162,7 @@ def _mesh_cull_depths(p, refined: bool) -> torch.Tensor | None:
 
 def _surface_fitted_to_points(p, model):
     """A copy of ``model`` whose SDF grid is refined to pass through OUT/points.ply
-    (`OutputConfig.mesh_fit_points`); saved as OUT/field/surface.pt."""
+    (``mesh.fit_points``); saved as OUT/field/surface.pt."""
     from svolsdf.field.fit import fit_sdf_to_points
     from svolsdf.io.ply import read_ply
 
@@ -170,7 +170,7 @@ def _surface_fitted_to_points(p, model):
     pts = read_ply(p.stage_fusion())["points"]
     unit = scene.normalization.to_unit(torch.from_numpy(pts).double()).float()
     fitted = copy.deepcopy(model)
-    fit_sdf_to_points(fitted, unit.to(p.device), steps=p.cfg.output.mesh_fit_points,
+    fit_sdf_to_points(fitted, unit.to(p.device), steps=p.cfg.mesh.fit_points,
                       seed=p.cfg.train.seed)
     save_torch(p.dir.surface_model, {"model_state_dict": fitted.state_dict(),
                                      "grid_resolution": getattr(fitted, "resolution", None),

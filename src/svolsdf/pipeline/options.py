@@ -65,28 +65,27 @@ def grid_from_sphere(cfg: Config) -> bool:
 
 
 def wants_network(cfg: Config) -> bool:
-    """`OutputConfig.fusion_network` applies: set, in svolsdf mode (which has a guide)."""
-    return cfg.output.fusion_network is not None and guided_mvs(cfg)
+    """``fusion.network`` applies: set, in svolsdf mode (which has a guide)."""
+    return cfg.fusion.network is not None and guided_mvs(cfg)
 
 
 def wants_unguided(cfg: Config) -> bool:
-    """`OutputConfig.fusion_unguided` applies: svolsdf mode, whose stages 2-3 are guided."""
-    return cfg.output.fusion_unguided and guided_mvs(cfg)
+    """``fusion.unguided`` applies: svolsdf mode, whose stages 2-3 are guided."""
+    return cfg.fusion.unguided and guided_mvs(cfg)
 
 
 def wants_mesh_fit(cfg: Config) -> bool:
-    """`OutputConfig.mesh_fit_points` applies: set, svolsdf mode (its points come from the
+    """``mesh.fit_points`` applies: set, svolsdf mode (its points come from the
     finer MVS stages), a grid field."""
-    return (cfg.output.mesh_fit_points > 0 and cfg.output.mesh_method == "field"
+    return (cfg.mesh.fit_points > 0 and cfg.mesh.method == "field"
             and guided_mvs(cfg)
             and cfg.train.ablation is None and cfg.field.kind == "grid")
 
 
 def wants_poisson(cfg: Config) -> bool:
-    """`OutputConfig.mesh_method` = "poisson" applies: set and no watertight mesh (a Poisson
+    """``mesh.method`` = "poisson" applies: set and no watertight mesh (a Poisson
     surface opens where it meets its octree's box; the watertight mesh is the field's)."""
-    o = cfg.output
-    return o.mesh_method == "poisson" and not o.mesh_watertight
+    return cfg.mesh.method == "poisson" and not cfg.mesh.watertight
 
 
 def mesh_from_points(cfg: Config) -> str | None:
@@ -96,6 +95,5 @@ def mesh_from_points(cfg: Config) -> str | None:
     stop; the watertight mesh is the field's closed zero level)."""
     from svolsdf.fusion.mesh_methods import get_mesh_method
 
-    o = cfg.output
-    return o.mesh_method if get_mesh_method(o.mesh_method).needs_points \
-        and not o.mesh_watertight else None
+    return cfg.mesh.method if get_mesh_method(cfg.mesh.method).needs_points \
+        and not cfg.mesh.watertight else None

@@ -7,7 +7,7 @@ Stages (docs/architecture.md "Data flow"; docs/method.md 0 and 6):
 3. ``guide``: rendered z-depth of the input views, which replaces the stage-1 depth
    (docs/method.md 6.1; OUT/field/render_depth/<id>.npy).
 4. ``mvs23``: stages 2 and 3 centred on that depth (OUT/mvs/stage{2,3}, OUT/depth/<id>.npy).
-5. ``unguided`` (``output.fusion_unguided``, the fast preset's; not in the paper): stages 2 and 3
+5. ``unguided`` (``fusion.unguided``, the fast preset's; not in the paper): stages 2 and 3
    centred on the stage-1 depth, as the backbone alone runs them (OUT/unguided/depth/<id>.npy);
    fusion takes them as every view's second depth hypothesis.
 6. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, docs/method.md 6.3).
@@ -241,7 +241,7 @@ class Pipeline(Run):
         scene = self.load()
         # degenerate input (empty masks, tiny images, cameras that see nothing in common) ends
         # here, before a stage, in one line
-        check_scene(scene, use_masks=self.cfg.output.use_masks)
+        check_scene(scene, use_masks=self.cfg.scene.use_masks)
         self.keys = self.stage_keys()
         before = self.dir.state().get("manifest")
         manifest = input_manifest(scene, before)
@@ -377,7 +377,7 @@ class Pipeline(Run):
 
                 scene = self.load()
                 init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
-                                   scene.masks if self.cfg.output.use_masks else None,
+                                   scene.masks if self.cfg.scene.use_masks else None,
                                    unverified_weight=self.cfg.field.init_unverified_weight)
         return Trainer(model, self.train_data(), tcfg, prior=prior,
                        sampler=builders.build_sampler(self.cfg, prior),
@@ -420,12 +420,12 @@ class Pipeline(Run):
                               pixels=pixels)
         if previews:
             self.field_psnr = field_psnr(scene, self.views, r["rgb"], pixels,
-                                         self.cfg.output.use_masks)
+                                         self.cfg.scene.use_masks)
             for i, v in enumerate(self.views):
                 write_previews(self.dir, v, r, i)
         volumes = self.regressed_volumes1() if self._volumes1 is not None else None
         return guide_depths(r["depth"], r["opacity"], self.views, scene.normalization.scale,
-                            self.cfg.output.low_weight_rule, volumes)
+                            self.cfg.guide.low_weight_rule, volumes)
 
     # ------------------------------------------------------------------ stages 2-3
     def stage_mvs23(self) -> dict[int, torch.Tensor]:
@@ -457,7 +457,7 @@ class Pipeline(Run):
             if guide is None and self._volumes1 is None:
                 stages = (1, 2, 3)
             earlier = {1: self._volumes1} if self._volumes1 is not None else None
-            if self.cfg.output.finer_stage_optimization and guide is not None:
+            if self.cfg.mvs.finer_stage_optimization and guide is not None:
                 from svolsdf.pipeline.finer import finer_stage_cascade
 
                 res = finer_stage_cascade(self, guide)
@@ -472,17 +472,16 @@ class Pipeline(Run):
         return depths
 
     def _network_backbone(self):
-        """The `OutputConfig.fusion_network` backbone (its weights loaded and checked once per
+        """The ``fusion.network`` backbone (its weights loaded and checked once per
         config; `run` asks for it first, the fusion stage reuses it)."""
-        o = self.cfg.output
-        key = (o.fusion_network, o.fusion_network_weights, self.cfg.mvs.max_sources)
+        key = (self.cfg.fusion.network, self.cfg.fusion.network_weights, self.cfg.mvs.max_sources)
         if self._net is None or self._net[0] != key:
             self._net = (key, builders.build_network_backbone(self.cfg, self.device))
         return self._net[1]
 
     def stage_unguided(self) -> dict[int, torch.Tensor] | None:
         """MVS stages 2-3 centred on the stage-1 depth, the backbone alone's cascade
-        (`OutputConfig.fusion_unguided`): OUT/unguided/{depth,confidence}/<view>.npy, confidence
+        (``fusion.unguided``): OUT/unguided/{depth,confidence}/<view>.npy, confidence
         the product over stages 1-3 (docs/method.md 6.2). None when the option does not apply."""
         if not options.wants_unguided(self.cfg):
             return None
@@ -524,12 +523,13 @@ class Pipeline(Run):
 
     def _no_points_message(self) -> str:
         """Why fusion kept no point, as far as the run can tell, and what to try."""
-        o, why = self.cfg.output, []
-        if self.load().masks is not None and o.use_masks:
+        why = []
+        if self.load().masks is not None and self.cfg.scene.use_masks:
             why.append("the object masks")
+        f = self.cfg.fusion
         return (f"{self.out}: fusion kept no point: no pixel's depth agrees in "
-                f"{o.fusion_views} other input view(s) within {o.fusion_dist} px / "
-                f"{o.fusion_rel:g} relative depth"
+                f"{f.min_views} other input view(s) within {f.dist} px / "
+                f"{f.rel:g} relative depth"
                 + (f" inside {why[0]}" if why else "")
                 + f" (views {self.views}). Check that the cameras look at the object and "
                   "overlap (svolsdf info SCENE --sheet sheet.png), or pick views with more "
@@ -540,8 +540,7 @@ class Pipeline(Run):
         zero level, the Poisson surface of the fused points or the TSDF of the observed final
         depth, culled by the input views, then by free space and support. ``mesh_source`` in
         OUT/timing.json says which surface it is, and why when it is not the one asked for."""
-        o = self.cfg.output
-        path = self.dir.mesh(o.mesh_format)
+        path = self.dir.mesh(self.cfg.mesh.format)
         if self._done("mesh") and path.is_file():
             return path
         t0 = time.perf_counter()
@@ -549,7 +548,7 @@ class Pipeline(Run):
         from svolsdf.pipeline.mesh import build_mesh
 
         vw, f, cols, info = build_mesh(self)
-        save_mesh(path, vw, f, cols, fmt=o.mesh_format)
+        save_mesh(path, vw, f, cols, fmt=self.cfg.mesh.format)
         self._mark("mesh")
         self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)), **info)
         return path

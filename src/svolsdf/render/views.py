@@ -82,7 +82,7 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
 
 def guide_pixels(masks: torch.Tensor | None, dilation: int | None) -> torch.Tensor | None:
     """(V, H, W) bool: the pixels whose guide depth is rendered, the object masks dilated by
-    ``dilation`` px (`OutputConfig.guide_mask_dilation`; None: every pixel, as released; also
+    ``dilation`` px (``guide.mask_dilation``; None: every pixel, as released; also
     without masks).
 
     Args:
@@ -108,7 +108,7 @@ def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int]
         depth: (V, H, W) rendered unit-frame z-depth; opacity: (V, H, W) sum of the weights.
         view_ids: the V views' ids.
         scale: the normalization's scale (unit -> world).
-        rule: `OutputConfig.low_weight_rule`: "max" (the map's maximum depth, docs/method.md 6.1),
+        rule: ``guide.low_weight_rule``: "max" (the map's maximum depth, docs/method.md 6.1),
             "mvs" (the stage-1 MVS depth of ``volumes``) or anything else (kept as rendered).
         volumes: the V stage-1 volumes with their regressed depth, for "mvs" (None: kept).
 

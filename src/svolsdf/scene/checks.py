@@ -88,7 +88,7 @@ def check_scene(scene: Scene, use_masks: bool = True) -> None:
                 raise SceneError(f"{name}: the object mask of view {v} is empty (all black): "
                                  "the object is not in the view, or the mask is inverted; fix "
                                  "the mask, leave the view out, or pass --set "
-                                 "output.use_masks=false")
+                                 "scene.use_masks=false")
 
 
 def _scene_format(folder: Path) -> str | None:

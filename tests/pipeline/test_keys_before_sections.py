@@ -1,0 +1,45 @@
+"""Run folders made before the component sections (``mesh``, ``fusion``, ``guide``: issue 40)
+keep their finished stages: the config.yaml such a folder holds loads (its ``output.*`` names
+read as the new ones) and gives the stage keys its stages.json recorded.
+
+The files in data/before_sections were written by commit 7eecc8d, the last with the flat
+``output`` section: ``svolsdf synth scene --seed 7 --size 192x144``, then ``svolsdf reconstruct
+scene -o OUT --steps 100`` with the fast preset's mesh (poisson), ``--set
+output.mesh_method=field``, ``--set output.mesh_method=tsdf`` and ``--mode mvs-only``; each
+run's config.yaml and the keys of its stages.json.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import pytest
+
+import svolsdf
+from svolsdf.config import load_config
+from svolsdf.pipeline.keys import stage_keys
+
+DATA = Path(__file__).with_name("data") / "before_sections"
+RECORD = json.loads((DATA / "stage_keys.json").read_text())
+
+
+@pytest.mark.parametrize("run", sorted(RECORD["runs"]))
+def test_an_old_run_folder_keeps_its_stage_keys(run, monkeypatch, caplog):
+    rec = RECORD["runs"][run]
+    # every key chains from the release that made it
+    monkeypatch.setattr(svolsdf, "__version__", RECORD["version"])
+    with caplog.at_level(logging.WARNING, logger="svolsdf.config"):
+        cfg = load_config(DATA / f"{run}.yaml")
+    assert "old option names read as the new ones" in caplog.text
+    keys = stage_keys(cfg, rec["views"])
+    assert {s: keys[s] for s in rec["keys"]} == rec["keys"]
+
+
+def test_the_old_names_give_the_new_options():
+    cfg = load_config(DATA / "fast-tsdf.yaml")
+    assert cfg.mesh.method == "tsdf" and cfg.mesh.poisson.depth == 10
+    assert cfg.fusion.unguided and cfg.fusion.min_views == 1
+    assert cfg.guide.mask_dilation == 32 and cfg.scene.use_masks
+    assert cfg.mvs.finer_stage_optimization is False
