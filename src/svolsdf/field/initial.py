@@ -32,58 +32,15 @@ import logging
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.prior.depth_filter import consistent_depths
 from svolsdf.scene.scene import Normalization
 
-__all__ = ["consistent_depths", "tsdf_signs", "signed_distance_from_signs", "init_grid_from_mvs"]
+__all__ = ["tsdf_signs", "signed_distance_from_signs", "init_grid_from_mvs"]
 
 log = logging.getLogger(__name__)
-
-
-def consistent_depths(volumes: list[ProbabilityVolume], masks: Tensor | None = None,
-                      min_views: int = 1, unverified_weight: float = 0.0
-                      ) -> tuple[list[Tensor], list[Tensor]]:
-    """Stage-1 depths with the inconsistent pixels removed or down-weighted.
-
-    Args:
-        volumes: V stage-1 `ProbabilityVolume` (depth (H, W) world z-depth, confidence, cameras).
-        masks: optional (V, 1, Hm, Wm) object masks in [0, 1] of the same views.
-        min_views: consistent source views a pixel needs (docs/method.md 6.3).
-        unverified_weight: 0 removes the pixels that fail the test; w > 0 keeps those inside
-            the (dilated) mask with weight w * confidence. Needs ``masks``: without them the
-            unconfirmed depths are mostly background, which would vote for surfaces in empty
-            space, so they are removed as with 0.
-
-    Returns:
-        depths: V tensors (H, W), 0 where rejected; weights: V tensors (H, W) confidence.
-    """
-    from svolsdf.geometry import check_geometric_consistency, dilate_mask
-
-    depths, weights = [], []
-    for i, v in enumerate(volumes):
-        cnt = torch.zeros_like(v.depth, dtype=torch.long)
-        for j, u in enumerate(volumes):
-            if i != j:
-                ok = check_geometric_consistency(v.depth, v.cameras, u.depth, u.cameras)[0]
-                cnt += ok.long()
-        keep = cnt >= min_views
-        inside = torch.ones_like(keep)
-        if masks is not None:
-            m = F.interpolate(masks[i:i + 1].float(), size=v.depth.shape, mode="bilinear",
-                              align_corners=False)[0, 0] > 0.5
-            inside = dilate_mask(m, 2)
-        keep &= inside
-        w = torch.where(keep, v.confidence.clamp_min(1e-3), torch.zeros_like(v.depth))
-        if unverified_weight > 0 and masks is not None:
-            extra = inside & ~keep & torch.isfinite(v.depth) & (v.depth > 0)
-            w = torch.where(extra, unverified_weight * v.confidence.clamp_min(1e-3), w)
-            keep |= extra
-        depths.append(torch.where(keep, v.depth, torch.zeros_like(v.depth)))
-        weights.append(w)
-    return depths, weights
 
 
 def tsdf_signs(nodes: Tensor, volumes: list[ProbabilityVolume], depths: list[Tensor],

@@ -13,6 +13,7 @@ Built in: "field" (the field's zero level), "poisson" (screened Poisson of the f
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -24,7 +25,9 @@ from svolsdf.registry import Registry
 from svolsdf.scene.scene import Scene
 
 __all__ = ["MeshInputs", "MeshMethod", "get_mesh_method", "register_mesh_method",
-           "registered_mesh_methods"]
+           "registered_mesh_methods", "run_mesh_method"]
+
+log = logging.getLogger("svolsdf.pipeline")  # the mesh stage's messages, as they always were
 
 MeshResult = tuple[Tensor, Tensor, "Tensor | None"]
 
@@ -102,6 +105,38 @@ def get_mesh_method(name: str) -> MeshMethod:
         InputError: no method has that name.
     """
     return _METHODS.get(name)
+
+
+def run_mesh_method(method: MeshMethod, inputs: MeshInputs
+                    ) -> tuple[Tensor, Tensor, Tensor | None, str]:
+    """Run ``method`` on ``inputs``; when it gives no surface, the field's zero level instead.
+
+    A method of the points needs at least 100 of them; one that raises RuntimeError, ValueError
+    or ImportError (too few or too scattered points, no face left after culling, a missing
+    library) is replaced by the "field" method, whose zero level always exists, so the run
+    still ends with a mesh, and says which (a warning and the returned source).
+
+    Returns:
+        vw (V, 3) world vertices, faces (F, 3), colours (V, 3) uint8 or None, and the source:
+        the method's name, or "field (NAME failed: REASON)".
+    """
+    if method.name != "field":
+        try:
+            if method.needs_points and (inputs.points is None or len(inputs.points) < 100):
+                n = 0 if inputs.points is None else len(inputs.points)
+                raise RuntimeError(f"{n} fused points")
+            vw, f, cols = method.run(inputs)
+            if len(f) == 0:
+                raise RuntimeError("no face left after culling")
+            return vw, f, cols, method.name
+        except (RuntimeError, ValueError, ImportError) as e:
+            reason = " ".join(str(e).split())[:200]
+            log.warning("mesh: no %s surface of the fused points (%s); the field's zero level "
+                        "instead", method.name, reason)
+            vw, f, cols = get_mesh_method("field").run(inputs)
+            return vw, f, cols, f"field ({method.name} failed: {reason})"
+    vw, f, cols = method.run(inputs)
+    return vw, f, cols, "field"
 
 
 # --------------------------------------------------------------------------- built in

@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from svolsdf.pipeline.rundir import save_npy, save_torch
 
+if TYPE_CHECKING:
+    from svolsdf.pipeline.stages import Pipeline
+
 __all__ = ["finer_stage_cascade"]
 
 log = logging.getLogger("svolsdf.pipeline")
 
 
-def finer_stage_cascade(p, guide: dict[int, torch.Tensor]) -> dict:
+def finer_stage_cascade(p: Pipeline, guide: dict[int, torch.Tensor]) -> dict:
     """The paper's optional optimization at the finer stages (docs/method.md 9.2.13; the released
     code forbids it): stage 2 runs centred on the rendered depth, the field is optimized
     further against the soft-consistency prior of the stage-2 volumes, its depth is rendered
@@ -50,7 +54,7 @@ def finer_stage_cascade(p, guide: dict[int, torch.Tensor]) -> dict:
     log.info("finer-stage optimization: %d more steps against the stage-2 volumes", t2.steps)
     save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
                                      "grid_resolution": getattr(model, "resolution", None)})
-    guide2 = p._rendered_guide()
+    guide2 = p.render_guide().depth
     for v, d in guide2.items():  # the refined surface, for fusion (fusion.surface)
         save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",
                  d.numpy().astype(np.float32))

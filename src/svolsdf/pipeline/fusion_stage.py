@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -13,12 +14,15 @@ import torch
 from svolsdf.pipeline import options
 from svolsdf.pipeline.rundir import save_npy
 
+if TYPE_CHECKING:
+    from svolsdf.pipeline.stages import Pipeline
+
 __all__ = ["fuse", "network_depths"]
 
 log = logging.getLogger("svolsdf.pipeline")
 
 
-def network_depths(p, guide: dict[int, torch.Tensor]
+def network_depths(p: Pipeline, guide: dict[int, torch.Tensor]
                    ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
     """``fusion.network``'s depth and confidence of every input view (H, W), the
     network started from ``guide`` (world z-depth); also written to
@@ -29,7 +33,7 @@ def network_depths(p, guide: dict[int, torch.Tensor]
     """
     from svolsdf.io.images import write_depth_preview
 
-    bb = p._network_backbone()
+    bb = p.network_backbone()
     scene = p.load()
     depth, conf = {}, {}
     for v in p.views:
@@ -40,7 +44,7 @@ def network_depths(p, guide: dict[int, torch.Tensor]
     return depth, conf
 
 
-def fuse(p, path: Path) -> tuple[int, dict]:
+def fuse(p: Pipeline, path: Path) -> tuple[int, dict]:
     """Fuse the run's depth sets into ``path`` (PLY points with colours).
 
     Args:
@@ -102,7 +106,7 @@ def fuse(p, path: Path) -> tuple[int, dict]:
     net = net_confs = None
     if options.wants_network(cfg):  # the learned network, started from the guide
         t1 = time.perf_counter()
-        d, c = network_depths(p, p.stage_guide())
+        d, c = network_depths(p, p.guide_depth())
         net, net_confs = {"network": d}, ({"network": c} if confs is not None else None)
         log.info("fusion network %s: %d view(s) in %.1f s", cfg.fusion.network, len(views),
                  time.perf_counter() - t1)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import copy
 import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -15,6 +17,9 @@ import torch
 from svolsdf.pipeline import options
 from svolsdf.pipeline.loaded_run import Run, load_model
 from svolsdf.pipeline.rundir import save_torch
+
+if TYPE_CHECKING:
+    from svolsdf.pipeline.stages import Pipeline
 
 __all__ = ["build_mesh", "observed_depths_of"]
 
@@ -43,7 +48,18 @@ def observed_depths_of(run: Run, points: np.ndarray) -> list[torch.Tensor] | Non
     return observed_depths(torch.from_numpy(np.asarray(points)), run.load().cameras, sets)
 
 
-def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+def _fused_points(p: Pipeline) -> Path:
+    """OUT/points.ply as the fusion stage left it.
+
+    Raises:
+        RuntimeError: the fusion stage has not written it (it runs before the mesh stage).
+    """
+    if not p.dir.points.is_file():
+        raise RuntimeError(f"the fusion stage has not run: {p.dir.points} is missing")
+    return p.dir.points
+
+
+def build_mesh(p: Pipeline) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
     """The run's mesh as ``mesh`` section asks: (vw (V, 3) world vertices, faces (F, 3), colours
     (V, 3) uint8 or None, timing extras: ``mesh_source``, ``method``, ``cleanup``, ``points``).
 
@@ -58,7 +74,7 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
     Raises:
         RuntimeError: free-space culling and trimming left no face.
     """
-    from svolsdf.fusion.mesh_methods import MeshInputs, get_mesh_method
+    from svolsdf.fusion.mesh_methods import MeshInputs, get_mesh_method, run_mesh_method
     from svolsdf.fusion.meshing import clean_mesh
     from svolsdf.fusion.observe import final_depth_step
     from svolsdf.io.ply import read_ply
@@ -76,33 +92,14 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
     method = options.mesh_from_points(p.cfg)
     pts = cols_pts = observed = None
     if method is not None or mc.free_space or mc.support > 0:
-        d = read_ply(p.stage_fusion())
+        d = read_ply(_fused_points(p))
         pts, cols_pts = d["points"], d["colors"]
     if (chosen.needs_observed or mc.free_space) and len(pts):
         observed = observed_depths_of(p, pts)
-    source = "field"
-    vw = f = cols = None
     inputs = MeshInputs(points=pts, colours=cols_pts, scene=scene, observed=observed,
                         model=model, field_mesh=lambda: _field_mesh(p, model, scene, use_masks),
                         mesh=mc, depth_step=step, use_masks=use_masks, device=p.device)
-    if chosen.name != "field":
-        try:
-            if chosen.needs_points and len(pts) < 100:
-                raise RuntimeError(f"{len(pts)} fused points")
-            vw, f, cols = chosen.run(inputs)
-            if len(f) == 0:
-                raise RuntimeError("no face left after culling")
-            source = chosen.name
-        except (RuntimeError, ValueError, ImportError) as e:
-            # the points can be too few or too scattered for a surface; the field's zero level
-            # is always there, so the run still ends with a mesh, and says which
-            reason = " ".join(str(e).split())[:200]
-            source = f"field ({chosen.name} failed: {reason})"
-            vw = None
-            log.warning("mesh: no %s surface of the fused points (%s); the field's zero level "
-                        "instead", chosen.name, reason)
-    if vw is None:
-        vw, f, cols = get_mesh_method("field").run(inputs)
+    vw, f, cols, source = run_mesh_method(chosen, inputs)
     # the watertight mesh is the whole closed zero level by definition: no face is cut from it,
     # and timing.json / metrics.json say so (docs/meshing.md)
     closed = mc.watertight and source == "field"
@@ -123,7 +120,7 @@ def build_mesh(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict
     return vw, f, cols, info
 
 
-def _field_mesh(p, model, scene, use_masks: bool):
+def _field_mesh(p: Pipeline, model, scene, use_masks: bool):
     """The field's zero level, culled (`svolsdf.fusion.meshing.field_mesh`), with colours from
     its colour network: (vw (V, 3), faces (F, 3), colours (V, 3) or None)."""
     from svolsdf.fusion.meshing import field_mesh, field_mesh_colours
@@ -144,7 +141,7 @@ def _field_mesh(p, model, scene, use_masks: bool):
     return vw, f, field_mesh_colours(model, v, f, device=p.device)
 
 
-def _mesh_cull_depths(p, refined: bool) -> torch.Tensor | None:
+def _mesh_cull_depths(p: Pipeline, refined: bool) -> torch.Tensor | None:
     """(V, H, W) rendered depth of the input views (the refined field's with ``refined``), for
     `cull_unseen`; None when it is missing or is not the surface (the soft-consistency
     ablation's guide)."""
@@ -160,14 +157,14 @@ def _mesh_cull_depths(p, refined: bool) -> torch.Tensor | None:
     return torch.stack(maps)
 
 
-def _surface_fitted_to_points(p, model):
+def _surface_fitted_to_points(p: Pipeline, model):
     """A copy of ``model`` whose SDF grid is refined to pass through OUT/points.ply
     (``mesh.fit_points``); saved as OUT/field/surface.pt."""
     from svolsdf.field.fit import fit_sdf_to_points
     from svolsdf.io.ply import read_ply
 
     scene = p.load()
-    pts = read_ply(p.stage_fusion())["points"]
+    pts = read_ply(_fused_points(p))["points"]
     unit = scene.normalization.to_unit(torch.from_numpy(pts).double()).float()
     fitted = copy.deepcopy(model)
     fit_sdf_to_points(fitted, unit.to(p.device), steps=p.cfg.mesh.fit_points,

@@ -26,11 +26,11 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from svolsdf.config import Config, save_config, validate_config
 from svolsdf.errors import InputError, RunInterrupted
@@ -45,6 +45,20 @@ __all__ = ["Pipeline"]
 
 # the run's messages in OUT/log keep the logger name they always had
 log = logging.getLogger("svolsdf.pipeline")
+
+
+@dataclass
+class GuideRender:
+    """The field's rendering of the input views for the guide (`Pipeline.render_guide`).
+
+    Attributes:
+        depth: {view: (H, W) world z-depth} with docs/method.md 6.1's low-weight rule.
+        field_psnr: PSNR of the rendered colours on the input views
+            (`svolsdf.pipeline.previews.field_psnr`), when previews were asked for.
+    """
+
+    depth: dict[int, torch.Tensor]
+    field_psnr: float | None = None
 
 
 def _load_maps(files: dict[int, Path]) -> dict[int, torch.Tensor]:
@@ -73,9 +87,6 @@ class Pipeline(Run):
         self._net: tuple | None = None  # (its config, the fusion network's backbone)
         self._stage = "setup"  # the stage run() is in, for the message of an interrupt
         self._trainer = None  # the field stage's Trainer while it runs (its step, ditto)
-        # PSNR of the field's rendering of the input views (`svolsdf.pipeline.previews.field_psnr`),
-        # set when the guide stage renders them; timing.json's guide entry carries it
-        self.field_psnr: float | None = None
         self.input_keys: dict[str, str] | None = None  # set by run() (`keys.input_keys`)
         self._config_digest: str | None = None  # of OUT/config.yaml, set by run()
         self._input_changes: list[str] = []
@@ -222,7 +233,7 @@ class Pipeline(Run):
         if options.runs_mvs1(self.cfg):
             self.backbone()  # built once and dropped: its weights load again in stage 1
         if options.wants_network(self.cfg):
-            self._network_backbone()  # kept: the fusion stage reuses it
+            self.network_backbone()  # kept: the fusion stage reuses it
 
     def _interrupt_message(self) -> str:
         msg = f"interrupted: stage {self._stage} stopped"
@@ -309,19 +320,12 @@ class Pipeline(Run):
         """The field stage's `TrainData` (`svolsdf.pipeline.builders.build_train_data`)."""
         scene = self.load()
         mvs_depth = None
-        if options.fits_to_mvs_depth(self.cfg):
-            mvs_depth = self._filtered_stage1_depth() / scene.normalization.scale
+        if options.fits_to_mvs_depth(self.cfg):  # the "mse" and "no-prob-volume" ablations
+            from svolsdf.prior.depth_filter import filtered_depth_maps
+
+            mvs_depth = filtered_depth_maps(self.regressed_volumes1(), scene.height,
+                                            scene.width) / scene.normalization.scale
         return builders.build_train_data(self.cfg, scene, mvs_depth)
-
-    def _filtered_stage1_depth(self) -> torch.Tensor:
-        """(V, H, W) stage-1 MVS depth (world), geometrically filtered, 0 where rejected, at the
-        working size (for the "mse" and "no-prob-volume" ablations)."""
-        from svolsdf.field.initial import consistent_depths
-
-        scene = self.load()
-        depths, _ = consistent_depths(self.regressed_volumes1())  # >= 1 consistent source (6.3)
-        return torch.stack([F.interpolate(d[None, None], size=(scene.height, scene.width),
-                                          mode="nearest")[0, 0] for d in depths])
 
     def stage_field(self):
         """The S-VolSDF optimization (OUT/field/model.pt), resumed from OUT/field/checkpoint.pt
@@ -398,19 +402,35 @@ class Pipeline(Run):
         if options.guide_from_consistency(self.cfg):
             from svolsdf.prior.consistency import consistency_depth
 
-            guide = consistency_depth(self._volumes1, self.load().normalization)
+            guide, psnr = consistency_depth(self._volumes1, self.load().normalization), None
         else:
-            guide = self._rendered_guide(previews=True)
+            rendered = self.render_guide(previews=True)
+            guide, psnr = rendered.depth, rendered.field_psnr
         for v, d in guide.items():
             save_npy(files[v], d.numpy().astype(np.float32))
         self._mark("guide")
-        psnr = self.field_psnr
         self._time("guide", t0, **({"field_psnr": psnr} if psnr is not None else {}))
         return guide
 
-    def _rendered_guide(self, previews: bool = False) -> dict[int, torch.Tensor]:
+    def guide_depth(self) -> dict[int, torch.Tensor] | None:
+        """The guide stage's depth maps as it left them in OUT/field/render_depth ({view: (H, W)
+        world z-depth}), or None when the run has no guide (mvs-only).
+
+        Raises:
+            RuntimeError: the guide stage has not written them (it runs before every reader).
+        """
+        if not options.has_guide(self.cfg):
+            return None
+        files = self.dir.view_files(self.dir.render_depth_dir(), self.views)
+        missing = [str(f) for f in files.values() if not f.is_file()]
+        if missing:
+            raise RuntimeError(f"the guide stage has not run: {missing[0]} is missing")
+        return _load_maps(files)
+
+    def render_guide(self, previews: bool = False) -> GuideRender:
         """The field's rendered z-depth (world) of each input view, with docs/method.md 6.1's rule
-        for pixels of accumulated weight < 0.2 (`svolsdf.render.views.guide_depths`)."""
+        for pixels of accumulated weight < 0.2 (`svolsdf.render.views.guide_depths`); with
+        ``previews`` also the preview images in OUT/field and the field's PSNR on the inputs."""
         from svolsdf.pipeline.previews import field_psnr, write_previews
         from svolsdf.render.views import guide_depths
 
@@ -418,14 +438,15 @@ class Pipeline(Run):
         pixels = self.guide_pixels()
         r = self.render_views(scene.cameras_unit, self.unit_near_far().to(self.device),
                               pixels=pixels)
+        psnr = None
         if previews:
-            self.field_psnr = field_psnr(scene, self.views, r["rgb"], pixels,
-                                         self.cfg.scene.use_masks)
+            psnr = field_psnr(scene, self.views, r["rgb"], pixels, self.cfg.scene.use_masks)
             for i, v in enumerate(self.views):
                 write_previews(self.dir, v, r, i)
         volumes = self.regressed_volumes1() if self._volumes1 is not None else None
-        return guide_depths(r["depth"], r["opacity"], self.views, scene.normalization.scale,
-                            self.cfg.guide.low_weight_rule, volumes)
+        depth = guide_depths(r["depth"], r["opacity"], self.views, scene.normalization.scale,
+                             self.cfg.guide.low_weight_rule, volumes)
+        return GuideRender(depth, psnr)
 
     # ------------------------------------------------------------------ stages 2-3
     def stage_mvs23(self) -> dict[int, torch.Tensor]:
@@ -440,7 +461,7 @@ class Pipeline(Run):
         t0 = time.perf_counter()
         from svolsdf.io.images import write_depth_preview
 
-        guide = self.stage_guide()
+        guide = self.guide_depth()  # the guide stage ran before
         if options.is_baseline(self.cfg):
             depths = guide
             for v, d in depths.items():
@@ -471,7 +492,7 @@ class Pipeline(Run):
         self._time("mvs23", t0)
         return depths
 
-    def _network_backbone(self):
+    def network_backbone(self):
         """The ``fusion.network`` backbone (its weights loaded and checked once per
         config; `run` asks for it first, the fusion stage reuses it)."""
         key = (self.cfg.fusion.network, self.cfg.fusion.network_weights, self.cfg.mvs.max_sources)
