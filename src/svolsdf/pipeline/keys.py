@@ -23,6 +23,7 @@ from pathlib import Path
 from svolsdf.config import Config
 from svolsdf.pipeline.builders import backbone_kwargs
 from svolsdf.pipeline.options import (
+    field_from_mvs,
     grid_from_sphere,
     has_field,
     is_baseline,
@@ -86,8 +87,7 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # field's: mvs-only and the soft-consistency ablation render none). True, the default,
     # stays out: run folders keep their keys
     no_masks = [] if cfg.output.use_masks else ["no masks"]
-    reads_masks = has_field(cfg) and ((cfg.field.kind == "grid" and not grid_from_sphere(cfg))
-                                      or cfg.train.object_ray_fraction > 0)
+    reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0)
     k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],
                     *(no_masks if reads_masks else []))
     # guide_mask_dilation enters only when set, so runs that render every pixel keep the
