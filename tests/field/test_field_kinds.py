@@ -1,7 +1,9 @@
-"""The field-kind registry (`svolsdf.field.kinds`): the built-in kinds keep their order and
-models; a kind registered here, in the test file alone, is accepted by the config and built by
-the pipeline's builder (with the background and beta floor the config asks for); an unregistered
-name is refused naming the option."""
+"""The field-kind registry (`svolsdf.field.kinds`): the built-in kinds keep their order, models
+and capabilities; a kind registered here, in the test file alone, is accepted by the config and
+built by the pipeline's builder (with the background and beta floor the config asks for), and
+the capabilities it registers (its checks, schedule, background sizes, start from MVS, fit to
+points) are what the validation and the pipeline use; an unregistered name is refused naming the
+option."""
 
 from __future__ import annotations
 
@@ -18,7 +20,8 @@ from svolsdf.field.kinds import (
     registered_field_kinds,
 )
 from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig
-from svolsdf.pipeline.builders import build_model
+from svolsdf.pipeline import options
+from svolsdf.pipeline.builders import build_model, grid_schedule
 
 
 class _TinyMLP(VolSDFField):
@@ -28,6 +31,37 @@ class _TinyMLP(VolSDFField):
 @register_field_kind("test-tiny-mlp")
 def _tiny(i: FieldInputs):
     return _TinyMLP(VolSDFFieldConfig(n_layers=2, d_hidden=16, render_hidden=16, skip_in=()))
+
+
+#: what the toy kinds' hooks were called with
+_CALLS: list[tuple] = []
+
+
+def _toy_check(f, t, from_sphere):
+    _CALLS.append(("check", from_sphere))
+    if f.mlp_width == 77:
+        return ("field.kind", f.kind, "field.mlp_width", f.mlp_width, "the toy refuses 77")
+    return None
+
+
+def _toy_schedule(f, t, from_sphere):
+    _CALLS.append(("schedule", from_sphere))
+    return [(t.steps // 2, 8)]
+
+
+def _toy_from_mvs(model, volumes, normalization, masks, unverified_weight):
+    _CALLS.append(("init_from_mvs",))
+
+
+def _toy_build(i: FieldInputs):
+    _CALLS.append(("build", i.from_sphere))
+    return _TinyMLP(VolSDFFieldConfig(n_layers=2, d_hidden=16, render_hidden=16, skip_in=()))
+
+
+register_field_kind("test-toy", check=_toy_check, schedule=_toy_schedule,
+                    background={"n_layers": 2, "d_hidden": 8, "skip_in": ()})(_toy_build)
+register_field_kind("test-toy-mvs", init_from_mvs=_toy_from_mvs, sphere_options=True,
+                    fits_points=True)(_toy_build)
 
 
 def _box():
@@ -73,3 +107,72 @@ def test_an_unregistered_kind_is_refused_naming_the_option():
         validate_config(cfg)
     with pytest.raises(InputError, match="unknown field kind 'no-such-kind'"):
         get_field_kind("no-such-kind")
+
+
+def test_builtin_kinds_carry_their_capabilities():
+    grid, mlp = get_field_kind("grid"), get_field_kind("mlp")
+    assert grid.starts_from_mvs and grid.sphere_options and grid.fits_points
+    assert grid.schedule is not None and grid.check is not None and grid.background
+    assert not (mlp.starts_from_mvs or mlp.sphere_options or mlp.fits_points)
+    assert mlp.schedule is None and mlp.check is not None and not mlp.background
+
+
+def test_a_registered_kind_brings_its_own_capabilities():
+    cfg = preset("paper")
+    cfg.field.kind = "test-toy"
+    cfg.field.background = True
+    cfg.train.steps = 40
+    _CALLS.clear()
+    validate_config(cfg)
+    assert _CALLS == [("check", True)]  # no start from MVS: from the sphere
+    # its schedule, told it starts from the sphere
+    assert grid_schedule(cfg) == [(20, 8)] and _CALLS[-1] == ("schedule", True)
+    m = build_model(cfg, _box)
+    assert _CALLS[-1] == ("build", True)
+    c = m.background.config
+    assert (c.n_layers, c.d_hidden, c.skip_in) == (2, 8, ())
+    assert (c.feature_dim, c.colour_hidden) == (256, 128)  # the rest: the paper's sizes
+    # its check's refusal, worded by the validation
+    cfg.field.mlp_width = 77
+    with pytest.raises(InputError, match=r"^field\.kind = test-toy with field\.mlp_width = 77: "
+                                         r"the toy refuses 77$"):
+        validate_config(cfg)
+    # none of the grid's: no start from MVS, sphere options or fit to points
+    cfg = preset("fast")
+    cfg.field.kind = "test-toy"
+    cfg.mesh.fit_points, cfg.mesh.method = 50, "field"
+    assert not (options.field_from_mvs(cfg) or options.grid_from_sphere(cfg)
+                or options.wants_mesh_fit(cfg))
+    with pytest.raises(InputError, match=r"field\.kind = test-toy with field\.init = mvs: the "
+                                         r"test-toy field starts from VolSDF's sphere, not from "
+                                         r"the MVS surface \(only grid, test-toy-mvs can\): use "
+                                         r"field\.init=sphere"):
+        validate_config(cfg)
+
+
+def test_a_registered_kind_that_starts_from_mvs():
+    cfg = preset("fast")
+    cfg.field.kind = "test-toy-mvs"
+    cfg.mesh.fit_points, cfg.mesh.method = 50, "field"
+    validate_config(cfg)
+    assert options.field_from_mvs(cfg) and not options.grid_from_sphere(cfg)
+    assert options.wants_mesh_fit(cfg)
+    assert grid_schedule(cfg) == []  # no schedule of its own
+    _CALLS.clear()
+    build_model(cfg, _box)
+    assert _CALLS == [("build", False)]  # built to start from the MVS surface
+    cfg.field.init = "sphere"
+    assert not options.field_from_mvs(cfg) and options.grid_from_sphere(cfg)
+
+
+def test_the_mlp_keeps_its_refusals():
+    cfg = preset("paper")
+    cfg.field.mlp_depth = 3
+    with pytest.raises(InputError, match=r"field\.kind = mlp with field\.mlp_depth = 3: the "
+                                         r"MLP's skip connection"):
+        validate_config(cfg)
+    cfg = preset("paper")
+    cfg.field.init = "mvs"
+    with pytest.raises(InputError, match=r"field\.kind = mlp with field\.init = mvs: only the "
+                                         r"grid field starts from the MVS surface; the MLP "):
+        validate_config(cfg)

@@ -249,24 +249,20 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
         refuse("train.beta_start", t.beta_start, "train.beta_end", t.beta_end,
                "beta is annealed from beta_start down to beta_end (a sharper surface at the "
                "end): give beta_start >= beta_end, or 0 for a learned beta")
-    if f.kind == "grid":
-        # the grid starts from the MVS surface only in svolsdf mode with init mvs
-        # (svolsdf.pipeline.options.grid_from_sphere); from a sphere otherwise
-        from_mvs = (t.mode == "svolsdf" and f.init == "mvs"
-                    and t.ablation != "soft-consistency-only")
-        key = "field.grid_start_resolution" if from_mvs else "field.sphere_start_resolution"
-        start = f.grid_start_resolution if from_mvs else f.sphere_start_resolution
-        if start > f.grid_resolution:
-            refuse(key, start, "field.grid_resolution", f.grid_resolution,
-                   "the grid refines coarse to fine, so its start resolution must not exceed "
-                   "the final one")
-    elif f.mlp_depth < 4 or f.mlp_width <= 39:
-        # VolSDF's MLP (docs/method.md 5.2) feeds gamma(x) (39 values) in again at layer 4
-        bad = ("field.mlp_depth", f.mlp_depth) if f.mlp_depth < 4 else \
-            ("field.mlp_width", f.mlp_width)
-        refuse("field.kind", f.kind, *bad, "the MLP's skip connection enters gamma(x) (39 "
-               "values) again at layer 4: give field.mlp_depth >= 4 and field.mlp_width >= 40")
-    elif f.init == "mvs" and t.mode == "svolsdf":
+    # the field kind's own checks (svolsdf.field.kinds.FieldKind.check), told whether the field
+    # starts from the MVS surface (svolsdf.pipeline.options.field_from_mvs: a kind that can, in
+    # svolsdf mode with init mvs, not the soft-consistency ablation); then a kind that cannot
+    # refuses init mvs where it would act (the MLP's check says so in its own words first)
+    from svolsdf.field.kinds import get_field_kind, registered_field_kinds
+
+    kind = get_field_kind(f.kind)
+    from_mvs = (kind.starts_from_mvs and t.mode == "svolsdf" and f.init == "mvs"
+                and t.ablation != "soft-consistency-only")
+    refused = kind.check(f, t, not from_mvs) if kind.check is not None else None
+    if refused is not None:
+        refuse(*refused)
+    if not kind.starts_from_mvs and f.init == "mvs" and t.mode == "svolsdf":
+        starting = [n for n in registered_field_kinds() if get_field_kind(n).starts_from_mvs]
         refuse("field.kind", f.kind, "field.init", f.init,
-               "only the grid field starts from the MVS surface; the MLP starts from VolSDF's "
-               "sphere: use field.init=sphere or field.kind=grid")
+               f"the {f.kind} field starts from VolSDF's sphere, not from the MVS surface "
+               f"(only {', '.join(starting)} can): use field.init=sphere")

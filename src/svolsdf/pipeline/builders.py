@@ -15,7 +15,7 @@ import torch
 
 from svolsdf.config import Config
 from svolsdf.errors import InputError
-from svolsdf.pipeline.options import grid_from_sphere
+from svolsdf.pipeline.options import field_from_mvs, field_kind
 from svolsdf.scene.scene import Scene
 
 __all__ = ["attach_background", "backbone_kwargs", "build_backbone", "build_model",
@@ -90,10 +90,10 @@ def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
     Raises:
         InputError: ``field.kind`` names no registered kind.
     """
-    from svolsdf.field.kinds import FieldInputs, get_field_kind
+    from svolsdf.field.kinds import FieldInputs
 
     f = cfg.field
-    model = get_field_kind(f.kind)(FieldInputs(f, grid_from_sphere(cfg), bounds))
+    model = field_kind(cfg).build(FieldInputs(f, not field_from_mvs(cfg), bounds))
     if f.background:
         attach_background(model, f.kind)
     if cfg.train.beta_min > 0 and hasattr(model, "laplace"):
@@ -107,35 +107,25 @@ def attach_background(model, kind: str) -> None:
     A submodule of the field, so it moves with ``model.to(device)``, is saved in its
     state_dict (keys ``background.net.*``, ``background.colour_net.*``), trained by the
     Trainer at the network rate ``train.lr`` and passed to every ``render_rays`` call. The
-    paper's network sizes with the MLP field; a smaller MLP with the fast grid field
-    (``kind`` "grid").
+    paper's network sizes unless the field kind asks for others (`FieldKind.background`: a
+    smaller MLP beside the fast grid field).
+
+    Args:
+        model: the `SurfaceModel`, with a ``radius`` (its bounding sphere's).
+        kind: its registered field kind (``field.kind``).
     """
     from svolsdf.field.background import BackgroundConfig, NeRFPlusPlusBackground
+    from svolsdf.field.kinds import get_field_kind
 
-    bcfg = BackgroundConfig(radius=float(model.radius))
-    if kind == "grid":
-        bcfg = BackgroundConfig(radius=float(model.radius), n_layers=4, d_hidden=64,
-                                skip_in=(), feature_dim=32, colour_hidden=32)
+    bcfg = BackgroundConfig(radius=float(model.radius), **get_field_kind(kind).background)
     model.background = NeRFPlusPlusBackground(bcfg)
 
 
 def grid_schedule(cfg: Config) -> list[tuple[int, int]]:
-    """The grid field's coarse-to-fine schedule: [(step, resolution)] ([] for the MLP)."""
-    f = cfg.field
-    steps = cfg.train.steps
-    if f.kind == "grid" and grid_from_sphere(cfg):
-        # doublings from sphere_start_resolution, evenly spaced, the last at 3/4 of the steps
-        levels, r = [], f.sphere_start_resolution
-        while r < f.grid_resolution:
-            r = min(2 * r, f.grid_resolution)
-            levels.append(r)
-        n = len(levels)
-        return [(int(steps * 0.75 * (i + 1) / n), r) for i, r in enumerate(levels)]
-    if f.kind != "grid" or f.grid_resolution <= f.grid_start_resolution:
-        return []
-    r0, r1 = f.grid_start_resolution, f.grid_resolution
-    mid = int(round((r0 * r1) ** 0.5))
-    return [(int(steps * 0.25), mid), (int(steps * 0.5), r1)]
+    """The field's coarse-to-fine schedule, [(step, resolution)], from its kind
+    (`FieldKind.schedule`: the grid's; [] for a kind without one, the MLP)."""
+    schedule = field_kind(cfg).schedule
+    return schedule(cfg.field, cfg.train, not field_from_mvs(cfg)) if schedule else []
 
 
 def build_sampler(cfg: Config, prior=None, training: bool = True):

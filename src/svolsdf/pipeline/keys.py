@@ -23,6 +23,7 @@ from svolsdf.config import Config
 from svolsdf.config.io import legacy_layout
 from svolsdf.pipeline.builders import backbone_kwargs
 from svolsdf.pipeline.options import (
+    field_from_mvs,
     grid_from_sphere,
     has_field,
     is_baseline,
@@ -38,8 +39,9 @@ __all__ = ["STAGES", "describe_changes", "input_keys", "input_manifest", "stage_
 STAGES = ("mvs1", "field", "guide", "mvs23", "unguided", "fusion", "mesh")
 """The stages in order (`svolsdf.pipeline.Pipeline`)."""
 
-# OutputConfig fusion options that enter the fusion stage's key only when not None: they came
-# after finished runs, which keep their keys (and their fused points) while the option is unset
+# fusion options (under their old names, config.io.RENAMED) that enter the fusion stage's key
+# only when not None: they came after finished runs, which keep their keys (and their fused
+# points) while the option is unset
 _FUSION_KEYS_WHEN_SET = ("fusion_network", "fusion_network_weights", "fusion_unguided_dilation")
 
 
@@ -88,8 +90,7 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # field's: mvs-only and the soft-consistency ablation render none). True, the default,
     # stays out: run folders keep their keys
     no_masks = [] if cfg.scene.use_masks else ["no masks"]
-    reads_masks = has_field(cfg) and ((cfg.field.kind == "grid" and not grid_from_sphere(cfg))
-                                      or cfg.train.object_ray_fraction > 0)
+    reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0)
     k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],
                     *(no_masks if reads_masks else []))
     # guide_mask_dilation enters only when set, so runs that render every pixel keep the

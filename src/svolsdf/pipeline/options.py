@@ -8,9 +8,10 @@ from __future__ import annotations
 from svolsdf.config import Config
 from svolsdf.optimize import modes
 
-__all__ = ["fits_to_mvs_depth", "grid_from_sphere", "guide_from_consistency", "guided_mvs",
-           "has_field", "has_guide", "is_baseline", "mesh_from_points", "runs_mvs1",
-           "uses_prior", "wants_mesh_fit", "wants_network", "wants_poisson", "wants_unguided"]
+__all__ = ["field_from_mvs", "field_kind", "fits_to_mvs_depth", "grid_from_sphere",
+           "guide_from_consistency", "guided_mvs", "has_field", "has_guide", "is_baseline",
+           "mesh_from_points", "runs_mvs1", "uses_prior", "wants_mesh_fit", "wants_network",
+           "wants_poisson", "wants_unguided"]
 
 
 def is_baseline(cfg: Config) -> bool:
@@ -57,11 +58,26 @@ def has_field(cfg: Config) -> bool:
     return has_guide(cfg) and not guide_from_consistency(cfg)
 
 
+def field_kind(cfg: Config):
+    """The registry entry of ``field.kind`` (`svolsdf.field.kinds.FieldKind`): what the kind can
+    do."""
+    from svolsdf.field.kinds import get_field_kind
+
+    return get_field_kind(cfg.field.kind)
+
+
+def field_from_mvs(cfg: Config) -> bool:
+    """The field starts from the stage-1 MVS surface: its kind can (the grid), ``field.init`` is
+    "mvs", and the field is fitted under the prior (svolsdf mode, not the soft-consistency
+    ablation)."""
+    return (field_kind(cfg).starts_from_mvs and uses_prior(cfg) and cfg.field.init == "mvs"
+            and not guide_from_consistency(cfg))
+
+
 def grid_from_sphere(cfg: Config) -> bool:
-    """The grid field starts from VolSDF's sphere, not from the stage-1 MVS surface."""
-    f = cfg.field
-    return f.kind == "grid" and not (uses_prior(cfg) and f.init == "mvs"
-                                     and not guide_from_consistency(cfg))
+    """The field starts from VolSDF's sphere and reads the sphere start's options (a kind with
+    ``sphere_options``, the grid; not one started from the stage-1 MVS surface)."""
+    return field_kind(cfg).sphere_options and not field_from_mvs(cfg)
 
 
 def wants_network(cfg: Config) -> bool:
@@ -76,10 +92,10 @@ def wants_unguided(cfg: Config) -> bool:
 
 def wants_mesh_fit(cfg: Config) -> bool:
     """``mesh.fit_points`` applies: set, svolsdf mode (its points come from the
-    finer MVS stages), a grid field."""
+    finer MVS stages), a field kind that can be fitted to points (the grid)."""
     return (cfg.mesh.fit_points > 0 and cfg.mesh.method == "field"
             and guided_mvs(cfg)
-            and cfg.train.ablation is None and cfg.field.kind == "grid")
+            and cfg.train.ablation is None and field_kind(cfg).fits_points)
 
 
 def wants_poisson(cfg: Config) -> bool:

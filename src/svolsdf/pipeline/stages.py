@@ -376,13 +376,12 @@ class Pipeline(Run):
         prior = None
         if options.uses_prior(self.cfg) and self._volumes1 is not None:
             prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device)
-            if self.cfg.field.kind == "grid" and self.cfg.field.init == "mvs":
-                from svolsdf.field.initial import init_grid_from_mvs
-
+            if options.field_from_mvs(self.cfg):  # the kind's start from the MVS surface
                 scene = self.load()
-                init_grid_from_mvs(model, self.regressed_volumes1(), scene.normalization,
-                                   scene.masks if self.cfg.scene.use_masks else None,
-                                   unverified_weight=self.cfg.field.init_unverified_weight)
+                options.field_kind(self.cfg).init_from_mvs(
+                    model, self.regressed_volumes1(), scene.normalization,
+                    scene.masks if self.cfg.scene.use_masks else None,
+                    self.cfg.field.init_unverified_weight)
         return Trainer(model, self.train_data(), tcfg, prior=prior,
                        sampler=builders.build_sampler(self.cfg, prior),
                        out_dir=self.dir.field_dir, device=self.device,
