@@ -98,6 +98,34 @@ class MVSBackbone(ABC):
         return sig
 
     @classmethod
+    def options(cls, mvs) -> dict:
+        """This backbone's ``**cfg`` keywords from the run's MVS section ``mvs`` (a
+        `svolsdf.config.MVSConfig`): the names the learned cascades share (``ndepths``,
+        ``width_mode``, ``inverse_depth``, ``max_sources``) and, where the config class has
+        them, ``x2_mvsres`` (``mvs.scale`` 1 or 2), ``native_images`` and ``guide_init``
+        (``mvs.guide_network``). A backbone whose config names them otherwise overrides it.
+
+        Raises:
+            InputError: ``mvs.scale`` this backbone cannot run at.
+        """
+        conf = cls.config_class
+        kw = {"ndepths": tuple(int(x) for x in mvs.ndepths), "width_mode": mvs.width,
+              "inverse_depth": mvs.inverse_depth, "max_sources": mvs.max_sources}
+        if mvs.scale is not None:
+            if not hasattr(conf, "x2_mvsres"):
+                raise InputError(f"mvs.scale: the {cls.name} backbone runs at the working "
+                                 f"size; leave mvs.scale unset (got {mvs.scale})")
+            if float(mvs.scale) not in (1.0, 2.0):
+                raise InputError(f"mvs.scale: {cls.name} runs at 1 or 2 x the working size "
+                                 f"(x2_mvsres), got {mvs.scale}")
+            kw["x2_mvsres"] = float(mvs.scale) == 2.0
+        if hasattr(conf, "native_images"):
+            kw["native_images"] = mvs.native_images
+        if hasattr(conf, "guide_init"):  # the depth + confidence adapters' option
+            kw["guide_init"] = mvs.guide_network
+        return kw
+
+    @classmethod
     def create(cls, weights=None, **cfg) -> MVSBackbone:
         """Build the backbone from an optional weights path and config keywords."""
         if weights is not None:
@@ -170,6 +198,16 @@ def _backbone_class(name: str) -> type[MVSBackbone]:
 def backbone_config_class(name: str) -> type | None:
     """The config dataclass of the backbone called ``name`` (None if it has none)."""
     return _backbone_class(name).config_class
+
+
+def backbone_options(name: str, mvs) -> dict:
+    """`MVSBackbone.options` of the backbone called ``name``: its keywords from the MVS section
+    ``mvs`` of a run's config.
+
+    Raises:
+        InputError: unknown name, or an ``mvs.scale`` the backbone cannot run at.
+    """
+    return _backbone_class(name).options(mvs)
 
 
 def backbone_signature(name: str, weights=None, **cfg) -> dict:

@@ -351,6 +351,16 @@ class PlaneSweepBackbone(MVSBackbone):
     name = "planesweep"
     config_class = PlaneSweepConfig
 
+    @classmethod
+    def options(cls, mvs) -> dict:
+        """`PlaneSweepConfig`'s keywords from the run's MVS section ``mvs``: its planes per stage
+        (``num_depths``), ``width``, ``native_images``, ``scale`` when set, and the shared
+        ``inverse_depth`` and ``max_sources``."""
+        return {"num_depths": tuple(int(x) for x in mvs.ndepths), "width": mvs.width,
+                "native_images": mvs.native_images, "inverse_depth": mvs.inverse_depth,
+                "max_sources": mvs.max_sources,
+                **({"scale": float(mvs.scale)} if mvs.scale is not None else {})}
+
     def __init__(self, config: PlaneSweepConfig | None = None,
                  device: torch.device | str | None = None, **fields) -> None:
         if config is None:

@@ -24,35 +24,15 @@ __all__ = ["attach_background", "backbone_kwargs", "build_backbone", "build_mode
 
 
 def backbone_kwargs(cfg: Config) -> dict:
-    """The configured MVS backbone's options (`svolsdf.mvs.backbone.get_backbone`'s ``**cfg``)
-    from `MVSConfig`; only those the backbone's config class has.
+    """The configured MVS backbone's options (`svolsdf.mvs.backbone.get_backbone`'s ``**cfg``):
+    the backbone's own reading of `MVSConfig` (`svolsdf.mvs.backbone.MVSBackbone.options`).
 
     Raises:
         InputError: ``mvs.scale`` the backbone cannot run at.
     """
-    m = cfg.mvs
-    nd = tuple(int(x) for x in m.ndepths)
-    common = {"inverse_depth": m.inverse_depth, "max_sources": m.max_sources}
-    if m.backbone == "planesweep":
-        return {"num_depths": nd, "width": m.width, "native_images": m.native_images,
-                **common, **({"scale": float(m.scale)} if m.scale is not None else {})}
-    # casmvsnet and the depth + confidence adapters share these names
-    from svolsdf.mvs.backbone import backbone_config_class
+    from svolsdf.mvs.backbone import backbone_options
 
-    kw = {"ndepths": nd, "width_mode": m.width, **common}
-    if m.scale is not None:
-        if not hasattr(backbone_config_class(m.backbone), "x2_mvsres"):
-            raise InputError(f"mvs.scale: the {m.backbone} backbone runs at the working "
-                             f"size; leave mvs.scale unset (got {m.scale})")
-        if float(m.scale) not in (1.0, 2.0):
-            raise InputError(f"mvs.scale: {m.backbone} runs at 1 or 2 x the working size "
-                             f"(x2_mvsres), got {m.scale}")
-        kw["x2_mvsres"] = float(m.scale) == 2.0
-    if hasattr(backbone_config_class(m.backbone), "native_images"):
-        kw["native_images"] = m.native_images
-    if hasattr(backbone_config_class(m.backbone), "guide_init"):  # the adapters' option
-        kw["guide_init"] = m.guide_network
-    return kw
+    return backbone_options(cfg.mvs.backbone, cfg.mvs)
 
 
 def build_backbone(cfg: Config, device=None):
