@@ -3,29 +3,26 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from svolsdf.pipeline.context import StageContext
 from svolsdf.pipeline.rundir import save_npy, save_torch
-
-if TYPE_CHECKING:
-    from svolsdf.pipeline.stages import Pipeline
 
 __all__ = ["finer_stage_cascade"]
 
 log = logging.getLogger("svolsdf.pipeline")
 
 
-def finer_stage_cascade(p: Pipeline, guide: dict[int, torch.Tensor]) -> dict:
+def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict:
     """The paper's optional optimization at the finer stages (docs/method.md 9.2.13; the released
     code forbids it): stage 2 runs centred on the rendered depth, the field is optimized
     further against the soft-consistency prior of the stage-2 volumes, its depth is rendered
     again, and stage 3 runs centred on that depth.
 
     Args:
-        p: the `svolsdf.pipeline.Pipeline` (its field, backbone, scene and folder).
+        p: the running pipeline (`StageContext`: its field, backbone, scene and folder).
         guide: {view: (H, W) world z-depth} the field's rendered depth.
 
     Returns:

@@ -6,30 +6,27 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from svolsdf.pipeline import options
+from svolsdf.pipeline.context import StageContext
 from svolsdf.pipeline.rundir import save_npy
-
-if TYPE_CHECKING:
-    from svolsdf.pipeline.stages import Pipeline
 
 __all__ = ["fuse", "network_depths"]
 
 log = logging.getLogger("svolsdf.pipeline")
 
 
-def network_depths(p: Pipeline, guide: dict[int, torch.Tensor]
+def network_depths(p: StageContext, guide: dict[int, torch.Tensor]
                    ) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
     """``fusion.network``'s depth and confidence of every input view (H, W), the
     network started from ``guide`` (world z-depth); also written to
     OUT/network/{depth,confidence}/<view>.npy.
 
     Args:
-        p: the `svolsdf.pipeline.Pipeline`.
+        p: the running pipeline (`StageContext`).
     """
     from svolsdf.io.images import write_depth_preview
 
@@ -44,11 +41,11 @@ def network_depths(p: Pipeline, guide: dict[int, torch.Tensor]
     return depth, conf
 
 
-def fuse(p: Pipeline, path: Path) -> tuple[int, dict]:
+def fuse(p: StageContext, path: Path) -> tuple[int, dict]:
     """Fuse the run's depth sets into ``path`` (PLY points with colours).
 
     Args:
-        p: the `svolsdf.pipeline.Pipeline` whose earlier stages are finished.
+        p: the running pipeline (`StageContext`), its earlier stages finished.
 
     Returns:
         (number of points, timing extras: ``points_per_set`` with several depth sets).

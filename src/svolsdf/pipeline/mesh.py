@@ -9,24 +9,21 @@ from __future__ import annotations
 import copy
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from svolsdf.pipeline import options
+from svolsdf.pipeline.context import StageContext
 from svolsdf.pipeline.loaded_run import Run, load_model
 from svolsdf.pipeline.rundir import save_torch
-
-if TYPE_CHECKING:
-    from svolsdf.pipeline.stages import Pipeline
 
 __all__ = ["build_mesh", "observed_depths_of"]
 
 log = logging.getLogger("svolsdf.pipeline")
 
 
-def observed_depths_of(run: Run, points: np.ndarray) -> list[torch.Tensor] | None:
+def observed_depths_of(run: Run | StageContext, points: np.ndarray) -> list[torch.Tensor] | None:
     """Each input view's final depth (OUT/depth) where the fused ``points`` (N, 3) confirm it,
     the unguided set (OUT/unguided/depth, when the config fuses it: files an earlier config left
     are not read) where the guided one is not confirmed (`svolsdf.fusion.observe.observed_depths`):
@@ -48,7 +45,7 @@ def observed_depths_of(run: Run, points: np.ndarray) -> list[torch.Tensor] | Non
     return observed_depths(torch.from_numpy(np.asarray(points)), run.load().cameras, sets)
 
 
-def _fused_points(p: Pipeline) -> Path:
+def _fused_points(p: StageContext) -> Path:
     """OUT/points.ply as the fusion stage left it.
 
     Raises:
@@ -59,7 +56,7 @@ def _fused_points(p: Pipeline) -> Path:
     return p.dir.points
 
 
-def build_mesh(p: Pipeline) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+def build_mesh(p: StageContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
     """The run's mesh as ``mesh`` section asks: (vw (V, 3) world vertices, faces (F, 3), colours
     (V, 3) uint8 or None, timing extras: ``mesh_source``, ``method``, ``cleanup``, ``points``).
 
@@ -69,7 +66,7 @@ def build_mesh(p: Pipeline) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | 
     gave no surface and the field's zero level, which always exists, replaced it.
 
     Args:
-        p: the `svolsdf.pipeline.Pipeline` whose fusion stage can run or has run.
+        p: the running pipeline (`StageContext`), its fusion stage finished.
 
     Raises:
         RuntimeError: free-space culling and trimming left no face.
@@ -120,7 +117,7 @@ def build_mesh(p: Pipeline) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | 
     return vw, f, cols, info
 
 
-def _field_mesh(p: Pipeline, model, scene, use_masks: bool):
+def _field_mesh(p: StageContext, model, scene, use_masks: bool):
     """The field's zero level, culled (`svolsdf.fusion.meshing.field_mesh`), with colours from
     its colour network: (vw (V, 3), faces (F, 3), colours (V, 3) or None)."""
     from svolsdf.fusion.meshing import field_mesh, field_mesh_colours
@@ -141,7 +138,7 @@ def _field_mesh(p: Pipeline, model, scene, use_masks: bool):
     return vw, f, field_mesh_colours(model, v, f, device=p.device)
 
 
-def _mesh_cull_depths(p: Pipeline, refined: bool) -> torch.Tensor | None:
+def _mesh_cull_depths(p: StageContext, refined: bool) -> torch.Tensor | None:
     """(V, H, W) rendered depth of the input views (the refined field's with ``refined``), for
     `cull_unseen`; None when it is missing or is not the surface (the soft-consistency
     ablation's guide)."""
@@ -157,7 +154,7 @@ def _mesh_cull_depths(p: Pipeline, refined: bool) -> torch.Tensor | None:
     return torch.stack(maps)
 
 
-def _surface_fitted_to_points(p: Pipeline, model):
+def _surface_fitted_to_points(p: StageContext, model):
     """A copy of ``model`` whose SDF grid is refined to pass through OUT/points.ply
     (``mesh.fit_points``); saved as OUT/field/surface.pt."""
     from svolsdf.field.fit import fit_sdf_to_points

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ from svolsdf.config import Config, save_config, validate_config
 from svolsdf.errors import InputError, RunInterrupted
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline import builders, options
+from svolsdf.pipeline.context import GuideRender
 from svolsdf.pipeline.keys import STAGES, describe_changes, input_keys, input_manifest
 from svolsdf.pipeline.loaded_run import Run, load_model
 from svolsdf.pipeline.machine import peak_rss_gb, set_threads
@@ -45,20 +45,6 @@ __all__ = ["Pipeline"]
 
 # the run's messages in OUT/log keep the logger name they always had
 log = logging.getLogger("svolsdf.pipeline")
-
-
-@dataclass
-class GuideRender:
-    """The field's rendering of the input views for the guide (`Pipeline.render_guide`).
-
-    Attributes:
-        depth: {view: (H, W) world z-depth} with docs/method.md 6.1's low-weight rule.
-        field_psnr: PSNR of the rendered colours on the input views
-            (`svolsdf.pipeline.previews.field_psnr`), when previews were asked for.
-    """
-
-    depth: dict[int, torch.Tensor]
-    field_psnr: float | None = None
 
 
 def _load_maps(files: dict[int, Path]) -> dict[int, torch.Tensor]:
