@@ -92,8 +92,8 @@ def test_enumerations_are_literals():
     ("scene: {views: '0 1 2'}", "scene.views", "'0 1 2'"),
     ("scene: {views: [0, 1, 1]}", "scene.views", "1 is repeated"),
     ("scene: {views: [3]}", "scene.views", "[3]"),
-    ("output: {use_masks: 'no'}", "scene.use_masks", "'no'"),
-    ("output: {use_masks: 1}", "scene.use_masks", "1"),
+    ("scene: {use_masks: 'no'}", "scene.use_masks", "'no'"),
+    ("scene: {use_masks: 1}", "scene.use_masks", "1"),
     ("train: {rays: -4}", "train.rays", "-4"),
     ("train: {steps: -5}", "train.steps", "-5"),
     ("threads: -2", "threads", "-2"),
@@ -107,7 +107,7 @@ def test_enumerations_are_literals():
     ("device: gpu", "device", "'gpu'"),
     ("scene: {path: 3}", "scene.path", "3"),
     ("scene: {lighting: 7}", "scene.lighting", "7"),
-    ("output: {finer_stage_optimization: true}\ntrain: {mode: volsdf}",
+    ("mvs: {finer_stage_optimization: true}\ntrain: {mode: volsdf}",
      "mvs.finer_stage_optimization", "train.mode"),
 ])
 def test_bad_values_name_the_key_the_value_and_what_is_allowed(tmp_path, text, key, value):
@@ -420,8 +420,12 @@ def test_an_option_under_both_names_is_refused(tmp_path):
 def test_an_unknown_old_key_is_named_as_such(tmp_path):
     p = tmp_path / "bad.yaml"
     p.write_text("output:\n  mesh_colour: red\n")
-    with pytest.raises(InputError, match="bad.yaml: unknown key 'output'"):
+    with pytest.raises(InputError, match="bad.yaml: unknown key 'output.mesh_colour' .*now in "
+                                         "the sections guide, fusion and mesh"):
         load_config(p)
+    with pytest.raises(InputError, match="unknown option 'output.mesh_colour'.*now in the "
+                                         "sections guide, fusion and mesh"):
+        apply_overrides(preset("fast"), {"output.mesh_colour": "red"})
 
 
 def test_old_names_on_the_command_line_set_the_new_options(caplog):

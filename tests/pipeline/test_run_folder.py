@@ -49,7 +49,7 @@ def field_run(scene, tmp_path_factory):
     (d / "small.yaml").write_text(
         f"scene: {{path: {scene}, views: [0, 1, 2]}}\n"
         "field: {grid_start_resolution: 16, grid_resolution: 16}\n"
-        "output: {mesh_resolution: 24, fusion_unguided: false}\n"
+        "mesh: {resolution: 24}\nfusion: {unguided: false}\n"
         "train: {rays: 32, checkpoint_every: 0, steps: 10}\n")
     _main(["reconstruct", "-o", d / "run", "--config", d / "small.yaml", "--no-progress"])
     return d / "run"

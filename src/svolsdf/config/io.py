@@ -62,6 +62,10 @@ RENAMED: dict[str, str] = {
 }
 
 
+_OUTPUT_GONE = ("the output section's options are now in the sections guide, fusion and mesh, "
+                "and scene.use_masks, mvs.finer_stage_optimization; `svolsdf config` lists them")
+
+
 def _deprecated(where: str, old: list[str]) -> None:
     """The one deprecation line for the old option names ``old`` read from ``where``."""
     if old:
@@ -97,9 +101,8 @@ def _upgrade(data: dict, where: str) -> dict:
     moved = []
     for k, v in section.items():
         new = RENAMED.get(f"output.{k}")
-        if new is None:  # unknown: reported as such by _from_dict, under its old section
-            data.setdefault("output", {})[k] = v
-            continue
+        if new is None:
+            raise InputError(f"{where}: unknown key 'output.{k}' ({_OUTPUT_GONE})")
         node = data
         *parents, leaf = new.split(".")
         for part in parents:
@@ -215,6 +218,7 @@ def _known_keys(cfg: Any, prefix: str = "") -> list[str]:
 def _unknown_key(cfg: Config, key: str, label: str | None = None) -> InputError:
     near = difflib.get_close_matches(key, _known_keys(cfg), n=3, cutoff=0.6)
     hint = (f"; did you mean {' or '.join(near)}?" if near
+            else f"; {_OUTPUT_GONE}" if key.startswith("output.")
             else "; `svolsdf config` lists every option")
     return InputError(f"{label + ': ' if label else ''}unknown option {key!r}{hint}")
 
