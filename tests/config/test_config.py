@@ -428,6 +428,17 @@ def test_an_unknown_old_key_is_named_as_such(tmp_path):
         apply_overrides(preset("fast"), {"output.mesh_colour": "red"})
 
 
+def test_an_empty_old_section_is_dropped_and_a_bad_one_named(tmp_path):
+    for text in ("output: {}\n", "output:\n"):
+        p = tmp_path / "empty.yaml"
+        p.write_text(text)
+        assert load_config(p) == preset("fast")
+    p = tmp_path / "bad.yaml"
+    p.write_text("output: 5\n")
+    with pytest.raises(InputError, match="bad.yaml: unknown key 'output'"):
+        load_config(p)
+
+
 def test_old_names_on_the_command_line_set_the_new_options(caplog):
     with caplog.at_level("WARNING", logger="svolsdf.config"):
         cfg = apply_overrides(preset("fast"), {"output.poisson_trim": 3.0,

@@ -94,7 +94,9 @@ def _upgrade(data: dict, where: str) -> dict:
         InputError: an option given under both its old and its new name.
     """
     old = data.get("output")
-    if not isinstance(old, dict) or not old:
+    if "output" in data and (old is None or old == {}):  # an empty old section: nothing to move
+        return {k: v for k, v in data.items() if k != "output"}
+    if not isinstance(old, dict):
         return data
     data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
     section = data.pop("output")
@@ -141,8 +143,10 @@ def _from_dict(cls, data: dict, where: str, prefix: str = ""):
     names = {f.name: f for f in fields(cls)}
     for k, v in data.items():
         if k not in names:
+            gone = f"; {_OUTPUT_GONE}" if prefix + str(k) == "output" else ""
             raise InputError(f"{where}: unknown key {prefix + str(k)!r} (known in "
-                             f"{prefix.rstrip('.') or 'the top level'}: {', '.join(names)})")
+                             f"{prefix.rstrip('.') or 'the top level'}: {', '.join(names)}"
+                             f"{gone})")
         cur = getattr(obj, k)
         if dataclasses.is_dataclass(cur):
             if not isinstance(v, dict):
