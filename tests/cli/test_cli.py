@@ -195,6 +195,30 @@ def test_an_interrupt_anywhere_exits_130_with_one_line(monkeypatch, tmp_path, ca
     assert code == 130 and out.err.strip() == "interrupted"
 
 
+def test_an_interrupt_as_the_command_ends_exits_130_with_one_line(monkeypatch, tmp_path,
+                                                                   capsys):
+    # Ctrl-C after the command returned, while main restores the SIGTERM handler
+    import svolsdf.cli as cli
+
+    real, calls = cli.signal.signal, []
+
+    def late(signum, handler):
+        calls.append(signum)
+        if len(calls) == 2:  # the restore in main's finally
+            raise KeyboardInterrupt
+        return real(signum, handler)
+
+    monkeypatch.setattr(cli.signal, "signal", late)
+    try:
+        code, out = _run(["synth", str(tmp_path / "s"), "--size", "32x24"], capsys)
+    except KeyboardInterrupt:
+        pytest.fail("the interrupt escaped main (a traceback for the user)")
+    finally:
+        monkeypatch.undo()
+    assert len(calls) == 2 and code == 130 and out.err.strip().endswith("interrupted")
+    assert "Traceback" not in out.err
+
+
 @pytest.mark.parametrize("views, repeated", [("0 1 1", "1"), ("2 2", "2")])
 def test_repeated_view_ids_exit_2_naming_the_id(scene, tmp_path, capsys, views, repeated):
     code, out = _run(["reconstruct", str(scene), "-o", str(tmp_path / "o"), "--views",

@@ -54,6 +54,17 @@ def main(argv: list[str] | None = None) -> None:
     written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one line; a
     stopped reconstruction names its stage, and a rerun resumes it).
     """
+    try:
+        _main(argv)
+    except KeyboardInterrupt:
+        # a Ctrl-C that lands outside the command's own handling, as it ends (the run's outputs
+        # are written by then): the same one line, not a traceback
+        print("interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
+
+
+def _main(argv: list[str] | None) -> None:
+    """`main` without its last guard against Ctrl-C."""
     argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
     debug = "--debug" in argv
     got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
