@@ -358,7 +358,9 @@ def main() -> None:
     sbs.add_argument("--held-out-scale", type=float, default=0.5,
                      help="held-out renders at this fraction of the working size")
     sbs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                     help="passed as --set to both sides' svolsdf reconstruct")
+                     help="passed as --set to both sides' svolsdf reconstruct (against a "
+                          "commit before the config sections, give the old output.* names: "
+                          "the new code still reads them)")
     sbs.add_argument("--new-preset", default=None, metavar="NAME",
                      help="the new side runs this preset (e.g. draft), in OUT/new-NAME; the old "
                           "side keeps the fast preset and its cached runs in OUT/old")
