@@ -250,14 +250,13 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
                "beta is annealed from beta_start down to beta_end (a sharper surface at the "
                "end): give beta_start >= beta_end, or 0 for a learned beta")
     # the field kind's own checks (svolsdf.field.kinds.FieldKind.check), told whether the field
-    # starts from the MVS surface (svolsdf.pipeline.options.field_from_mvs: a kind that can, in
+    # starts from the MVS surface (svolsdf.field.kinds.starts_from_mvs: a kind that can, in
     # svolsdf mode with init mvs, not the soft-consistency ablation); then a kind that cannot
     # refuses init mvs where it would act (the MLP's check says so in its own words first)
-    from svolsdf.field.kinds import get_field_kind, registered_field_kinds
+    from svolsdf.field.kinds import get_field_kind, registered_field_kinds, starts_from_mvs
 
     kind = get_field_kind(f.kind)
-    from_mvs = (kind.starts_from_mvs and t.mode == "svolsdf" and f.init == "mvs"
-                and t.ablation != "soft-consistency-only")
+    from_mvs = starts_from_mvs(f, t)
     refused = kind.check(f, t, not from_mvs) if kind.check is not None else None
     if refused is not None:
         refuse(*refused)

@@ -26,7 +26,8 @@ import torch
 from svolsdf.registry import Registry
 
 __all__ = ["FieldInputs", "FieldKind", "Refusal", "check_grid", "check_mlp", "get_field_kind",
-           "grid_resolution_schedule", "register_field_kind", "registered_field_kinds"]
+           "grid_resolution_schedule", "register_field_kind", "registered_field_kinds",
+           "starts_from_mvs"]
 
 
 @dataclass
@@ -124,6 +125,19 @@ def register_field_kind(name: str, *, init_from_mvs: MVSStart | None = None,
     return _KINDS.decorator(name, lambda fn: FieldKind(
         fn, init_from_mvs=init_from_mvs, sphere_options=sphere_options, fits_points=fits_points,
         schedule=schedule, check=check, background=dict(background or {})))
+
+
+def starts_from_mvs(field_cfg: Any, train_cfg: Any) -> bool:
+    """The field of a run starts from the stage-1 MVS surface: its kind can (``init_from_mvs``),
+    ``field.init`` is "mvs", and the field is fitted under the prior (``train.mode`` svolsdf,
+    not the soft-consistency ablation, which fits no field). The one statement of this rule:
+    `svolsdf.pipeline.options.field_from_mvs` and the config's validation ask it.
+
+    Args:
+        field_cfg: the run's `FieldConfig`; train_cfg: its `TrainConfig`.
+    """
+    return (get_field_kind(field_cfg.kind).starts_from_mvs and train_cfg.mode == "svolsdf"
+            and field_cfg.init == "mvs" and train_cfg.ablation != "soft-consistency-only")
 
 
 def registered_field_kinds() -> list[str]:

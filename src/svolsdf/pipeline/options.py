@@ -70,8 +70,9 @@ def field_from_mvs(cfg: Config) -> bool:
     """The field starts from the stage-1 MVS surface: its kind can (the grid), ``field.init`` is
     "mvs", and the field is fitted under the prior (svolsdf mode, not the soft-consistency
     ablation)."""
-    return (field_kind(cfg).starts_from_mvs and uses_prior(cfg) and cfg.field.init == "mvs"
-            and not guide_from_consistency(cfg))
+    from svolsdf.field.kinds import starts_from_mvs
+
+    return starts_from_mvs(cfg.field, cfg.train)
 
 
 def grid_from_sphere(cfg: Config) -> bool:
