@@ -59,15 +59,15 @@ def fuse(p: StageContext, path: Path) -> tuple[int, dict]:
     fcfg = FusionFilterConfig(dist=f.dist, rel=f.rel, min_views=f.min_views, conf=f.conf,
                               surface=f.surface, use_masks=cfg.scene.use_masks)
     if options.guided_mvs(cfg):  # OUT/depth is the field-guided depth
-        fcfg.primary_mask_dilation = cfg.fusion.guided_dilation
-        fcfg.alt_mask_dilation = cfg.fusion.unguided_dilation
+        fcfg.primary_mask_dilation = f.guided_dilation
+        fcfg.alt_mask_dilation = f.unguided_dilation
     # the refined surface after the finer-stage optimization
     sdir = p.dir.render_depth_dir(refined=bool(cfg.mvs.finer_stage_optimization))
     # the rendered guide is the surface (the soft-consistency ablation's guide is not). In
     # volsdf mode OUT/depth is that guide itself: it must not count as its own consistent
     # source, so VolSDF's points pass the same multi-view check as every other mode's
     guide_is_depth = options.is_baseline(cfg)
-    use_surface = (cfg.fusion.surface > 0 and not options.guide_from_consistency(cfg)
+    use_surface = (f.surface > 0 and not options.guide_from_consistency(cfg)
                    and not guide_is_depth
                    and all((sdir / f"{v}.npy").is_file() for v in views))
     cams = {v: scene.cameras[[i]] for i, v in enumerate(views)}
@@ -105,7 +105,7 @@ def fuse(p: StageContext, path: Path) -> tuple[int, dict]:
         t1 = time.perf_counter()
         d, c = network_depths(p, p.guide_depth())
         net, net_confs = {"network": d}, ({"network": c} if confs is not None else None)
-        log.info("fusion network %s: %d view(s) in %.1f s", cfg.fusion.network, len(views),
+        log.info("fusion network %s: %d view(s) in %.1f s", f.network, len(views),
                  time.perf_counter() - t1)
     fused = fuse_depth_maps(depths, cams, images, confs, masks, fcfg, surface,
                             alt_depths=alt, alt_confidences=alt_confs,

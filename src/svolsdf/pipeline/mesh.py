@@ -57,7 +57,7 @@ def _fused_points(p: StageContext) -> Path:
 
 
 def build_mesh(p: StageContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
-    """The run's mesh as ``mesh`` section asks: (vw (V, 3) world vertices, faces (F, 3), colours
+    """The run's mesh as the ``mesh`` section asks: (vw (V, 3) world vertices, faces (F, 3), colours
     (V, 3) uint8 or None, timing extras: ``mesh_source``, ``method``, ``cleanup``, ``points``).
 
     The method is ``mesh.method``'s in the registry (`svolsdf.fusion.mesh_methods`;
