@@ -146,6 +146,13 @@ def load_renders(run: RunFolder, scene_path: Path | None, views: list[int] | Non
     first = read_image(next(iter(next(s for s in sets.values() if s).values())))
     h, w = first.shape[-2:]
     scene = load_scene(scene_path, views=ids, image_size=(w, h), masks=masks)
+    # the ground truth as the official evaluation prepares it (docs/method.md 8.3): the photo
+    # resized without antialiasing, the mask bilinear > 0.5 (svolsdf.evaluate.protocol)
+    from svolsdf.evaluate.protocol import official_test_images
+
+    gt_images, gt_masks = official_test_images(scene_path, ids, (w, h))
+    if not masks:
+        gt_masks = None
     loaded: dict[str, list[ViewImages]] = {}
     for key, files in sets.items():
         if not files:
@@ -158,8 +165,8 @@ def load_renders(run: RunFolder, scene_path: Path | None, views: list[int] | Non
                                  f"{next(iter(files.values()))} is {w}x{h}; renders must share "
                                  "one size")
             k = scene.index(vid)
-            mask = scene.masks[k] if scene.masks is not None else None
-            loaded[key].append(ViewImages(vid, pred, scene.images[k], mask, {},
+            mask = gt_masks[k][None].float() if gt_masks is not None else None
+            loaded[key].append(ViewImages(vid, pred, gt_images[k], mask, {},
                                           "volume" if key == "images" else "ibr"))
     return loaded, scene
 
