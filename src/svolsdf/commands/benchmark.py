@@ -157,6 +157,10 @@ def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
             # which surface mesh.ply is (a table must not mix kinds in a column unsaid)
             "mesh_source": (metrics.get("mesh_source") or cm.get("mesh_source")
                             if cm.get("overall") is not None else None),
+            # how it was scored: "surface" (sampled every mesh_density world units); None with
+            # a mesh score: metrics.json of a time when meshes were scored by their vertices
+            "mesh_sampled": cm.get("sampled") if cm.get("overall") is not None else None,
+            "mesh_density": cm.get("density") if cm.get("overall") is not None else None,
             "time_s": time_s}
 
 
@@ -320,6 +324,8 @@ def finished_row(job: BenchmarkJob) -> dict | None:
     row = saved.get("row")
     if not isinstance(row, dict) or row.get("status") != "ok":
         return None
+    if row.get("mesh_overall") is not None and row.get("mesh_sampled") != "surface":
+        return None  # its mesh was scored by the vertices: evaluate it again
     return row if "field" in row else {**row, "field": _field_kind(job)}  # an older row
 
 

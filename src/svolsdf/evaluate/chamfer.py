@@ -41,6 +41,8 @@ __all__ = [
     "greedy_radius_downsample",
     "load_obs_mask",
     "load_plane",
+    "mesh_density",
+    "mesh_surface_points",
     "nn_distances",
     "obs_mask_filter",
     "sample_mesh_surface",
@@ -51,6 +53,13 @@ log = logging.getLogger(__name__)
 
 #: DTU scans whose plane file is another scan's (docs/method.md 8.1: scan 82 uses Plane83).
 PLANE_OVERRIDES = {82: 83}
+
+#: The DTU protocol's mesh sampling spacing and downsampling radius, mm (docs/method.md 8.1).
+DTU_DENSITY = 0.2
+
+#: A DTU object's size in mm, as a bounding-box diagonal: the one on which the scale-free
+#: protocols' cut-off, 5 % of the diagonal, is DTU's 20 mm (docs/method.md 8.2).
+DTU_OBJECT_DIAG = 400.0
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -295,6 +304,56 @@ def sample_mesh_surface(vertices: np.ndarray, faces: np.ndarray, density: float 
     return np.concatenate(out, axis=0)
 
 
+def mesh_density(diag: float | None = None) -> float:
+    """The spacing at which a mesh's surface is scored (docs/method.md 8.1).
+
+    The DTU protocol (``diag`` None): 0.2 mm, its mesh mode's. A protocol whose scales are
+    fractions of its ground truth's bounding-box diagonal (synthetic scenes, the DTU pseudo
+    ground truth, ``--gt-points``): the same fraction of that diagonal as 0.2 mm is of a DTU
+    object's, 0.2 / 400 = 0.05 % (`DTU_OBJECT_DIAG`: the diagonal on which those protocols'
+    cut-off of 5 % is DTU's 20 mm). Synthetic scenes are in millimetres like DTU, but their
+    objects are smaller (100-200 mm across), so a fixed 0.2 mm would sample them more coarsely
+    relative to their size than DTU samples its objects.
+
+    Args:
+        diag: the ground truth's bounding-box diagonal (> 0), or None for DTU.
+
+    Returns:
+        the spacing, in the ground truth's units.
+    """
+    if diag is None:
+        return DTU_DENSITY
+    if not (np.isfinite(diag) and diag > 0):
+        raise InputError(f"mesh density: the ground truth's diagonal must be > 0, got {diag}")
+    return float(diag) * DTU_DENSITY / DTU_OBJECT_DIAG
+
+
+def mesh_surface_points(vertices: np.ndarray, faces: np.ndarray, density: float = DTU_DENSITY,
+                        seed: int | None = 0) -> np.ndarray:
+    """The points by which every protocol scores a mesh: its surface, evenly at ``density``.
+
+    DTU's mesh mode (docs/method.md 8.1): the triangles sampled at ``density``
+    (`sample_mesh_surface`, which adds the vertices), shuffled (``seed``) and greedily
+    downsampled at radius ``density``, so that the points cover the surface about evenly
+    whatever the triangles: a large triangle over a hole or past a silhouette counts by its
+    area, not by its three vertices, and subdividing a mesh does not change its points' density.
+    Choose ``density`` with `mesh_density`.
+
+    Args:
+        vertices: (V, 3) float vertex positions.
+        faces: (F, 3) int triangles.
+        density: sample spacing and downsampling radius (> 0), in the vertices' units.
+        seed: shuffle seed (None: unseeded, as the DTU reference script).
+
+    Returns:
+        (N, 3) float64 points on the surface.
+    """
+    if not (np.isfinite(density) and density > 0):
+        raise InputError(f"mesh density must be > 0, got {density}")
+    data = shuffle_rows(sample_mesh_surface(vertices, faces, density), seed)
+    return data[greedy_radius_downsample(data, density)]
+
+
 # --------------------------------------------------------------------------- DTU files
 
 
@@ -454,8 +513,8 @@ def dtu_chamfer_arrays(points: np.ndarray, stl: np.ndarray, obs: ObsMask, plane:
         stl: (M, 3) float ground-truth structured-light points.
         obs: the scan's `ObsMask`.
         plane: (4,) ground plane; completeness uses the STL points with plane . [x; 1] > 0.
-        mode: ``"pcd"`` or ``"mesh"`` (then ``faces`` is required and the triangles are sampled
-            at ``downsample_density``, `sample_mesh_surface`).
+        mode: ``"pcd"`` or ``"mesh"`` (then ``faces`` is required and the mesh is scored by its
+            surface, `mesh_surface_points` at ``downsample_density``).
         faces: (F, 3) int triangles for mesh mode.
         seed: seed of the random shuffle before downsampling (None: unseeded, as the reference).
         downsample_density: greedy downsampling radius and mesh sampling spacing (0.2 mm).
@@ -478,13 +537,13 @@ def dtu_chamfer_arrays(points: np.ndarray, stl: np.ndarray, obs: ObsMask, plane:
     if mode == "mesh":
         if faces is None:
             raise InputError("DTU mesh mode needs faces (an (F, 3) int array)")
-        data = sample_mesh_surface(points, faces, downsample_density)
+        # the same steps as a cloud's below, on the sampled surface
+        data = mesh_surface_points(points, faces, downsample_density, seed)
     elif mode == "pcd":
-        data = points
+        data = shuffle_rows(points, seed)
+        data = data[greedy_radius_downsample(data, downsample_density)]
     else:
         raise InputError(f"mode must be 'pcd' or 'mesh', got {mode!r}")
-    data = shuffle_rows(data, seed)
-    data = data[greedy_radius_downsample(data, downsample_density)]
     t1 = time.perf_counter()
     in_bb, in_obs = obs_mask_filter(data, obs, patch_size)
     data_in, data_in_obs = data[in_bb], data[in_obs]
