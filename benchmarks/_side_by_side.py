@@ -387,7 +387,7 @@ def report(meta: dict, scenes: list[dict], many: list[dict], targets: dict) -> s
          "- Chamfer (acc + comp) / 2 in the scene's units, scored for both by the new checkout: "
          "synthetic scenes against the ground truth the input views observe, DTU against the "
          "many-view pseudo ground truth (benchmarks/dtu_pseudo_gt.py, scored as benchmarks/"
-         "mesh_study.py); a mesh by its surface, sampled at 0.05 % of the ground truth's "
+         "mesh_study.py); a mesh by its surface, sampled at 0.1 % of the ground truth's "
          "diagonal (svolsdf.evaluate.chamfer.mesh_density), not by its vertices",
          f"- held-out PSNR: volume rendering (`svolsdf render`, each side's code) of the first "
          f"{meta['held_out_views']} test views (never inputs) at {meta['held_out_scale']:g} x "

@@ -23,8 +23,8 @@ independent reference from all the scan's views and scores three-view runs again
    the nearest pseudo-GT depth at their pixel (a 3x3 minimum of the splatted depth) in at least
    one input view.
 4. Each run's points.ply (and mesh.ply by its surface, `svolsdf.evaluate.chamfer.
-   mesh_surface_points` at `mesh_density`: 0.05 % of the first reference's diagonal; before
-   meshes were scored that way everywhere, 0.1 % without downsampling) is scored as the
+   mesh_surface_points` at `mesh_density`, 0.1 % of the first reference's diagonal; before
+   meshes were scored that way everywhere, sampled at it without evening out) is scored as the
    synthetic benchmark scores
    (`svolsdf.evaluate.synthetic.truncated_chamfer`): both clouds evened out by greedy radius
    downsampling at 0.1 % of the first reference's diagonal, distances clipped at 5 % of it

@@ -480,7 +480,7 @@ def main() -> None:
              "distances clipped at 5% of the object's diagonal (holes cost the cut-off); "
              "\"DTU rule\": the same with distances beyond the cut-off left out of the means "
              "(docs/method.md 8.1, holes wider than the cut-off cost nothing); a mesh by its "
-             "surface, sampled at 0.05 % of that diagonal (svolsdf.evaluate.chamfer."
+             "surface, sampled at 0.1 % of that diagonal (svolsdf.evaluate.chamfer."
              "mesh_density), not by its vertices", "",
              "| run | wall (s) | peak mem (GB) | points acc | points comp | points Chamfer | "
              "points Chamfer, DTU rule | points F | mesh Chamfer | mesh Chamfer, DTU rule | "

@@ -17,8 +17,8 @@ run's points:
 
 Either way a mesh is scored by its surface, as `svolsdf evaluate` scores it
 (`svolsdf.evaluate.chamfer.mesh_surface_points` at `mesh_density` of the ground truth's diagonal,
-0.05 % of it), never by its vertices; results written before that scored a synthetic scene's mesh
-by its vertices and a DTU scan's by its surface sampled at 0.1 % of the diagonal.
+0.1 % of it), never by its vertices; results written before that scored a synthetic scene's mesh
+by its vertices (a DTU scan's by its surface sampled at 0.1 % without evening out).
 
 Each row: accuracy, completeness and Chamfer of the mesh, their ratios to the points', faces,
 and the seconds the mesh took (the method, plus the cleaning). The ``--summary`` lines give, per

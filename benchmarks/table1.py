@@ -73,7 +73,7 @@ def mesh_scoring(rows: list[dict], poisson: dict[str, dict]) -> str:
            if r.get("mesh_overall") is not None and r.get("mesh_sampled") != "surface"]
     old += [f"{s} / Poisson" for s, pz in poisson.items()
             if pz.get("mesh") is not None and pz.get("sampled") != "surface"]
-    line = ("- meshes scored by their surface, the triangles sampled at 0.05 % of the ground "
+    line = ("- meshes scored by their surface, the triangles sampled at 0.1 % of the ground "
             "truth's diagonal (svolsdf.evaluate.chamfer.mesh_density), not by their vertices")
     if old:
         line += ("; except these, scored by their vertices (metrics written before), not "

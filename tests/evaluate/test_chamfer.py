@@ -480,11 +480,12 @@ def test_subdividing_a_mesh_does_not_change_its_score():
 
 
 def test_mesh_density_rule_and_the_dtu_mesh_mode():
-    """DTU: 0.2 mm; scale-free protocols: 0.05 % of the ground truth's diagonal (0.2 mm on a
-    400 mm DTU object); DTU's mesh mode scores exactly `mesh_surface_points`."""
+    """DTU: 0.2 mm; scale-free protocols: 0.1 % of the ground truth's diagonal (0.2 mm on a
+    200 mm object), the radius at which the synthetic protocol evens out its clouds; DTU's
+    mesh mode scores exactly `mesh_surface_points`."""
     assert mesh_density() == 0.2
-    assert mesh_density(400.0) == pytest.approx(0.2)
-    assert mesh_density(150.0) == pytest.approx(0.075)
+    assert mesh_density(200.0) == pytest.approx(0.2)
+    assert mesh_density(150.0) == pytest.approx(0.15)
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(InputError, match="diagonal"):
             mesh_density(bad)

@@ -125,7 +125,7 @@ def _mesh_sampling_notes(rows: list[dict]) -> list[str]:
     old = [r for r in scored if r.get("mesh_sampled") != "surface"]
     if not old:
         return ["", "The mesh columns score mesh.ply by its surface, its triangles sampled at "
-                "the protocol's density (DTU 0.2 mm, otherwise 0.05 % of the ground truth's "
+                "the protocol's density (DTU 0.2 mm, otherwise 0.1 % of the ground truth's "
                 "diagonal), not by its vertices."]
     return ["", "The mesh columns mix scorings: these runs' meshes were scored by their vertices "
             "(metrics written before meshes were scored by their surface), not comparable with "

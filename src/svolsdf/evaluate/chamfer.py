@@ -57,9 +57,9 @@ PLANE_OVERRIDES = {82: 83}
 #: The DTU protocol's mesh sampling spacing and downsampling radius, mm (docs/method.md 8.1).
 DTU_DENSITY = 0.2
 
-#: A DTU object's size in mm, as a bounding-box diagonal: the one on which the scale-free
-#: protocols' cut-off, 5 % of the diagonal, is DTU's 20 mm (docs/method.md 8.2).
-DTU_OBJECT_DIAG = 400.0
+#: The scale-free protocols' mesh sampling spacing, as a fraction of the ground truth's
+#: bounding-box diagonal (`mesh_density`).
+MESH_DENSITY_FRACTION = 0.001
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -306,15 +306,18 @@ def sample_mesh_surface(vertices: np.ndarray, faces: np.ndarray, density: float 
 
 
 def mesh_density(diag: float | None = None) -> float:
-    """The spacing at which a mesh's surface is scored (docs/method.md 8.1).
+    """The spacing at which a mesh's surface is scored (docs/method.md 8.1, 8.2).
 
-    The DTU protocol (``diag`` None): 0.2 mm, its mesh mode's. A protocol whose scales are
-    fractions of its ground truth's bounding-box diagonal (synthetic scenes, the DTU pseudo
-    ground truth, ``--gt-points``): the same fraction of that diagonal as 0.2 mm is of a DTU
-    object's, 0.2 / 400 = 0.05 % (`DTU_OBJECT_DIAG`: the diagonal on which those protocols'
-    cut-off of 5 % is DTU's 20 mm). Synthetic scenes are in millimetres like DTU, but their
-    objects are smaller (100-200 mm across), so a fixed 0.2 mm would sample them more coarsely
-    relative to their size than DTU samples its objects.
+    The DTU protocol (``diag`` None): 0.2 mm, the radius at which it evens out every cloud and
+    the spacing at which its mesh mode samples triangles. The scale-free protocols (synthetic
+    scenes, the DTU pseudo ground truth of the benchmarks, ``--gt-points``): 0.1 % of the
+    ground truth's bounding-box diagonal (`MESH_DENSITY_FRACTION`). That is the radius at which
+    the synthetic protocol evens out every cloud (`svolsdf.evaluate.synthetic.truncated_chamfer`:
+    a fifth of its F-score threshold of 0.5 %), the role 0.2 mm plays in DTU's, and about the
+    same fraction of the object: 0.2 mm of a DTU object some 200 mm across (a synthetic scene
+    on DTU's cameras fills 60 % of scan 65's unit sphere of radius 165 mm: 200 mm). A mesh is
+    therefore evened out exactly as a point cloud is, so that a mesh / points ratio compares
+    like with like; a finer spacing would only be thinned again by the protocol.
 
     Args:
         diag: the ground truth's bounding-box diagonal (> 0), or None for DTU.
@@ -326,7 +329,7 @@ def mesh_density(diag: float | None = None) -> float:
         return DTU_DENSITY
     if not (np.isfinite(diag) and diag > 0):
         raise InputError(f"mesh density: the ground truth's diagonal must be > 0, got {diag}")
-    return float(diag) * DTU_DENSITY / DTU_OBJECT_DIAG
+    return float(diag) * MESH_DENSITY_FRACTION
 
 
 def mesh_surface_points(vertices: np.ndarray, faces: np.ndarray, density: float = DTU_DENSITY,
@@ -337,7 +340,8 @@ def mesh_surface_points(vertices: np.ndarray, faces: np.ndarray, density: float 
     (`sample_mesh_surface`, which adds the vertices), shuffled (``seed``) and greedily
     downsampled at radius ``density``. The points then cover the surface about evenly whatever
     the triangles: a large triangle over a hole or past a silhouette counts by its area, not by
-    its three vertices. Choose ``density`` with `mesh_density`.
+    its three vertices. Vertices that no face uses are left out (the reference script would
+    count them; meshes that svolsdf writes have none). Choose ``density`` with `mesh_density`.
 
     The grids are ``oversample`` times finer than ``density``: with 2 (the default) the greedy
     downsampling, not the triangulation, sets the spacing of the points, so that subdividing a
@@ -361,6 +365,13 @@ def mesh_surface_points(vertices: np.ndarray, faces: np.ndarray, density: float 
         raise InputError(f"mesh density must be > 0, got {density}")
     if oversample < 1:
         raise InputError(f"mesh oversample must be >= 1, got {oversample}")
+    vertices = _check_points("vertices", vertices)
+    faces = np.asarray(faces)
+    if faces.ndim == 2 and faces.shape[1] == 3 and len(faces) and faces.min() >= 0 \
+            and faces.max() < len(vertices):
+        # a vertex no face uses is not part of the surface (svolsdf's meshes have none)
+        used, faces = np.unique(faces, return_inverse=True)
+        vertices, faces = vertices[used], faces.reshape(-1, 3)
     data = shuffle_rows(sample_mesh_surface(vertices, faces, density / oversample), seed)
     return data[greedy_radius_downsample(data, density)]
 

@@ -171,7 +171,7 @@ def _metrics_table(metrics: dict, units: str | None) -> str:
                and d is not None else "its vertices (metrics of an older version)")
         rows.append(("mesh scored by", how, "",
                      "the mesh's Chamfer counts its triangles by their area, at the protocol's "
-                     "density (DTU 0.2 mm, otherwise 0.05 % of the ground truth's diagonal), so "
+                     "density (DTU 0.2 mm, otherwise 0.1 % of the ground truth's diagonal), so "
                      "surface over a hole or past a silhouette counts however few its vertices"))
     if msrc:
         rows.append(("mesh.ply is", msrc, "",

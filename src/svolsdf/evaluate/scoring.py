@@ -17,7 +17,7 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
     chamfer_mesh: {accuracy, completeness, overall, protocol, source, mesh_source, sampled,
                 density}: mesh.ply scored by its surface (``sampled``: "surface"), its triangles
                 sampled every ``density`` world units (`svolsdf.evaluate.chamfer.mesh_density`:
-                DTU 0.2 mm, otherwise 0.05 % of the ground truth's diagonal), never by its
+                DTU 0.2 mm, otherwise 0.1 % of the ground truth's diagonal), never by its
                 vertices
     mesh_source: which surface mesh.ply is (field | poisson | tsdf | "field (poisson failed:
                 ...)"), from timing.json; mesh_over_points: {accuracy, completeness, overall}
