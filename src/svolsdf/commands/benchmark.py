@@ -230,9 +230,10 @@ class BenchmarkJob:
         return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-ROW_VERSION = 2
+ROW_VERSION = 3
 """Bumped when a row's contents change (2: held-out renders, the synthetic protocol, DTU-rule
-and IBR columns): finished runs are scored again, their stages reused."""
+and IBR columns; 3: meshes scored by their surface, ``mesh_sampled``): finished runs are scored
+again, their stages reused."""
 
 ROW_FILE = "benchmark_row.json"
 """A finished job's row in its run folder, with the job's `BenchmarkJob.key`."""
@@ -324,8 +325,6 @@ def finished_row(job: BenchmarkJob) -> dict | None:
     row = saved.get("row")
     if not isinstance(row, dict) or row.get("status") != "ok":
         return None
-    if row.get("mesh_overall") is not None and row.get("mesh_sampled") != "surface":
-        return None  # its mesh was scored by the vertices: evaluate it again
     return row if "field" in row else {**row, "field": _field_kind(job)}  # an older row
 
 
