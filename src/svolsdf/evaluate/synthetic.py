@@ -97,8 +97,8 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
 
     A mesh (``faces`` given) is scored by its surface, never by its vertices:
     `svolsdf.evaluate.chamfer.mesh_surface_points` at `svolsdf.evaluate.chamfer.mesh_density`
-    of the observed ground truth's diagonal (0.1 % of it, the radius at which the points are evened
-    out too).
+    of the observed ground truth's diagonal (0.1 % of it: with the default ``threshold``, the
+    radius at which the points are evened out too).
 
     Args:
         points: (N, 3) reconstructed world points, or with ``faces`` a mesh's (V, 3) vertices.
