@@ -7,11 +7,12 @@ the same arguments, old then new, scene after scene. Everything is scored here, 
 code, the same way for both sides:
 
 - synthetic scenes (`svolsdf synth`: gt_points.ply, gt_depth/): points and mesh (by its
-  vertices) against the ground truth the input views observe
-  (`svolsdf.evaluate.synthetic.synthetic_chamfer`, as the rest of fast_preset.py scores);
+  surface, `svolsdf.evaluate.chamfer.mesh_surface_points`) against the ground truth the input
+  views observe (`svolsdf.evaluate.synthetic.synthetic_chamfer`, as the rest of fast_preset.py
+  scores; results written before meshes were scored by their surface scored its vertices);
 - DTU scans with ``--pgt NAME=DIR``: against the many-view pseudo ground truth of
   benchmarks/dtu_pseudo_gt.py, as benchmarks/mesh_study.py scores them (its `Scorer`: the mesh
-  sampled on its surface);
+  by its surface too);
 - held-out views (the first ``--held-out-views`` test views of OUT/views.json, none of them an
   input): `svolsdf render` (volume rendering) at ``--held-out-scale`` x the working size by each
   side's code, then masked PSNR and SSIM against the scene's images (`svolsdf.evaluate.images`).
@@ -211,10 +212,11 @@ class SceneScorer:
             if not f.is_file():
                 continue
             d = read_ply(f)
-            if self.synthetic:  # the mesh by its vertices, as fast_preset.py and evaluate score
+            if self.synthetic:  # a mesh by its surface, as fast_preset.py and evaluate score
                 from svolsdf.evaluate.synthetic import synthetic_chamfer
 
-                r = synthetic_chamfer(d["points"], self.scene, self.inputs, on_empty="clip")
+                r = synthetic_chamfer(d["points"], self.scene, self.inputs, on_empty="clip",
+                                      faces=d["faces"] if key == "mesh" else None)
                 res[key] = {k: r[k] for k in ("accuracy", "completeness", "overall",
                                               "overall_dtu_rule", "fscore")}
             elif key == "points":
@@ -383,9 +385,10 @@ def report(meta: dict, scenes: list[dict], many: list[dict], targets: dict) -> s
          "included; - when resumed from a cache); peak = the largest stage peak resident memory "
          "(timing.json)",
          "- Chamfer (acc + comp) / 2 in the scene's units, scored for both by the new checkout: "
-         "synthetic scenes against the ground truth the input views observe (mesh by its "
-         "vertices), DTU against the many-view pseudo ground truth (benchmarks/"
-         "dtu_pseudo_gt.py, scored as benchmarks/mesh_study.py: mesh sampled on its surface)",
+         "synthetic scenes against the ground truth the input views observe, DTU against the "
+         "many-view pseudo ground truth (benchmarks/dtu_pseudo_gt.py, scored as benchmarks/"
+         "mesh_study.py); a mesh by its surface, sampled at 0.1 % of the ground truth's "
+         "diagonal (svolsdf.evaluate.chamfer.mesh_density), not by its vertices",
          f"- held-out PSNR: volume rendering (`svolsdf render`, each side's code) of the first "
          f"{meta['held_out_views']} test views (never inputs) at {meta['held_out_scale']:g} x "
          "the working size, masked PSNR against the scene's images at that size "

@@ -22,7 +22,10 @@ independent reference from all the scan's views and scores three-view runs again
 3. The reference is the part of that cloud the run's input views see: points within 0.5 % of
    the nearest pseudo-GT depth at their pixel (a 3x3 minimum of the splatted depth) in at least
    one input view.
-4. Each run's points.ply (and mesh.ply, sampled) is scored as the synthetic benchmark scores
+4. Each run's points.ply (and mesh.ply by its surface, `svolsdf.evaluate.chamfer.
+   mesh_surface_points` at `mesh_density`, 0.1 % of the first reference's diagonal; before
+   meshes were scored that way everywhere, sampled at it without evening out) is scored as the
+   synthetic benchmark scores
    (`svolsdf.evaluate.synthetic.truncated_chamfer`): both clouds evened out by greedy radius
    downsampling at 0.1 % of the first reference's diagonal, distances clipped at 5 % of it
    ("clipped"; holes cost the cut-off) or left out beyond it ("DTU rule", docs/method.md 8.1), and
@@ -195,8 +198,9 @@ def main() -> None:
     from svolsdf.evaluate.chamfer import (
         greedy_radius_downsample,
         load_obs_mask,
+        mesh_density,
+        mesh_surface_points,
         obs_mask_filter,
-        sample_mesh_surface,
     )
     from svolsdf.io.ply import read_ply
     from svolsdf.scene.loaders import load_scene
@@ -267,8 +271,8 @@ def main() -> None:
         mesh = None
         if (d / "mesh.ply").is_file():
             m = read_ply(d / "mesh.ply")
-            mesh = sample_mesh_surface(m["points"].astype(np.float64), m["faces"],
-                                       density=0.001 * diag)
+            mesh = mesh_surface_points(m["points"].astype(np.float64), m["faces"],
+                                       mesh_density(diag))
         if obs is not None:  # DTU's accuracy counts only predictions inside the ObsMask
             pred = pred[obs_mask_filter(pred, obs)[1]]
             mesh = None if mesh is None else mesh[obs_mask_filter(mesh, obs)[1]]

@@ -10,11 +10,15 @@ mesh stage culls them), then cleans each one with every combination of free-spac
 run's points:
 
 - synthetic scenes (`svolsdf synth`): `svolsdf evaluate`'s protocol, against the ground truth
-  the input views observe (mesh by its vertices, as evaluate scores it);
+  the input views observe;
 - DTU scans: against the many-view pseudo ground truth of benchmarks/dtu_pseudo_gt.py (its
   cache in ``--pgt DIR``, made by running that script once with ``--out DIR``; the first
-  reference: "object" with masks, "observed" inside the ObsMask without), the mesh sampled on
-  its surface at 0.1 % of the reference's diagonal, as that script scores it.
+  reference: "object" with masks, "observed" inside the ObsMask without), as that script scores.
+
+Either way a mesh is scored by its surface, as `svolsdf evaluate` scores it
+(`svolsdf.evaluate.chamfer.mesh_surface_points` at `mesh_density` of the ground truth's diagonal,
+0.1 % of it), never by its vertices; results written before that scored a synthetic scene's mesh
+by its vertices (a DTU scan's by its surface sampled at 0.1 % without evening out).
 
 Each row: accuracy, completeness and Chamfer of the mesh, their ratios to the points', faces,
 and the seconds the mesh took (the method, plus the cleaning). The ``--summary`` lines give, per
@@ -98,18 +102,21 @@ class Scorer:
         return self._score(pts)
 
     def mesh(self, v: np.ndarray, f: np.ndarray) -> dict:
+        """Scores of a mesh ((V, 3) vertices, (F, 3) faces) by its surface, as `svolsdf
+        evaluate` scores it."""
         if self.synthetic:
-            return self._score(v)  # by its vertices, as svolsdf evaluate scores a mesh
-        from svolsdf.evaluate.chamfer import sample_mesh_surface
+            return self._score(v, faces=f)
+        from svolsdf.evaluate.chamfer import mesh_density, mesh_surface_points
 
-        return self._score(sample_mesh_surface(v, f, density=0.001 * self.diag))
+        return self._score(mesh_surface_points(v, f, mesh_density(self.diag)))
 
-    def _score(self, x: np.ndarray) -> dict:
+    def _score(self, x: np.ndarray, faces: np.ndarray | None = None) -> dict:
         x = np.asarray(x, dtype=np.float64)
         if self.synthetic:
             from svolsdf.evaluate.synthetic import synthetic_chamfer
 
-            r = synthetic_chamfer(x, self.scene_dir, self.run.views, on_empty="clip")
+            r = synthetic_chamfer(x, self.scene_dir, self.run.views, on_empty="clip",
+                                  faces=faces)
             return {k: r[k] for k in ("accuracy", "completeness", "overall")}
         from dtu_pseudo_gt import score
 

@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _score_mesh(scene: Path, mesh: Path, views: list[int]) -> dict:
-    """Synthetic-protocol Chamfer of a mesh's vertices (`fast_preset._score_ply`, as
+    """Synthetic-protocol Chamfer of a mesh by its surface (`fast_preset._score_ply`, as
     `svolsdf evaluate` scores it)."""
     return _score_ply(scene, mesh, views) if mesh.is_file() else {"error": "no mesh"}
 

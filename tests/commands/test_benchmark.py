@@ -344,3 +344,27 @@ def test_markdown_table_says_which_surface_the_mesh_columns_hold():
     same = benchmark_markdown([a, {**b, "mesh_source": "poisson"}])
     assert "mesh.ply of every run with a mesh column: poisson." in same
     assert "mix surfaces" not in same
+
+
+def test_tables_say_how_the_mesh_columns_were_scored():
+    """A row from `svolsdf evaluate` carries ``mesh_sampled`` ("surface"); a table says its mesh
+    columns are surface-scored, and lists the rows whose meshes were scored by their vertices
+    (metrics written before) rather than mix the two unsaid."""
+    from svolsdf.commands.benchmark import run_metrics
+    from svolsdf.evaluate.run_outputs import empty_metrics, mesh_chamfer_block
+
+    metrics = empty_metrics()
+    metrics["chamfer_mesh"] = mesh_chamfer_block(
+        {"accuracy": 1.0, "completeness": 2.0, "overall": 1.5}, "synthetic", "mesh.ply", 0.2)
+    row = run_metrics(metrics, "s1", "svolsdf", 10.0)
+    assert row["mesh_overall"] == 1.5
+    assert row["mesh_sampled"] == "surface" and row["mesh_density"] == 0.2
+    assert run_metrics(empty_metrics(), "s1", "svolsdf", 10.0)["mesh_sampled"] is None
+    a = {**_row("s1", "svolsdf", 1.0, 2.0), "mesh_overall": 1.5, "mesh_sampled": "surface"}
+    b = {**_row("s2", "svolsdf", 1.0, 2.0), "mesh_overall": 2.5}  # an older metrics.json
+    md = benchmark_markdown([a])
+    assert "score mesh.ply by its surface" in md and "mix scorings" not in md
+    md = benchmark_markdown([a, b])
+    assert "The mesh columns mix scorings" in md and "- s2 / svolsdf" in md
+    assert "- s1 / svolsdf" not in md
+    assert "by its surface" not in benchmark_markdown([_row("s1", "svolsdf", 1.0, 2.0)])

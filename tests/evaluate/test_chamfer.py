@@ -21,6 +21,8 @@ from svolsdf.evaluate.chamfer import (
     greedy_radius_downsample,
     load_obs_mask,
     load_plane,
+    mesh_density,
+    mesh_surface_points,
     nn_distances,
     obs_mask_filter,
     sample_mesh_surface,
@@ -366,3 +368,157 @@ def test_dtu_protocol_agrees_on_the_real_obsmask(monkeypatch, sort):
     assert 0.1 < in_obs.mean() < 0.95  # both branches of the mask are exercised
     for key, want in zip(("accuracy", "completeness", "overall"), ref, strict=True):
         assert ours[key] == pytest.approx(want, rel=0.01)
+
+
+# --------------------------------------------------------------------------- meshes: by surface
+
+
+def _grid_mesh(n: int, size: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """The square [0, size]^2 at z = 0 as an n x n grid of quads, two triangles each:
+    (V, 3) vertices, (F, 3) faces."""
+    xs = np.linspace(0, size, n + 1)
+    gx, gy = np.meshgrid(xs, xs, indexing="ij")
+    v = np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)]
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    b, c, d = a + 1, a + n + 1, a + n + 2
+    return v, np.concatenate([np.c_[a, b, d], np.c_[a, d, c]])
+
+
+def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each triangle into four at its edges' midpoints: 4x the faces, the same surface."""
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    edges, inv = np.unique(e, axis=0, return_inverse=True)
+    m = inv.reshape(3, -1) + len(v)  # midpoints of edges 01, 12, 20
+    v2 = np.concatenate([v, (v[edges[:, 0]] + v[edges[:, 1]]) / 2])
+    a, b, c = f.T
+    ab, bc, ca = m
+    return v2, np.concatenate([np.c_[a, ab, ca], np.c_[ab, b, bc], np.c_[ca, bc, c],
+                               np.c_[ab, bc, ca]])
+
+
+def _icosphere(level: int) -> tuple[np.ndarray, np.ndarray]:
+    """The unit sphere: an icosahedron subdivided ``level`` times, vertices on the sphere."""
+    t = (1 + 5 ** 0.5) / 2
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
+                 dtype=np.float64)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
+                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
+                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
+                  [8, 6, 7], [9, 8, 1]])
+    for _ in range(level):
+        v, f = _subdivide(v, f)
+    return v / np.linalg.norm(v, axis=1, keepdims=True), f
+
+
+def _surface_score(v, f, gt, density):
+    """The generic protocol's Chamfer of a mesh by its surface (as `svolsdf evaluate
+    --gt-points` scores it)."""
+    return chamfer_fscore(mesh_surface_points(v, f, density), gt, threshold=0.1)
+
+
+def _vertex_score(v, gt):
+    """The Chamfer of a mesh by its vertices: how meshes were scored before."""
+    return chamfer_fscore(v, gt, threshold=0.1)
+
+
+def test_a_flap_past_the_ground_truth_scores_worse_by_surface_not_by_vertices():
+    """A plane mesh scored against its own (dense) ground truth, with and without a large
+    triangle extrapolated past its edge (one new vertex) or bridging a hole of the ground truth
+    (no new vertex): the surface scorer charges the flap's area; vertex scoring, the old way,
+    barely sees the first (one vertex among 1681) and cannot see the second at all."""
+    v, f = _grid_mesh(40)
+    g = np.arange(0.025, 10, 0.05)
+    gt = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    density = 0.05
+    # past the silhouette: a triangle on the edge x = 10, its tip 5 beyond it
+    v_flap = np.concatenate([v, [[15.0, 5.0, 0.0]]])
+    corner = lambda i, j: i * 41 + j  # noqa: E731
+    f_flap = np.concatenate([f, [[corner(40, 0), len(v), corner(40, 40)]]])
+    base, flap = _surface_score(v, f, gt, density), _surface_score(v_flap, f_flap, gt, density)
+    assert base["accuracy"] < 0.03 and base["overall"] < 0.03
+    assert flap["accuracy"] > base["accuracy"] + 0.2  # a fifth of the surface, ~1.7 away
+    assert flap["overall"] > base["overall"] + 0.1
+    assert flap["completeness"] == pytest.approx(base["completeness"], abs=0.01)
+    old_base, old_flap = _vertex_score(v, gt), _vertex_score(v_flap, gt)
+    assert abs(old_flap["overall"] - old_base["overall"]) < 0.01  # the old way did not see it
+    # over a hole: the ground truth without [3, 7]^2, the mesh's faces there replaced by two
+    # triangles on the hole's corners (the same vertices)
+    hole = ((gt[:, :2] > 3) & (gt[:, :2] < 7)).all(1)
+    cent = v[f].mean(1)[:, :2]
+    outside = ~((cent > 3) & (cent < 7)).all(1)
+    a, b, c, d = corner(12, 12), corner(28, 12), corner(12, 28), corner(28, 28)
+    f_open = f[outside]
+    f_bridged = np.concatenate([f_open, [[a, b, d], [a, d, c]]])
+    opened = _surface_score(v, f_open, gt[~hole], density)
+    bridged = _surface_score(v, f_bridged, gt[~hole], density)
+    assert bridged["accuracy"] > opened["accuracy"] + 0.05  # 16 % of the area, ~0.7 away
+    assert bridged["overall"] > opened["overall"] + 0.025
+    assert _vertex_score(v, gt[~hole]) == _vertex_score(v, gt[~hole])  # same vertices: blind
+
+
+def test_subdividing_a_mesh_does_not_change_its_score():
+    """The same surface with 4x and 16x the vertices scores the same, within 1.5 %; scored by its
+    vertices (the old way), the same subdivision moves the Chamfer by a factor of 2.6. (With
+    DTUeval-python's grids, ``oversample=1``, the completeness moves by 7 %.)"""
+    v, f = _icosphere(2)  # 320 faces, vertices on the unit sphere
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(40_000, 3))
+    gt /= np.linalg.norm(gt, axis=1, keepdims=True)
+    density = 0.02
+    scores, old = [], []
+    for _ in range(3):
+        scores.append(_surface_score(v, f, gt, density))
+        old.append(_vertex_score(v, gt))
+        v, f = _subdivide(v, f)
+    for s in scores[1:]:
+        for k in ("accuracy", "completeness", "overall"):
+            assert s[k] == pytest.approx(scores[0][k], rel=0.015), k
+    assert old[2]["accuracy"] > 1.5 * old[0]["accuracy"]  # midpoints lie inside the sphere
+    assert old[0]["overall"] > 2.5 * old[2]["overall"]  # and fill the gaps between vertices
+
+
+def test_mesh_density_rule_and_the_dtu_mesh_mode():
+    """DTU: 0.2 mm; scale-free protocols: 0.1 % of the ground truth's diagonal (0.2 mm on a
+    200 mm object), the radius at which the synthetic protocol evens out its clouds; DTU's
+    mesh mode scores exactly `mesh_surface_points`."""
+    assert mesh_density() == 0.2
+    assert mesh_density(200.0) == pytest.approx(0.2)
+    assert mesh_density(150.0) == pytest.approx(0.15)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(InputError, match="diagonal"):
+            mesh_density(bad)
+    with pytest.raises(InputError, match="density"):
+        mesh_surface_points(*_grid_mesh(2), density=0.0)
+    v, f = _grid_mesh(3)
+    pts = mesh_surface_points(v, f, 0.5, seed=3)
+    # evenly spread: no two points within the density, every grid point (at half of it) within
+    # it of one
+    assert len(pts) > 100
+    d, _ = chamfer_module._kdtree(pts).query(pts, k=2)
+    assert d[:, 1].min() > 0.5
+    assert nn_distances(sample_mesh_surface(v, f, 0.25), pts).max() <= 0.5 + 1e-9
+    # the DTU protocol's mesh mode is the scorer on DTUeval-python's grids (oversample 1)
+    rng = np.random.default_rng(5)
+    _, stl, mask, bb, res, plane = dtu_like(rng, n_stl=300)
+    obs = ObsMask(mask.astype(bool), bb.astype(np.float32), float(res))
+    v, f = _grid_mesh(4, size=16.0)
+    dtu = dtu_chamfer_arrays(v, stl, obs, plane, mode="mesh", faces=f, seed=3,
+                             downsample_density=0.5)
+    via = dtu_chamfer_arrays(mesh_surface_points(v, f, 0.5, seed=3, oversample=1), stl, obs,
+                             plane, downsample_density=0.5, seed=4)  # already even: kept as is
+    assert dtu == pytest.approx(via, rel=1e-12)
+
+
+def test_only_the_scorer_samples_a_mesh():
+    """Every place that scores a mesh goes through `mesh_surface_points` (or
+    `synthetic_chamfer(..., faces=)`, which does): no module of the package or the benchmarks
+    samples triangles itself."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    users = [p.relative_to(root).as_posix()
+             for top in ("src", "benchmarks") for p in sorted((root / top).rglob("*.py"))
+             if "sample_mesh_surface(" in p.read_text()]
+    assert users == ["src/svolsdf/evaluate/chamfer.py"]

@@ -213,3 +213,17 @@ def test_report_in_headless_chromium(run, tmp_path):
     assert shot.stat().st_size > 10_000
     img = np.asarray(Image.open(shot).convert("L"))
     assert img.std() > 5, f"blank page; see {shot}"
+
+
+def test_metrics_table_says_how_the_mesh_was_scored():
+    """The report's metrics say that the mesh was scored by its surface and at which spacing, or,
+    for metrics of an older version, by its vertices."""
+    from svolsdf.evaluate.report import _metrics_table
+
+    block = {"accuracy": 1.0, "completeness": 2.0, "overall": 1.5}
+    new = _metrics_table({"chamfer": {}, "chamfer_mesh": {**block, "sampled": "surface",
+                                                          "density": 0.158}}, "mm")
+    assert "<td>mesh scored by</td><td>its surface, sampled every 0.158 mm</td>" in new
+    old = _metrics_table({"chamfer": {}, "chamfer_mesh": block}, "mm")
+    assert "<td>mesh scored by</td><td>its vertices (metrics of an older version)</td>" in old
+    assert "mesh scored by" not in _metrics_table({"chamfer": {}, "chamfer_mesh": {}}, "mm")

@@ -182,3 +182,50 @@ def test_a_synthetic_scene_scores_itself(tmp_path):
     np.save(tmp_path / "gt.npy", gt)
     m2 = evaluate_run(EvaluateConfig(out=out, gt_points=tmp_path / "gt.npy", report=False))
     assert m2["chamfer"]["protocol"] == "generic"
+
+
+def test_a_mesh_is_scored_by_its_surface_with_a_flap_charged(tmp_path):
+    """`svolsdf evaluate` scores mesh.ply by its surface (`mesh_surface_points` at
+    `mesh_density` of the observed ground truth's diagonal, through `synthetic_chamfer`), says
+    so in metrics.json, and so charges a large triangle extrapolated past the object's
+    silhouette that vertex scoring, the old way, hardly sees."""
+    from svolsdf.evaluate.chamfer import mesh_density
+    from svolsdf.evaluate.synthetic import observed_gt_points, synthetic_chamfer
+    from svolsdf.io.ply import read_ply
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    scene = tmp_path / "syn"
+    make_synthetic_scene(scene, SynthConfig(views=4, width=64, height=48, seed=2,
+                                            object="sphere", supersample=1, gt_points=5000))
+    views = [0, 2, 3]
+    gt = observed_gt_points(scene, views)
+    diag = float(np.linalg.norm(gt.max(0) - gt.min(0)))
+    m = read_ply(scene / "gt_mesh.ply")
+    v, f = m["points"].astype(np.float64), m["faces"]
+    cap = f[v[f].mean(1)[:, 2] > v[:, 2].max() - 2]  # the sphere's top, ~800 mm^2
+    used = np.unique(cap)
+    rim = used[[np.argmin(v[used, 1]), np.argmax(v[used, 1])]]  # the cap's -y and +y ends
+    tip = v[rim].mean(0) + [60.0, 0.0, 0.0]  # ~40 mm past the silhouette, above the table
+    v_flap = np.concatenate([v, tip[None]])
+    f_flap = np.concatenate([cap, [[rim[0], rim[1], len(v)]]])
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.yaml").write_text(f"scene:\n  path: {scene}\n")
+    (out / "views.json").write_text(json.dumps({"inputs": views, "test": [1]}))
+    write_mesh_ply(out / "mesh.ply", v_flap, f_flap)
+    metrics = evaluate_run(EvaluateConfig(out=out, report=False))
+    cm = metrics["chamfer_mesh"]
+    assert cm["protocol"] == "synthetic" and cm["source"] == "mesh.ply"
+    assert cm["sampled"] == "surface"
+    assert cm["density"] == pytest.approx(mesh_density(diag)) == pytest.approx(diag / 1000)
+    v32 = v_flap.astype(np.float32)  # the PLY holds float32
+    want = synthetic_chamfer(v32, scene, views, faces=f_flap, on_empty="clip")
+    for k in ("accuracy", "completeness", "overall", "overall_dtu_rule"):
+        assert cm[k] == pytest.approx(want[k], rel=1e-9)
+    no_flap = synthetic_chamfer(v, scene, views, faces=cap)
+    assert want["accuracy"] > no_flap["accuracy"] + 0.7  # half of the surface, off the object
+    assert want["overall"] > no_flap["overall"] + 0.3
+    by_vertices = [synthetic_chamfer(x, scene, views)["accuracy"]
+                   for x in (v[used], np.concatenate([v[used], tip[None]]))]
+    assert abs(by_vertices[1] - by_vertices[0]) < 0.05  # one vertex among ~300
+    assert metrics["settings"]["synthetic"]["input_views"] == views

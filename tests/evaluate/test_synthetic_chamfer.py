@@ -52,3 +52,43 @@ def test_chamfer_of_points_far_from_the_object(tiny_scene):
     assert clip["fscore"] == excl["fscore"]
     with pytest.raises(ValueError, match="rule"):
         synthetic_chamfer(pts, tiny_scene, views, rule="truncate")
+
+
+def test_a_mesh_is_scored_by_its_surface(tiny_scene, tmp_path, monkeypatch):
+    """With faces, `synthetic_chamfer` scores the mesh's surface (`mesh_surface_points` at
+    `mesh_density` of the observed ground truth's diagonal) and says so; a mesh without faces
+    has no surface and scores the clip distance; the benchmarks' scorer of a PLY
+    (benchmarks/fast_preset.py, which mesh_study.py, _side_by_side.py and
+    volsdf_mlp_equal_time.py follow) scores a mesh PLY the same way."""
+    import importlib.util
+    from pathlib import Path
+
+    from svolsdf.evaluate.chamfer import mesh_density, mesh_surface_points
+    from svolsdf.io.ply import read_ply, write_mesh_ply
+
+    views = [0, 1]
+    gt = observed_gt_points(tiny_scene, views)
+    diag = float(np.linalg.norm(gt.max(0) - gt.min(0)))
+    m = read_ply(tiny_scene / "gt_mesh.ply")
+    v, f = m["points"].astype(np.float64), m["faces"]
+    f = f[v[f].mean(1)[:, 2] > v[:, 2].max() - 3]  # the object's top: a small surface
+    r = synthetic_chamfer(v, tiny_scene, views, faces=f)
+    assert r["sampled"] == "surface" and r["density"] == pytest.approx(diag / 1000)
+    want = synthetic_chamfer(mesh_surface_points(v, f, mesh_density(diag)), tiny_scene, views)
+    assert want["sampled"] == "points" and want["density"] is None
+    for k in ("accuracy", "completeness", "overall", "fscore"):
+        assert r[k] == pytest.approx(want[k], rel=1e-9)
+    empty = synthetic_chamfer(v, tiny_scene, views, faces=np.zeros((0, 3), np.int64),
+                              on_empty="clip")
+    assert empty["overall"] == empty["max_dist"] and empty["sampled"] == "surface"
+    bench = Path(__file__).resolve().parents[2] / "benchmarks"
+    monkeypatch.syspath_prepend(str(bench))
+    spec = importlib.util.spec_from_file_location("fast_preset", bench / "fast_preset.py")
+    fast_preset = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fast_preset)
+    write_mesh_ply(tmp_path / "mesh.ply", v, f)
+    s = fast_preset._score_ply(tiny_scene, tmp_path / "mesh.ply", views)
+    v32 = v.astype(np.float32).astype(np.float64)
+    assert s["sampled"] == "surface"
+    assert s["overall"] == pytest.approx(
+        synthetic_chamfer(v32, tiny_scene, views, faces=f)["overall"], rel=1e-9)

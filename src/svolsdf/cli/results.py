@@ -59,6 +59,10 @@ def evaluate(
                f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
                f"lpips {lp['mean']}" + (f" ({lp['missing']})" if lp.get("missing") and
                                         im["psnr"]["mean"] is not None else ""))
+    cm = m["chamfer_mesh"]
+    if cm.get("overall") is not None:
+        typer.echo(f"mesh chamfer acc {cm['accuracy']} comp {cm['completeness']} overall "
+                   f"{cm['overall']} (its surface, sampled every {cm['density']:.3g})")
     typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
                                                    f" and {out / 'report.html'}"))
 

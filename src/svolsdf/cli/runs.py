@@ -175,7 +175,9 @@ def demo(
     for name in ("points", "mesh"):
         p = summary.get(name)
         if p and Path(p).is_file():
-            r = synthetic_chamfer(read_ply(p)["points"], scene_dir, views)
+            d = read_ply(p)  # a mesh is scored by its surface (faces), not its vertices
+            r = synthetic_chamfer(d["points"], scene_dir, views,
+                                  faces=d["faces"] if name == "mesh" else None)
             result[name] = r
             lines.append(f"{name:6s} {p}: Chamfer accuracy {r['accuracy']:.3f} mm, completeness "
                          f"{r['completeness']:.3f} mm, overall {r['overall']:.3f} mm, F-score "

@@ -157,6 +157,10 @@ def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
             # which surface mesh.ply is (a table must not mix kinds in a column unsaid)
             "mesh_source": (metrics.get("mesh_source") or cm.get("mesh_source")
                             if cm.get("overall") is not None else None),
+            # how it was scored: "surface" (sampled every mesh_density world units); None with
+            # a mesh score: metrics.json of a time when meshes were scored by their vertices
+            "mesh_sampled": cm.get("sampled") if cm.get("overall") is not None else None,
+            "mesh_density": cm.get("density") if cm.get("overall") is not None else None,
             "time_s": time_s}
 
 
@@ -226,9 +230,10 @@ class BenchmarkJob:
         return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-ROW_VERSION = 2
+ROW_VERSION = 3
 """Bumped when a row's contents change (2: held-out renders, the synthetic protocol, DTU-rule
-and IBR columns): finished runs are scored again, their stages reused."""
+and IBR columns; 3: meshes scored by their surface, ``mesh_sampled``): finished runs are scored
+again, their stages reused."""
 
 ROW_FILE = "benchmark_row.json"
 """A finished job's row in its run folder, with the job's `BenchmarkJob.key`."""

@@ -173,7 +173,7 @@ def load_renders(run: RunFolder, scene_path: Path | None, views: list[int] | Non
 
 def empty_metrics() -> dict:
     return {"chamfer": chamfer_block(None, None, None),
-            "chamfer_mesh": chamfer_block(None, None, None),
+            "chamfer_mesh": mesh_chamfer_block(None, None, None, None),
             "fscore": None, "fscore_threshold": None, "precision": None, "recall": None,
             "images": empty_images(), "images_ibr": empty_images(),
             "mesh_source": None,
@@ -192,6 +192,19 @@ def chamfer_block(res: dict | None, protocol: str | None, source: str | None) ->
             "completeness": finite_or_none(res.get("completeness")),
             "overall": finite_or_none(res.get("overall")),
             "protocol": protocol, "source": source}
+
+
+def mesh_chamfer_block(res: dict | None, protocol: str | None, source: str | None,
+                       density: float | None) -> dict:
+    """`chamfer_block` of a mesh, which is scored by its surface
+    (`svolsdf.evaluate.chamfer.mesh_surface_points`): ``sampled`` "surface" and ``density``, the
+    spacing of the samples in world units (null when not scored). Metrics written before meshes
+    were scored this way have neither key: those scored the vertices."""
+    block = chamfer_block(res, protocol, source)
+    scored = res is not None
+    block["sampled"] = "surface" if scored else None
+    block["density"] = finite_or_none(density) if scored else None
+    return block
 
 
 def finite_or_none(x):

@@ -14,7 +14,11 @@ through `svolsdf.io.runfolder.RunFolder`.
 Writes OUT/metrics.json with fixed keys (null when not computable)::
 
     chamfer: {accuracy, completeness, overall, protocol, source}
-    chamfer_mesh: {accuracy, completeness, overall, protocol, source, mesh_source}
+    chamfer_mesh: {accuracy, completeness, overall, protocol, source, mesh_source, sampled,
+                density}: mesh.ply scored by its surface (``sampled``: "surface"), its triangles
+                sampled every ``density`` world units (`svolsdf.evaluate.chamfer.mesh_density`:
+                DTU 0.2 mm, otherwise 0.1 % of the ground truth's diagonal), never by its
+                vertices
     mesh_source: which surface mesh.ply is (field | poisson | tsdf | "field (poisson failed:
                 ...)"), from timing.json; mesh_over_points: {accuracy, completeness, overall}
                 of the mesh over the points'
@@ -65,6 +69,7 @@ from svolsdf.evaluate.run_outputs import (
     finite_or_none,
     load_gt_points,
     load_renders,
+    mesh_chamfer_block,
     run_scene,
     write_json,
 )
@@ -135,9 +140,10 @@ def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict
             metrics["chamfer"] = chamfer_block(r, "dtu", "points.ply")
             _put_fscore(metrics, r, thr)
         if mesh is not None:
+            density = ch.mesh_density()
             r = ch.dtu_chamfer_arrays(mesh[0], stl, obs, plane, mode="mesh", faces=mesh[1],
-                                      seed=cfg.seed)
-            metrics["chamfer_mesh"] = chamfer_block(r, "dtu-mesh", "mesh.ply")
+                                      seed=cfg.seed, downsample_density=density)
+            metrics["chamfer_mesh"] = mesh_chamfer_block(r, "dtu-mesh", "mesh.ply", density)
     elif cfg.gt_points is not None:
         gt = load_gt_points(cfg.gt_points)
         thr = cfg.threshold or _diag(gt) * 0.01
@@ -147,9 +153,10 @@ def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict
             metrics["chamfer"] = chamfer_block(r, "generic", "points.ply")
             _put_fscore(metrics, r, thr)
         if mesh is not None:
-            surf = ch.sample_mesh_surface(mesh[0], mesh[1], density=_diag(gt) / 1000)
+            density = ch.mesh_density(_diag(gt))
+            surf = ch.mesh_surface_points(mesh[0], mesh[1], density, seed=cfg.seed)
             r = ch.chamfer_fscore(surf, gt, thr, max_dist=cfg.max_dist)
-            metrics["chamfer_mesh"] = chamfer_block(r, "generic-mesh", "mesh.ply")
+            metrics["chamfer_mesh"] = mesh_chamfer_block(r, "generic-mesh", "mesh.ply", density)
     elif scene_path is not None and input_views and is_synthetic_scene(scene_path):
         _synthetic_geometry(cfg, scene_path, input_views, points, mesh, metrics, notes)
     else:
@@ -162,13 +169,16 @@ def _synthetic_geometry(cfg: EvaluateConfig, scene_path: Path, views: list[int],
     """A `svolsdf synth` scene scores itself: `synthetic_chamfer` against the ground truth the
     input views observe, distances clipped at 5 % of its diagonal (``max_dist``), F-score at
     0.5 % (``threshold``); ``overall_dtu_rule`` leaves distances beyond the cut-off out of the
-    means (docs/method.md 8.1). The mesh is scored by its vertices, as benchmarks/fast_preset.py."""
+    means (docs/method.md 8.1). The mesh is scored by its surface (``synthetic_chamfer`` with
+    its faces)."""
     from svolsdf.evaluate.synthetic import synthetic_chamfer
 
-    def score(pts: np.ndarray, source: str) -> tuple[dict, dict]:
+    def score(pts: np.ndarray, source: str, faces: np.ndarray | None = None
+              ) -> tuple[dict, dict]:
         r = synthetic_chamfer(pts, scene_path, views, max_dist=cfg.max_dist,
-                              threshold=cfg.threshold, on_empty="clip")
-        block = chamfer_block(r, "synthetic", source)
+                              threshold=cfg.threshold, on_empty="clip", faces=faces)
+        block = (chamfer_block(r, "synthetic", source) if faces is None else
+                 mesh_chamfer_block(r, "synthetic", source, r["density"]))
         block["overall_dtu_rule"] = finite_or_none(r["overall_dtu_rule"])
         if r["pred_points"] == 0:
             notes.append(f"{source}: no point lies near the ground-truth object; every distance "
@@ -180,7 +190,7 @@ def _synthetic_geometry(cfg: EvaluateConfig, scene_path: Path, views: list[int],
         r, metrics["chamfer"] = score(points[0], "points.ply")
         _put_fscore(metrics, r, r["threshold"])
     if mesh is not None:
-        rm, metrics["chamfer_mesh"] = score(mesh[0], "mesh.ply")
+        rm, metrics["chamfer_mesh"] = score(mesh[0], "mesh.ply", mesh[1])
         r = r or rm
     if r is not None:
         metrics["settings"]["synthetic"] = {

@@ -91,11 +91,17 @@ def _table_height(scene_dir: str | Path) -> float | None:
 
 def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int],
                       max_dist: float | None = None, threshold: float | None = None,
-                      on_empty: str = "raise", rule: str = "clip") -> dict:
+                      on_empty: str = "raise", rule: str = "clip",
+                      faces: np.ndarray | None = None) -> dict:
     """Chamfer and F-score of ``points`` against the observed ground truth (docs/method.md 8.2).
 
+    A mesh (``faces`` given) is scored by its surface, never by its vertices:
+    `svolsdf.evaluate.chamfer.mesh_surface_points` at `svolsdf.evaluate.chamfer.mesh_density`
+    of the observed ground truth's diagonal (0.1 % of it: with the default ``threshold``, the
+    radius at which the points are evened out too).
+
     Args:
-        points: (N, 3) reconstructed world points.
+        points: (N, 3) reconstructed world points, or with ``faces`` a mesh's (V, 3) vertices.
         scene_dir: the synthetic scene.
         views: the input view ids (they define the observed part).
         max_dist: distances are clipped at it, and predictions farther than it outside the
@@ -111,11 +117,13 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
             every distance is then beyond the cut-off, so accuracy = completeness = overall =
             max_dist, F-score 0 and ``pred_points`` 0 (a method that missed the object still
             gets a number in a comparison table).
+        faces: (F, 3) int triangles of a mesh whose vertices ``points`` are, or None.
 
     Returns:
         dict: accuracy, completeness, overall (by ``rule``), overall_dtu_rule (always the
         "exclude" rule's overall, from the same pass), precision, recall, fscore, threshold,
-        max_dist, gt_points (count).
+        max_dist, gt_points (count), pred_points, and ``sampled`` ("points", or "surface" for a
+        mesh) with ``density`` (the mesh's sample spacing; None for points).
     """
     if rule not in ("clip", "exclude"):
         raise ValueError(f"rule must be 'clip' or 'exclude', got {rule!r}")
@@ -130,19 +138,26 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
     pred = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     # the ObsMask's bounding box (docs/method.md 8.1): only predictions near the object are scored
     lo, hi = gt.min(0) - max_dist, gt.max(0) + max_dist
-    pred = pred[((pred >= lo) & (pred <= hi)).all(1)]
     table = _table_height(scene_dir)
-    if table is not None:
-        # the table is not part of the object (DTU's plane plays this role): points within the
-        # F-score threshold of its plane are left out on both sides
-        pred = pred[pred[:, 2] > table + threshold]
-        gt = gt[gt[:, 2] > table + threshold]
+    # the table is not part of the object (DTU's plane plays this role): points within the
+    # F-score threshold of its plane are left out on both sides
+    z_min = -np.inf if table is None else table + threshold
+    gt = gt[gt[:, 2] > z_min]
+    sampled = {"sampled": "points", "density": None}
+    if faces is not None:
+        from svolsdf.evaluate.chamfer import mesh_density, mesh_surface_points
+
+        density = mesh_density(diag)
+        sampled = {"sampled": "surface", "density": density}
+        faces = _faces_reaching_box(pred, faces, np.r_[lo[:2], max(lo[2], z_min)], hi)
+        pred = mesh_surface_points(pred, faces, density) if len(faces) else np.zeros((0, 3))
+    pred = pred[((pred >= lo) & (pred <= hi)).all(1) & (pred[:, 2] > z_min)]
     if len(pred) == 0:
         if on_empty == "clip":
             return {"accuracy": max_dist, "completeness": max_dist, "overall": max_dist,
                     "overall_dtu_rule": max_dist, "precision": 0.0, "recall": 0.0,
                     "fscore": 0.0, "threshold": threshold, "max_dist": max_dist,
-                    "gt_points": int(len(gt)), "pred_points": 0}
+                    "gt_points": int(len(gt)), "pred_points": 0, **sampled}
         raise InputError("no reconstructed point lies near the ground-truth object")
     t = truncated_chamfer(pred, gt, max_dist, threshold)
     sfx = "" if rule == "clip" else "_dtu_rule"
@@ -151,7 +166,25 @@ def synthetic_chamfer(points: np.ndarray, scene_dir: str | Path, views: list[int
             "overall_dtu_rule": (t["accuracy_dtu_rule"] + t["completeness_dtu_rule"]) / 2,
             "precision": t["precision"], "recall": t["recall"], "fscore": t["fscore"],
             "threshold": threshold, "max_dist": max_dist, "gt_points": t["gt_points"],
-            "pred_points": t["pred_points"]}
+            "pred_points": t["pred_points"], **sampled}
+
+
+def _faces_reaching_box(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray,
+                        hi: np.ndarray) -> np.ndarray:
+    """The (F', 3) rows of (F, 3) ``faces`` that may reach the box [lo, hi]: a triangle whose
+    three vertices lie beyond one of its faces has no point in it (sampling the rest only saves
+    time; a table's surface far from the object would cost millions of samples)."""
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise InputError(f"faces: expected an (F, 3) int array, got shape {faces.shape}")
+    if len(faces) == 0:
+        return faces
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"faces index vertices 0..{len(vertices) - 1} but hold "
+                         f"{faces.min()}..{faces.max()}")
+    tri = vertices[faces]  # (F, 3, 3)
+    out = ((tri < lo).all(1) | (tri > hi).all(1)).any(1)
+    return faces[~out]
 
 
 def truncated_chamfer(pred: np.ndarray, gt: np.ndarray, max_dist: float, threshold: float,
