@@ -299,6 +299,8 @@ def main() -> None:
     lp = LPIPS("vgg")
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    js = args.work / "novel_views_dtu.json"
+    earlier = json.loads(js.read_text()) if js.is_file() else {}
     results = {}
     for scene_dir in args.scenes:
         scene_dir = scene_dir.resolve()
@@ -319,6 +321,9 @@ def main() -> None:
             from svolsdf.io.images import read_image
 
             for kind, folder in (("volume rendering", "renders"), ("IBR", "renders_ibr")):
+                if args.skip_runs and kind in earlier.get(key, {}):  # scored by an earlier run
+                    r[kind] = earlier[key][kind]
+                    continue
                 preds = {v: read_image(out / folder / f"{v}.png") for v in test
                          if (out / folder / f"{v}.png").is_file()}
                 r[kind] = score_views(preds, gts, masks, test, lp)
@@ -327,8 +332,11 @@ def main() -> None:
                        if args.pictures else None)
                 r["diagnosis"] = diagnose(out, scene_dir, test, gts, masks, ref, pic)
             r["held_out"] = scene_dir.name not in args.tuned_on
+            for k in ("reconstruct_s", "render_s", "pipeline_s"):
+                if args.skip_runs and k in earlier.get(key, {}):
+                    r[k] = earlier[key][k]
             results[key] = r
-            (args.work / "novel_views_dtu.json").write_text(json.dumps(results, indent=1))
+            js.write_text(json.dumps({**earlier, **results}, indent=1))
     _write(args, results, time.perf_counter() - t0)
 
 
