@@ -312,11 +312,11 @@ def _own_output_folder(out: Path, command: str):
     before writing anything into it."""
     import shutil
 
-    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.paths import output_dir
     from svolsdf.io.runfolder import LOCK_NAME, folder_lock
 
     new = not out.exists()
-    ensure_writable_folder(out)
+    output_dir(out)
     ok = False
     try:
         with folder_lock(out, command):
