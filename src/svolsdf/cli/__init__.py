@@ -104,6 +104,8 @@ def _main(argv: list[str] | None) -> None:
         msg = str(e) if not isinstance(e, OSError) or not e.filename else (
             f"{e.filename}: {e.strerror or e}"
         )
+        # one line, also when the message quotes a library's several lines (torch.load's)
+        msg = " ".join(part.strip() for part in msg.splitlines() if part.strip())
         print(f"error: {msg}", file=sys.stderr)
         raise SystemExit(2) from None
     except typer.Exit as e:

@@ -179,6 +179,7 @@ def demo(
     # the run's options first: a bad one fails before minutes of scene rendering
     cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
                           labels={"train.steps": "--steps"})
+    output_dir(out, "output folder", "-o")  # made now: also through a link to a new folder
     if not (scene_dir / "gt_points.ply").is_file():
         typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
         make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
@@ -286,7 +287,7 @@ def mvs(
     scene = scene_folder(scene)
     out = output_dir(out, "output folder", "-o", create=False)
     if weights is not None:
-        weights = input_path(weights, "weights file", "--weights")
+        weights = input_file(weights, "weights file", "--weights")
     rng = None
     if depth_range is not None:
         try:

@@ -321,6 +321,15 @@ def output_file(path: str | os.PathLike, what: str = "output file", option: str 
         raise InputError(f"{option + ': ' if option else ''}an empty path; give the {what}")
     if p.is_dir():
         raise InputError(f"{label}: {what} is a folder, not a file; give a file name")
-    folder = Path(os.path.realpath(p)).parent if p.is_symlink() else p.parent
+    if p.is_symlink():
+        target = Path(os.path.realpath(p))
+        found = _first_problem(target.parent)
+        if found is not None:  # a link whose target's folder is missing too: not made
+            raise InputError(f"{label}: {what} is a symbolic link to {_link_target(p)}, "
+                             f"which cannot be written: {_part_cause(*found)}; point the link "
+                             "elsewhere")
+        folder = target.parent
+    else:
+        folder = p.parent
     _output_dir(folder, label, f"folder {folder} of the {what}", create)
     return p
