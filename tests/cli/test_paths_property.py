@@ -349,3 +349,56 @@ def test_every_path_argument_works_or_is_refused_with_its_cause(case, made, caps
         assert all(w in lines[0] for w in words), where
     finally:
         shutil.rmtree(root, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- the reported cases
+def test_benchmark_takes_a_quoted_scene_path_with_spaces_as_one_scene(made, tmp_path, capsys,
+                                                                      monkeypatch):
+    """``svolsdf benchmark --scenes "/data/my scans/scan 1" -o OUT`` once split the argument on
+    its spaces and answered "/data/my: scene folder does not exist"."""
+    scans = tmp_path / "my scans"
+    scene = scans / "scan 1"
+    shutil.copytree(made["scene"], scene)
+    with pytest.MonkeyPatch.context() as mp:
+        _stand_ins(mp, made, demo=False)
+        code, out, err = _run(["benchmark", "--scenes", str(scene), "--modes", "mvs-only",
+                               "-o", str(tmp_path / "b"), "--no-render"], capsys)
+    assert code == 0, err
+    assert "| scan 1 |" in out and (tmp_path / "b" / "scan 1" / "mvs-only").is_dir()
+    # two scenes, each one argument, and the option repeated: the same
+    with pytest.MonkeyPatch.context() as mp:
+        _stand_ins(mp, made, demo=False)
+        code, out, err = _run(["benchmark", "--scenes", str(scene), "--scenes",
+                               str(made["scene"]), "--modes", "mvs-only", "-o",
+                               str(tmp_path / "b2"), "--no-render"], capsys)
+    assert code == 0 and "| scan 1 |" in out and "| scene |" in out, err
+    # a missing one is named whole, with the first part of it that is missing
+    code, out, err = _run(["benchmark", "--scenes", str(tmp_path / "my scan" / "scan 1"), "-o",
+                           str(tmp_path / "b3")], capsys)
+    assert code == 2 and err.strip() == (
+        f"error: --scenes {tmp_path}/my scan/scan 1: scene folder does not exist: "
+        f"{tmp_path}/my scan does not exist")
+
+
+def test_reconstruct_into_a_link_to_a_folder_not_made_yet(made, tmp_path, capsys):
+    """``svolsdf reconstruct SCENE -o LINK``, LINK a symbolic link to a folder that does not
+    exist yet, once answered "cannot write the output folder (File exists)"."""
+    link = tmp_path / "run link"
+    link.symlink_to(tmp_path / "runs" / "run 1")
+    (tmp_path / "runs").mkdir()
+    with pytest.MonkeyPatch.context() as mp:
+        _stand_ins(mp, made, demo=False)
+        code, out, err = _run(["reconstruct", str(made["scene"]), "-o", str(link),
+                               "--no-progress"], capsys)
+    assert code == 0, err
+    # made where the link points; the link stays a link
+    assert link.is_symlink() and (tmp_path / "runs" / "run 1" / "log").is_file()
+    # a link whose target's folder is missing too is refused, naming link, target and folder
+    far = tmp_path / "far link"
+    far.symlink_to(tmp_path / "disk" / "run 1")
+    code, out, err = _run(["reconstruct", str(made["scene"]), "-o", str(far)], capsys)
+    assert code == 2 and err.strip() == (
+        f"error: -o {far}: output folder is a symbolic link to {tmp_path}/disk/run 1, which "
+        f"does not exist, and it cannot be made there: {tmp_path}/disk does not exist; create "
+        "that folder or point the link elsewhere")
+    assert not (tmp_path / "disk").exists()
