@@ -9,7 +9,7 @@ import typer
 
 from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
 from svolsdf.errors import RunInterrupted
-from svolsdf.io.paths import input_dir, input_file, input_path, output_dir
+from svolsdf.io.paths import input_dir, input_file, output_dir, user_path
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -55,9 +55,8 @@ def evaluate(
         dtu_gt = input_dir(dtu_gt, "DTU ground-truth folder", "--dtu-gt")
     if scene is not None:
         scene = scene_folder(scene, "--scene")
-    if lpips_weights is not None:
-        lpips_weights = input_path(lpips_weights, "LPIPS weights file or folder",
-                                   "--lpips-weights")
+    if lpips_weights is not None:  # weights that cannot be read: LPIPS is left out, with why
+        lpips_weights = user_path(lpips_weights)
     check_views_rendered(out, _parse_views(views))
     cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
                          views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
