@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from svolsdf.cli import join_list_options, main
+from svolsdf.cli import expand_list_options, main
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
 
@@ -26,9 +26,20 @@ def _run(argv, capsys):
 
 
 def test_views_list_is_joined():
-    assert join_list_options(["reconstruct", "S", "--views", "25", "22", "28", "-o", "X"]) == [
+    assert expand_list_options(["reconstruct", "S", "--views", "25", "22", "28", "-o", "X"]) == [
         "reconstruct", "S", "--views", "25 22 28", "-o", "X"]
-    assert join_list_options(["x", "--views", "1,2", "OUT"]) == ["x", "--views", "1,2", "OUT"]
+    assert expand_list_options(["x", "--views", "1,2", "OUT"]) == ["x", "--views", "1,2", "OUT"]
+    assert expand_list_options(["x", "--views=1", "2", "OUT"]) == ["x", "--views", "1 2", "OUT"]
+
+
+def test_scene_lists_repeat_the_option_and_keep_each_argument_whole():
+    # a quoted path with spaces is one scene, never split; several values repeat the option
+    assert expand_list_options(["benchmark", "--scenes", "/d/my scans/scan 1", "b", "-o", "O"]
+                               ) == ["benchmark", "--scenes", "/d/my scans/scan 1", "--scenes",
+                                     "b", "-o", "O"]
+    assert expand_list_options(["benchmark", "--scenes=a b", "c", "--scenes", "d"]) == [
+        "benchmark", "--scenes", "a b", "--scenes", "c", "--scenes", "d"]
+    assert expand_list_options(["benchmark", "--scenes"]) == ["benchmark", "--scenes"]
 
 
 def test_bad_inputs_exit_2_with_one_line(scene, tmp_path, capsys):

@@ -34,7 +34,7 @@ def test_benchmark_modes_are_the_schema_choices(tmp_path):
     from svolsdf.commands.benchmark import BenchmarkConfig, _validate
 
     opt = _option("benchmark", "--modes")
-    assert opt.default.split() == list(choices("train.mode"))
+    assert list(opt.default) == list(choices("train.mode"))
     assert _named(opt.help.split(":", 1)[1].replace("--modes", "")) == set(choices("train.mode"))
     scene = Path(tmp_path)
     _validate(BenchmarkConfig(scenes=[scene], modes=list(choices("train.mode"))))

@@ -162,7 +162,7 @@ def test_guided_prediction_is_followed_through_stages_2_and_3():
 
 
 def test_patchmatchnet_bad_weights(tmp_path):
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(InputError, match="none.pt.*: PatchmatchNet weights file does not exist"):
         get_backbone("patchmatchnet", weights=tmp_path / "none.pt")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a module")

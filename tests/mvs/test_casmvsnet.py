@@ -144,7 +144,7 @@ def test_wrong_shapes_and_bad_files(tmp_path, model):
     torch.save({"model": sd}, p)
     with pytest.raises(InputError, match=r"feature\.out1\.weight \(16, 32, 1, 1\)"):
         load_casmvsnet(p)
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(InputError, match="nope.ckpt.*: CasMVSNet weights file does not exist"):
         load_casmvsnet(tmp_path / "nope.ckpt")
     junk = tmp_path / "junk.ckpt"
     junk.write_bytes(b"not a checkpoint")
@@ -158,7 +158,7 @@ def test_wrong_shapes_and_bad_files(tmp_path, model):
 def test_backbone_requires_weights(tmp_path):
     with pytest.raises(InputError, match="--weights"):
         get_backbone("casmvsnet")
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(InputError, match="missing.ckpt.*does not exist"):
         get_backbone("casmvsnet", weights=tmp_path / "missing.ckpt")
 
 

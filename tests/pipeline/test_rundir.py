@@ -67,7 +67,7 @@ def test_stage_keys_need_no_scene_and_match_the_pipeline(tmp_path):
 
 
 def test_run_open_needs_a_run_folder(tmp_path):
-    with pytest.raises(InputError, match="no such run folder"):
+    with pytest.raises(InputError, match="run folder does not exist"):
         Run.open(tmp_path / "missing")
     with pytest.raises(InputError, match="not a run folder"):
         Run.open(tmp_path)

@@ -172,10 +172,10 @@ def gather_inputs(path: Path, out: Path, max_size: int | None = 1600, frames: in
         InputError: the path does not exist, the folder has no photos, some photos cannot be read
             (all are named), or the photos have different aspect ratios.
     """
-    path = Path(path)
+    from svolsdf.io.paths import input_path
+
+    path = input_path(path, "folder of photos or video file")
     out.mkdir(parents=True, exist_ok=True)
-    if not path.exists():
-        raise InputError(f"{path} does not exist (pass a folder of photos or a video file)")
     if path.is_file():
         if path.suffix.lower() not in VIDEO_SUFFIXES:
             raise InputError(f"{path}: not a video ({', '.join(VIDEO_SUFFIXES)}); pass a folder "

@@ -86,9 +86,9 @@ def _pycolmap():
 
 
 def _prepare_out(scene: Path) -> None:
-    if scene.exists():
-        if not scene.is_dir():
-            raise InputError(f"{scene} exists and is not a folder; pass a new folder as -o")
+    from svolsdf.io.paths import output_dir
+
+    if scene.is_dir():
         entries = [p.name for p in scene.iterdir()]
         # colmap_logs/ alone: a calibration that registered too few photos
         if entries and "calibration.json" not in entries and entries != ["colmap_logs"]:
@@ -100,7 +100,7 @@ def _prepare_out(scene: Path) -> None:
                 shutil.rmtree(p)
             elif p.exists():
                 p.unlink()
-    scene.mkdir(parents=True, exist_ok=True)
+    output_dir(scene, "scene folder", "-o")
 
 
 # --------------------------------------------------------------------------- SfM
@@ -331,9 +331,10 @@ def calibrate(inputs: str | Path, scene: str | Path, cfg: CalibrateConfig | None
     if cfg.max_size is not None and cfg.max_size < 64:
         raise InputError(f"--max-size {cfg.max_size} is too small (at least 64 pixels)")
     pycolmap = _pycolmap()
-    inputs, scene = Path(inputs), Path(scene)
-    if not inputs.exists():
-        raise InputError(f"{inputs} does not exist (pass a folder of photos or a video file)")
+    from svolsdf.io.paths import input_path, output_dir
+
+    inputs = input_path(inputs, "folder of photos or video file")
+    scene = output_dir(scene, "scene folder", "-o", create=False)
     if scene.resolve() == inputs.resolve():
         raise InputError(f"-o {scene}: the output must not be the input folder")
     _prepare_out(scene)

@@ -16,34 +16,49 @@ from svolsdf.cli import results, runs  # noqa: F401  (registers the commands on 
 from svolsdf.cli.app import _Stopped, app, build_config
 from svolsdf.errors import InputError
 
-__all__ = ["app", "build_config", "join_list_options", "main"]
+__all__ = ["REPEATED_OPTIONS", "app", "build_config", "expand_list_options", "main"]
 
-_LIST_OPTIONS = ("--views", "--scenes", "--modes")
+#: options that take several values, each one argument as typed (a path with spaces stays one
+#: path): ``--scenes A B`` is read as ``--scenes A --scenes B``
+REPEATED_OPTIONS = ("--scenes", "--modes")
+#: options whose values the command parses itself from one string of view ids:
+#: ``--views 25 22 28`` is read as ``--views "25 22 28"`` (also ``25,22,28`` and ``auto 3``)
+_JOINED_OPTIONS = ("--views",)
 
 
-def join_list_options(argv: list[str]) -> list[str]:
-    """``--views 25 22 28`` -> ``--views "25 22 28"`` (typer options take one value each).
+def expand_list_options(argv: list[str]) -> list[str]:
+    """The argument list with the list options in the form typer takes.
 
-    Tokens after a list option are joined until the next token that starts with ``-`` (a negative
-    number still counts as a value) or, for ``--views``, is not an integer.
+    ``--scenes A B`` -> ``--scenes A --scenes B`` (also from ``--scenes=A B``): each value stays
+    the one argument the shell gave, never split on spaces. ``--views 25 22 28`` -> ``--views
+    "25 22 28"``: view ids, which the command splits on spaces and commas. The values of a list
+    option run until the next token that starts with ``-`` (a negative number still counts as a
+    value) or, for ``--views``, is not a number.
     """
     out: list[str] = []
     i = 0
     while i < len(argv):
         tok = argv[i]
-        out.append(tok)
         i += 1
-        if tok in _LIST_OPTIONS:
-            vals = []
-            while i < len(argv):
-                t = argv[i]
-                is_num = t.lstrip("-").replace(",", "").isdigit()
-                if (t.startswith("-") and not is_num) or (tok == "--views" and vals and not is_num):
-                    break
-                vals.append(t)
-                i += 1
-            if vals:
-                out.append(" ".join(vals))
+        name, eq, first = tok.partition("=")
+        if name not in REPEATED_OPTIONS + _JOINED_OPTIONS or not tok.startswith("--"):
+            out.append(tok)
+            continue
+        vals = [first] if eq else []
+        while i < len(argv):
+            t = argv[i]
+            is_num = t.lstrip("-").replace(",", "").isdigit()
+            if (t.startswith("-") and not is_num) or (name == "--views" and vals and not is_num):
+                break
+            vals.append(t)
+            i += 1
+        if not vals:
+            out.append(tok)  # typer says that the option needs a value
+        elif name in REPEATED_OPTIONS:
+            for v in vals:
+                out += [name, v]
+        else:
+            out += [name, " ".join(vals)]
     return out
 
 
@@ -65,7 +80,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _main(argv: list[str] | None) -> None:
     """`main` without its last guard against Ctrl-C."""
-    argv = join_list_options(list(sys.argv[1:] if argv is None else argv))
+    argv = expand_list_options(list(sys.argv[1:] if argv is None else argv))
     debug = "--debug" in argv
     got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
 
@@ -89,6 +104,8 @@ def _main(argv: list[str] | None) -> None:
         msg = str(e) if not isinstance(e, OSError) or not e.filename else (
             f"{e.filename}: {e.strerror or e}"
         )
+        # one line, also when the message quotes a library's several lines (torch.load's)
+        msg = " ".join(part.strip() for part in msg.splitlines() if part.strip())
         print(f"error: {msg}", file=sys.stderr)
         raise SystemExit(2) from None
     except typer.Exit as e:

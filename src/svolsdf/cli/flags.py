@@ -20,6 +20,8 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin, get_typ
 
 import typer
 
+from svolsdf.io.paths import user_path
+
 #: `svolsdf reconstruct` flag -> the config option it sets (adding a flag is one line here)
 RECONSTRUCT_FLAGS: dict[str, str] = {
     "--backbone": "mvs.backbone",
@@ -141,7 +143,7 @@ def flag_overrides(table: dict[str, str], options: dict[str, Any]) -> dict[str, 
     out = {}
     for flag, key in table.items():
         v = options.get(param_name(flag))
-        out[key] = str(v) if isinstance(v, Path) else v
+        out[key] = str(user_path(v)) if isinstance(v, Path) else v
     return out
 
 

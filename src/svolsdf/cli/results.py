@@ -9,6 +9,7 @@ import typer
 
 from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
 from svolsdf.errors import RunInterrupted
+from svolsdf.io.paths import input_dir, input_file, output_dir, user_path
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -45,9 +46,18 @@ def evaluate(
     """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
     from svolsdf.evaluate.run_outputs import check_views_rendered
     from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
+    from svolsdf.scene.loaders import scene_folder
 
-    if out.is_dir():  # a missing folder: evaluate_run says so first
-        check_views_rendered(out, _parse_views(views))
+    out = input_dir(out, "run folder")
+    if gt_points is not None:
+        gt_points = input_file(gt_points, "ground-truth points file", "--gt-points")
+    if dtu_gt is not None:
+        dtu_gt = input_dir(dtu_gt, "DTU ground-truth folder", "--dtu-gt")
+    if scene is not None:
+        scene = scene_folder(scene, "--scene")
+    if lpips_weights is not None:  # weights that cannot be read: LPIPS is left out, with why
+        lpips_weights = user_path(lpips_weights)
+    check_views_rendered(out, _parse_views(views))
     cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
                          views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
                          lpips_weights=lpips_weights, ssim_data_range=ssim_data_range,
@@ -77,20 +87,23 @@ def report(
     """Regenerate OUT/report.html from the run folder and OUT/metrics.json (no metrics computed:
     `svolsdf evaluate` computes them and writes the report too)."""
     from svolsdf.evaluate.run_report import write_run_report
+    from svolsdf.scene.loaders import scene_folder
 
-    path = write_run_report(out, scene_path=scene)
+    out = input_dir(out, "run folder")
+    path = write_run_report(out, scene_path=None if scene is None else scene_folder(
+        scene, "--scene"))
     typer.echo(f"report {path}")
 
 
 # --------------------------------------------------------------------------- benchmark
 @app.command("benchmark")
 def benchmark(
-    scenes: Annotated[str, typer.Option(
-        "--scenes", help="Scene folders: --scenes A B ... (or one quoted, space-separated "
-                         "string).")],
-    modes: Annotated[str, typer.Option(
-        "--modes", help="Pipeline modes: --modes svolsdf mvs-only volsdf.")
-    ] = "svolsdf mvs-only volsdf",
+    scenes: Annotated[list[Path], typer.Option(
+        "--scenes", help="Scene folders, one argument each: --scenes A B ... or --scenes A "
+                         "--scenes B (a quoted path with spaces is one folder).")],
+    modes: Annotated[list[str], typer.Option(
+        "--modes", help="Pipeline modes: --modes svolsdf mvs-only volsdf (one argument each, "
+                        "or comma-separated).")] = ["svolsdf", "mvs-only", "volsdf"],  # noqa: B006
     out: Annotated[Path, typer.Option(
         "--out", "-o", help="Output folder: OUT/<scene>/<mode>/ runs and "
                             "OUT/benchmark.{md,csv,json}.")] = Path("benchmark"),
@@ -145,12 +158,19 @@ def benchmark(
     """
     from svolsdf.commands.benchmark import BenchmarkConfig, run_benchmark
     from svolsdf.commands.executors import ExecutorConfig
+    from svolsdf.scene.loaders import scene_folder
     from svolsdf.scene.size import parse_size
 
+    # each scene is one argument as the shell gave it (`svolsdf.cli.expand_list_options`)
+    scenes = [scene_folder(s, "--scenes") for s in scenes]
+    out = output_dir(out, "output folder", "-o", create=False)
+    if dtu_gt is not None:
+        dtu_gt = input_dir(dtu_gt, "DTU ground-truth folder", "--dtu-gt")
     sets = [_parse_views(t) for t in views.split(";")] if views is not None else [None]
+    # mode names have no spaces, so a quoted "svolsdf volsdf" still names two
+    names = [m for v in modes for m in v.replace(",", " ").split()]
     cfg = BenchmarkConfig(
-        scenes=[Path(s) for s in scenes.split()],
-        modes=modes.replace(",", " ").split(), out=out, preset=preset_name, steps=steps,
+        scenes=scenes, modes=names, out=out, preset=preset_name, steps=steps,
         views=sets[0] if len(sets) == 1 else None, view_sets=sets if len(sets) > 1 else None,
         size=None if size is None else parse_size(size),
         device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report,
@@ -193,6 +213,7 @@ def render(
     """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
     from svolsdf.commands.render import render_outputs
 
+    out = input_dir(out, "run folder")
     res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
                          size=_parse_size(size), frames=frames, chunk=chunk, progress=True)
     w, h = res["size"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -19,6 +20,7 @@ from svolsdf.cli.app import (
 )
 from svolsdf.cli.flags import RECONSTRUCT_FLAGS, flag_overrides, with_flags
 from svolsdf.errors import InputError
+from svolsdf.io.paths import input_dir, input_file, input_path, output_dir, output_file
 
 
 @app.command("info")
@@ -35,8 +37,11 @@ def info(
 ) -> None:
     """Summarize a scene: format, views, image size, units, depth ranges, pairs, normalization."""
     from svolsdf.scene.info import contact_sheet, describe_scene
-    from svolsdf.scene.loaders import load_scene
+    from svolsdf.scene.loaders import load_scene, scene_folder
 
+    scene = scene_folder(scene)
+    if sheet is not None:
+        sheet = output_file(sheet, "contact sheet", "--sheet", create=False)
     light: int | str = int(lighting) if lighting.isdigit() else lighting
     s = load_scene(scene, views=_parse_views(views), load_images=False, lighting=light)
     typer.echo(describe_scene(s))
@@ -64,7 +69,8 @@ def config_cmd(
     """
     from svolsdf.config import apply_overrides, config_yaml, load_config, parse_set, preset
 
-    cfg = load_config(config) if config is not None else preset(preset_name)
+    cfg = (load_config(input_file(config, "config file", "--config")) if config is not None
+           else preset(preset_name))
     given = parse_set(set_)
     if given:
         apply_overrides(cfg, given, labels={k: f"--set {k}" for k in given}, skip_none=False)
@@ -106,6 +112,16 @@ def reconstruct(
     """
     from svolsdf.pipeline import Pipeline
 
+    # the paths first, each refused with its cause; the scene's layout is the pipeline's
+    # first check (`Pipeline.run`), also for a scene.path from --config
+    if scene is not None:
+        scene = input_dir(scene, "scene folder")
+    if config is not None:
+        config = input_file(config, "config file", "--config")
+    out = output_dir(out, "output folder", "-o", create=False)
+    if fusion_network is not None:
+        fusion_network = input_file(fusion_network, "fusion network weights file",
+                                    "--fusion-network")
     auto = _parse_auto_views(views)
     cfg = build_config(scene, config, preset_name, {
         "scene.views": None if auto else _parse_views(views),
@@ -157,11 +173,13 @@ def demo(
     from svolsdf.pipeline import Pipeline
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
+    out = output_dir(out, "output folder", "-o", create=False)
     w, h = _parse_size(size)
     scene_dir = out / "scene"
     # the run's options first: a bad one fails before minutes of scene rendering
     cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
                           labels={"train.steps": "--steps"})
+    output_dir(out, "output folder", "-o")  # made now: also through a link to a new folder
     if not (scene_dir / "gt_points.ply").is_file():
         typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
         make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
@@ -219,6 +237,8 @@ def calibrate(
     from svolsdf.calibrate import CalibrateConfig
     from svolsdf.calibrate import calibrate as run_calibrate
 
+    inputs = input_path(inputs, "folder of photos or video file")
+    out = output_dir(out, "scene folder", "-o", create=False)
     cfg = CalibrateConfig(max_size=max_size, matcher=matcher, frames=frames, threads=threads,
                           progress=not no_progress)
     s = run_calibrate(inputs, out, cfg)
@@ -263,8 +283,13 @@ def mvs(
     OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json.
     """
     from svolsdf.commands.mvs import MVSJobConfig, run_mvs
+    from svolsdf.scene.loaders import scene_folder
     from svolsdf.scene.size import parse_size
 
+    scene = scene_folder(scene)
+    out = output_dir(out, "output folder", "-o", create=False)
+    if weights is not None:
+        weights = input_file(weights, "weights file", "--weights")
     rng = None
     if depth_range is not None:
         try:
@@ -314,11 +339,11 @@ def _own_output_folder(out: Path, command: str):
     before writing anything into it."""
     import shutil
 
-    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.paths import output_dir
     from svolsdf.io.runfolder import LOCK_NAME, folder_lock
 
     new = not out.exists()
-    ensure_writable_folder(out)
+    output_dir(out)
     ok = False
     try:
         with folder_lock(out, command):
@@ -326,7 +351,8 @@ def _own_output_folder(out: Path, command: str):
             ok = True
     finally:
         if not ok and new and {p.name for p in out.iterdir()} <= {LOCK_NAME}:
-            shutil.rmtree(out, ignore_errors=True)
+            # OUT, or the folder a link OUT points to (the link stays as it was)
+            shutil.rmtree(os.path.realpath(out), ignore_errors=True)
 
 
 @app.command("synth")
@@ -355,6 +381,9 @@ def synth(
     from svolsdf.scene.size import parse_size
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
+    out = output_dir(out, "scene folder", create=False)
+    if cameras_from is not None:
+        cameras_from = input_dir(cameras_from, "IDR scene folder", "--cameras-from")
     w, h = parse_size(size)
     ids = None
     if camera_views is not None:

@@ -41,6 +41,7 @@ from svolsdf.commands.executors import ExecutorConfig
 from svolsdf.config import choices
 from svolsdf.errors import InputError
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
+from svolsdf.io.paths import input_dir, output_dir
 from svolsdf.io.runfolder import RunFolder
 
 __all__ = [
@@ -401,20 +402,16 @@ def _validate(cfg: BenchmarkConfig) -> None:
         if not vs:
             raise InputError("benchmark: an empty input view set (give view ids, e.g. "
                              "--views '25 22 28; 23 24 33')")
-    for s in cfg.scenes:
-        if not Path(s).is_dir():
-            raise InputError(f"{s}: scene folder does not exist")
+    cfg.scenes = [input_dir(s, "scene folder", "--scenes") for s in cfg.scenes]
     if cfg.dtu_gt is not None:
-        if not Path(cfg.dtu_gt).is_dir():
-            raise InputError(f"{cfg.dtu_gt}: DTU ground-truth folder does not exist")
+        cfg.dtu_gt = input_dir(cfg.dtu_gt, "DTU ground-truth folder", "--dtu-gt")
         if cfg.scan is None:
             missing = [str(s) for s in cfg.scenes
                        if scan_number(s) is None and not (Path(s) / "gt_points.ply").is_file()]
             if missing:
                 raise InputError(f"--dtu-gt: no DTU scan number in the name of {missing[0]} "
                                  "(name it like scan65 or pass --scan N)")
-    if cfg.out.exists() and not cfg.out.is_dir():
-        raise InputError(f"{cfg.out}: output path exists and is not a folder")
+    cfg.out = output_dir(cfg.out, "output folder", "-o", create=False)
     for job in benchmark_jobs(cfg)[:len(cfg.modes)]:  # the run configs are valid
         job_config(job)
 
@@ -443,7 +440,6 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
             starts.
     """
     from svolsdf.commands.executors import check_executor, run_jobs
-    from svolsdf.io.folders import ensure_writable_folder
 
     cfg.scenes = [Path(s) for s in cfg.scenes]
     cfg.out = Path(cfg.out)
@@ -453,7 +449,7 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
         # Ray hides the GPUs from tasks that reserve none
         raise InputError("--device cuda with --executor ray needs --gpus-per-job > 0 (e.g. 1): "
                          "Ray gives each job only the GPUs it reserves")
-    ensure_writable_folder(cfg.out)
+    output_dir(cfg.out)
     for scene in cfg.scenes:
         if not _ground_truth(cfg, scene):
             log.warning("%s: no ground-truth geometry (gt_points.ply or --dtu-gt with a scan "

@@ -94,16 +94,14 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     Raises:
         InputError: bad scene, view ids, backbone, weights or depth range.
     """
-    from svolsdf.io.folders import ensure_writable_folder
     from svolsdf.io.images import write_depth_preview
+    from svolsdf.io.paths import output_dir
     from svolsdf.mvs.backbone import get_backbone
     from svolsdf.mvs.cascade import run_cascade, save_cascade
     from svolsdf.scene.loaders import load_scene
 
     t_start = time.perf_counter()
-    out = Path(cfg.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is a file; give an output folder")
+    out = output_dir(cfg.out, "output folder", create=False)
     probe = load_scene(cfg.scene, views=cfg.views, load_images=False)
     if len(probe) < 2:
         raise InputError(f"{cfg.scene}: MVS needs at least 2 views, got {len(probe)} "
@@ -112,7 +110,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
                         size=cfg.size)
     # weights errors before loading
     backbone = get_backbone(cfg.backbone, weights=cfg.weights, device=cfg.device)
-    ensure_writable_folder(out)  # before the cascade's minutes
+    output_dir(out)  # before the cascade's minutes
     t0 = time.perf_counter()
     scene = load_scene(cfg.scene, views=cfg.views, image_size=(W, H))
     scene = replace(scene, depth_range=mvs_depth_range(scene, cfg.depth_range))

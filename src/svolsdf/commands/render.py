@@ -224,7 +224,7 @@ def render_outputs(
     if chunk < 1:
         raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     p = open_run(out, progress=False)
-    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.paths import output_dir
     from svolsdf.io.runfolder import config_digest, folder_lock
 
     if p.dir.output_provenance(["field"])["field"] == "another config":
@@ -232,7 +232,7 @@ def render_outputs(
                          f"{p.dir.config_file} (a rerun with other options stopped before it "
                          f"trained the field again); run svolsdf reconstruct -o {out} --config "
                          f"{p.dir.config_file} first")
-    ensure_writable_folder(out, "run folder")  # renders/ goes there: fail before rendering
+    output_dir(out, "run folder")  # renders/ goes there: fail before rendering
     with folder_lock(out, "svolsdf render"):
         res = _render(p, out, views, path, ibr, size, frames, chunk, fps, ibr_config, progress)
         p.dir.record("render", config_digest(p.dir.config_file))  # evaluate checks it

@@ -184,9 +184,9 @@ def _merge(a: dict, b: dict) -> dict:
 
 def load_config(path: str | Path) -> Config:
     """Read a YAML config (as written by `save_config`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: config file not found")
+    from svolsdf.io.paths import input_file
+
+    path = input_file(path, "config file")
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as e:

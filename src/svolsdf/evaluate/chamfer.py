@@ -415,9 +415,9 @@ def find_dtu_files(dtu_dir: str | Path, scan: int) -> DTUFiles:
     Raises:
         InputError naming the first missing file.
     """
-    dtu_dir = Path(dtu_dir)
-    if not dtu_dir.is_dir():
-        raise InputError(f"{dtu_dir}: DTU ground-truth folder does not exist")
+    from svolsdf.io.paths import input_dir
+
+    dtu_dir = input_dir(dtu_dir, "DTU ground-truth folder")
     plane_scan = PLANE_OVERRIDES.get(int(scan), int(scan))
     rel = {
         "obs_mask": Path("ObsMask") / f"ObsMask{scan}_10.mat",

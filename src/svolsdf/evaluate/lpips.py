@@ -113,11 +113,15 @@ class LPIPS(nn.Module):
         if net not in _FILES:
             raise InputError(f"LPIPS net must be 'alex' or 'vgg', got {net!r}")
         self.net = net
-        path = Path(weights) if weights is not None else default_lpips_dir()
+        from svolsdf.io.paths import input_file, input_path
+
+        if weights is not None:
+            path = input_path(weights, "LPIPS weights file or folder")
+        else:
+            path = default_lpips_dir()
         if path.is_dir():
             path = path / _FILES[net]
-        if not path.is_file():
-            raise InputError(f"{path}: LPIPS {net} weights file does not exist")
+        path = input_file(path, f"LPIPS {net} weights file")
         self.features = _alexnet_features() if net == "alex" else _vgg16_features()
         for k, c in enumerate(_CHANNELS[net]):
             self.add_module(f"lin{k}", _Lin(c))

@@ -15,6 +15,7 @@ import numpy as np
 
 from svolsdf.errors import InputError
 from svolsdf.evaluate.report import ViewImages
+from svolsdf.io.paths import input_file
 from svolsdf.io.runfolder import RunFolder
 
 __all__ = ["chamfer_block", "check_provenance", "check_run_folder", "check_views_rendered",
@@ -46,9 +47,7 @@ def run_scene(run: RunFolder) -> tuple[Path | None, list[int] | None]:
 
 def load_gt_points(path: str | Path) -> np.ndarray:
     """(N, 3) float64 ground-truth points from a .ply or .npy file."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: ground-truth points file does not exist")
+    path = input_file(path, "ground-truth points file")
     if path.suffix.lower() == ".npy":
         try:
             a = np.load(path)
@@ -72,9 +71,9 @@ def check_run_folder(run: RunFolder, scene: Path | None) -> list[str]:
                          "renders/<view id>.png); give the output folder of svolsdf "
                          "reconstruct, mvs or render, once it has finished")
     if scene is not None:
-        from svolsdf.scene.loaders import detect_format
+        from svolsdf.scene.loaders import scene_folder
 
-        detect_format(scene)  # --scene WRONG: refused, not scored against nothing
+        scene_folder(scene, "--scene")  # --scene WRONG: refused, not scored against nothing
     return found
 
 

@@ -58,15 +58,13 @@ def write_run_report(out: str | Path, metrics: dict | None = None,
             scene, outputs came from an earlier config, a file in it is unreadable, or another
             command writes the folder.
     """
-    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.paths import input_dir, output_dir
     from svolsdf.io.runfolder import folder_lock
 
-    out = Path(out)
-    if not out.is_dir():
-        raise InputError(f"{out}: run folder does not exist")
+    out = input_dir(out, "run folder")
     run = RunFolder(out)
     check_provenance(run, check_run_folder(run, scene_path))
-    ensure_writable_folder(out, "run folder")
+    output_dir(out, "run folder")
     with folder_lock(out, "svolsdf report"):
         return write_run_report_unlocked(out, metrics, views, notes, scene_path, input_views)
 

@@ -275,17 +275,16 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
             outputs that an earlier config made (``settings.provenance`` of the metrics), or
             another command writing the folder.
     """
-    from svolsdf.io.folders import ensure_writable_folder
+    from svolsdf.io.paths import input_dir, output_dir
     from svolsdf.io.runfolder import folder_lock
 
-    out = Path(cfg.out)
-    if not out.is_dir():
-        raise InputError(f"{out}: run folder does not exist")
+    out = input_dir(cfg.out, "run folder")
+    cfg = replace(cfg, out=out)
     run = RunFolder(out)
     found = check_run_folder(run, cfg.scene)
     _check_evaluate_options(cfg, out)
     prov = check_provenance(run, found)
-    ensure_writable_folder(out, "run folder")  # metrics.json goes there: fail before the work
+    output_dir(out, "run folder")  # metrics.json goes there: fail before the work
     with folder_lock(out, "svolsdf evaluate"):
         return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}))
 

@@ -359,14 +359,15 @@ class PatchmatchNetBackbone(DepthConfidenceAdapter):
 
     @classmethod
     def create(cls, weights=None, **cfg) -> PatchmatchNetBackbone:
-        path = Path(weights) if weights is not None else default_patchmatchnet_weights()
+        from svolsdf.io.paths import input_file, user_path
+
+        path = user_path(weights) if weights is not None else default_patchmatchnet_weights()
         if path is None:
             raise InputError(
                 "the 'patchmatchnet' backbone needs --weights PATH (a TorchScript PatchmatchNet, "
                 f"e.g. ../shared/{PATCHMATCHNET_FILE.as_posix()}), and none was found there"
             )
-        if not path.is_file():
-            raise InputError(f"{path}: PatchmatchNet weights file not found")
+        path = input_file(path, "PatchmatchNet weights file")
         config = AdapterConfig(**cfg)
         load = getattr(getattr(torch, "jit", None), "load", None)
         if load is None:  # TorchScript is deprecated; docs/dependencies.md

@@ -26,7 +26,6 @@ from __future__ import annotations
 import inspect
 from abc import ABC, abstractmethod
 from dataclasses import asdict, fields, is_dataclass
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -92,7 +91,9 @@ class MVSBackbone(ABC):
             raise InputError(f"{cls.name} backbone: {e}") from None
         sig: dict = {"backbone": cls.name, "config": conf}
         if weights is not None:
-            p = Path(weights)
+            from svolsdf.io.paths import user_path
+
+            p = user_path(weights)
             st = p.stat() if p.is_file() else None
             sig["weights"] = [str(p.resolve()), st.st_size, st.st_mtime_ns] if st else str(p)
         return sig

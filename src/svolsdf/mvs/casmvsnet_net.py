@@ -8,8 +8,6 @@ U-Net over rows to bound memory, and the stage cameras.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -389,9 +387,9 @@ def load_casmvsnet(path, device=None) -> CasMVSNet:
         InputError: the file is missing or unreadable, or holds another architecture (the
             message names the file and lists missing and unexpected keys or wrong shapes).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: CasMVSNet weights file not found")
+    from svolsdf.io.paths import input_file
+
+    path = input_file(path, "CasMVSNet weights file")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unpickling failure is bad input

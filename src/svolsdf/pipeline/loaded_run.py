@@ -86,12 +86,10 @@ class Run:
                 missing or does not match the config (the message names the folder).
         """
         from svolsdf.config import load_config, validate_config
+        from svolsdf.io.paths import input_dir
 
-        out = Path(out)
+        out = input_dir(out, "run folder")
         rd = RunDir(out)
-        if not out.is_dir():
-            raise InputError(f"{out}: no such run folder (give the OUT folder of svolsdf "
-                             "reconstruct)")
         if not rd.is_run():
             raise InputError(f"{out}: not a run folder (no config.yaml / views.json); run "
                              f"svolsdf reconstruct SCENE -o {out} first")

@@ -25,6 +25,7 @@ optimization resumes from its last checkpoint after a kill. All files are writte
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -33,6 +34,7 @@ import torch
 
 from svolsdf.config import Config, save_config, validate_config
 from svolsdf.errors import InputError, RunInterrupted
+from svolsdf.io.paths import user_path
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline import builders, options
 from svolsdf.pipeline.context import GuideRender
@@ -63,7 +65,7 @@ class Pipeline(Run):
 
     def __init__(self, cfg: Config, out: str | Path, progress: bool = True):
         cfg = validate_config(cfg)  # a bad value fails here, before any stage
-        out = Path(out)
+        out = user_path(out)
         if out.exists() and not out.is_dir():
             raise InputError(f"{out}: output path exists and is not a folder")
         if not cfg.scene.path:
@@ -160,12 +162,12 @@ class Pipeline(Run):
             RunInterrupted: Ctrl-C; its message, also in OUT/log, names the stage that stopped
                 and says that a rerun resumes.
         """
-        from svolsdf.io.folders import ensure_writable_folder
+        from svolsdf.io.paths import output_dir
 
         t_all = time.perf_counter()
         self._check_options()
         new = not self.out.exists()
-        ensure_writable_folder(self.out)
+        output_dir(self.out)
         with self.dir.lock():
             handler = self.dir.attach_log()
             finished = False
@@ -199,22 +201,22 @@ class Pipeline(Run):
         own = {".svolsdf.lock", "log", "config.yaml", "views.json", "stages.json"}
         try:
             if {p.name for p in self.out.iterdir()} <= own:
-                shutil.rmtree(self.out)
+                # a link to a folder this run made: the folder goes, the link stays as it was
+                shutil.rmtree(os.path.realpath(self.out))
         except OSError:
             pass
 
     def _check_options(self) -> None:
         """Fail on a missing scene folder, one that no scene format recognises, or on backbone
         options (weights, scale) that cannot run before the output folder is touched."""
-        path = Path(self.cfg.scene.path)
-        if not path.exists():
-            raise InputError(f"{path}: scene folder does not exist")
-        if not path.is_dir():
-            raise InputError(f"{path} is not a folder; pass the scene folder")
         from svolsdf.scene.checks import check_output_folder
-        from svolsdf.scene.loaders import detect_format
+        from svolsdf.scene.loaders import scene_folder
 
-        detect_format(path)  # a folder no format reads: refused before OUT/log exists
+        # missing, a dangling link, a file, or a folder no format reads: refused before OUT/log
+        # exists
+        path = scene_folder(self.cfg.scene.path)
+        if str(path) != str(self.cfg.scene.path):  # "~/scans/a" from a config file
+            self.cfg.scene.path = str(path)
         check_output_folder(self.out, path, "svolsdf reconstruct")
         if options.runs_mvs1(self.cfg):
             self.backbone()  # built once and dropped: its weights load again in stage 1

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 
+from svolsdf.errors import InputError
 from svolsdf.io.images import (
     ImageReadError,
     image_size,
@@ -35,6 +36,7 @@ from svolsdf.io.images import (
     resize_image,
     resize_mask,
 )
+from svolsdf.io.paths import input_dir, path_label, user_path
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.formats import SceneSource, get_scene_format, scene_formats
 from svolsdf.scene.normalize import (
@@ -46,7 +48,8 @@ from svolsdf.scene.normalize import (
 from svolsdf.scene.pairs import compute_pairs
 from svolsdf.scene.scene import Scene, SceneError, _id_summary
 
-__all__ = ["DTU_DEPTH_MIN", "DTU_DEPTH_INTERVAL", "detect_format", "load_scene", "read_source"]
+__all__ = ["DTU_DEPTH_MIN", "DTU_DEPTH_INTERVAL", "detect_format", "load_scene", "read_source",
+           "scene_folder"]
 
 log = logging.getLogger(__name__)
 
@@ -56,31 +59,52 @@ DTU_DEPTH_MIN = 425.0
 DTU_DEPTH_INTERVAL = 2.65
 DTU_NUM_DEPTH = 192
 
+def scene_folder(path: str | Path, option: str | None = None) -> Path:
+    """The scene folder ``path`` (``~`` expanded, `svolsdf.io.paths.user_path`) once a
+    registered format reads its layout.
+
+    Args:
+        path: the folder as the user gave it.
+        option: the option that gave it (``--scenes``), for the message; None for an argument.
+
+    Raises:
+        SceneError: the folder is missing, a dangling link, a file or unreadable
+            (`svolsdf.io.paths.input_dir` names the cause), or no known layout is found (the
+            message lists what each format looks for).
+    """
+    _, p = _detect(path, option)
+    return p
+
+
+def _detect(path: str | Path, option: str | None = None) -> tuple[str, Path]:
+    """(format name, the expanded folder) of ``path`` (`scene_folder`)."""
+    try:
+        p = input_dir(path, "scene folder", option)
+    except InputError as e:
+        raise SceneError(str(e)) from None
+    formats = scene_formats()
+    for fmt in formats:
+        if fmt.detect(p):
+            return fmt.name, p
+    looked_for = "; ".join(f.looks_for for f in formats)
+    raise SceneError(f"{path_label(path, option)}: no known scene layout found (looked for "
+                     f"{looked_for})")
+
+
 def detect_format(path: str | Path) -> str:
     """Name of the scene format found at ``path``: the first registered format, in detection
     order, whose ``detect`` accepts it (`svolsdf.scene.formats.scene_formats`).
 
     Raises:
-        SceneError: the folder is missing, or no known layout is found (the message lists what
-            was looked for).
+        SceneError: as `scene_folder`.
     """
-    path = Path(path)
-    if not path.exists():
-        raise SceneError(f"scene folder {path} does not exist")
-    if not path.is_dir():
-        raise SceneError(f"{path} is not a folder; pass the scene folder")
-    formats = scene_formats()
-    for fmt in formats:
-        if fmt.detect(path):
-            return fmt.name
-    looked_for = "; ".join(f.looks_for for f in formats)
-    raise SceneError(f"{path}: no known scene layout found (looked for {looked_for})")
+    return _detect(path)[0]
 
 
 def read_source(path: str | Path, lighting: int | str = 3) -> SceneSource:
     """Detect the format and read cameras and file lists, without pixels."""
-    path = Path(path)
-    return get_scene_format(detect_format(path)).read(path, lighting=lighting)
+    name, path = _detect(path)
+    return get_scene_format(name).read(path, lighting=lighting)
 
 
 def _is_dtu(src: SceneSource, size: tuple[int, int]) -> bool:
@@ -124,7 +148,7 @@ def load_scene(path: str | Path, views: list[int] | None = None,
             non-finite or singular cameras, images of different sizes, or an unknown view id;
             the message names the file and the problem.
     """
-    path = Path(path)
+    path = user_path(path)
     src = read_source(path, lighting=lighting)
     n_all = len(src.view_ids)
 

@@ -62,7 +62,7 @@ from PIL import Image
 from torch import Tensor
 
 from svolsdf.errors import InputError
-from svolsdf.io.folders import ensure_writable_folder
+from svolsdf.io.paths import input_dir, output_dir, user_path
 from svolsdf.io.ply import atomic_path, write_mesh_ply, write_points_ply
 from svolsdf.scene.cameras import Cameras, decompose_projection
 from svolsdf.scene.size import parse_size  # re-exported: the one size parser
@@ -210,7 +210,7 @@ def _cap_cameras(cfg: SynthConfig, target: np.ndarray, rng: np.random.Generator)
 
 def _borrowed_cameras(cfg: SynthConfig) -> tuple[Cameras, list[int], np.ndarray]:
     """Cameras of an IDR scene, resized; returns (cameras, view ids, scale_mat (4, 4))."""
-    root = Path(cfg.cameras_from)
+    root = input_dir(cfg.cameras_from, "IDR scene folder", "--cameras-from")
     npz = next((root / n for n in ("cameras.npz", "cameras_sphere.npz") if (root / n).is_file()),
                None)
     if npz is None:
@@ -360,9 +360,7 @@ def _write_text(path: Path, text: str) -> None:
 
 
 def _prepare_out(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is a file; give a folder for the synthetic scene")
-    ensure_writable_folder(out, "scene folder")  # before anything is removed or rendered
+    output_dir(out, "scene folder")  # before anything is removed or rendered
     if any(out.iterdir()):
         meta = out / "scene.json"
         ok = False
@@ -412,7 +410,7 @@ def make_synthetic_scene(out_dir, cfg: SynthConfig | None = None) -> Path:
     from tqdm import tqdm
 
     cfg = cfg or SynthConfig()
-    out = Path(out_dir)
+    out = user_path(out_dir)
     _prepare_out(out)
     rng = np.random.default_rng([cfg.seed, 2])
 
