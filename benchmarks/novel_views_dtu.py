@@ -154,25 +154,51 @@ def _psnr_of_mse(mse: float) -> float:
 CLASSES = ("unseen", "hole", "misplaced", "placed")
 
 
-def diagnose(out: Path, scene_dir: Path, ids: list[int], gts: torch.Tensor, masks: torch.Tensor,
-             ref: dict[int, torch.Tensor], pictures: Path | None) -> dict:
-    """The split of module docstring "Diagnosis" for one run folder; returns per-class shares,
-    per-view class PSNRs and the swaps' mean PSNRs."""
-    from svolsdf.commands.render import OPACITY_SURFACE, open_run
-    from svolsdf.ibr import IBRConfig, ibr_render
-    from svolsdf.io.images import read_image
-    from svolsdf.scene.loaders import load_scene
+def input_depths(out: Path):
+    """The run's scene and the (3, H, W) world z-depth of its input views (0 where the opacity is
+    below 0.5), as `svolsdf render --ibr` renders them; cached beside the run folder."""
+    from svolsdf.commands.render import OPACITY_SURFACE, _scene_range, open_run
 
     p = open_run(out)
     scene = p.load()
+    cache = out.parent / f"{out.name}_input_depth.pt"  # a minute or more per run on a CPU
+    if cache.is_file() and cache.stat().st_mtime > (out / "field" / "model.pt").stat().st_mtime:
+        return scene, torch.load(cache)
     s = float(scene.normalization.scale)
-    # the run's depth of its input views (as `svolsdf render --ibr` renders them)
-    from svolsdf.commands.render import _scene_range
-
     r = p.render_views(scene.cameras_unit, _scene_range(scene, s).to(p.device),
                        keys=("depth", "opacity"))
     d_src = torch.where(r["opacity"] >= OPACITY_SURFACE, r["depth"] * s,
                         torch.zeros_like(r["depth"])).float()
+    torch.save(d_src, cache)
+    return scene, d_src
+
+
+def ibr_variant(out: Path, scene_dir: Path, ids: list[int], cfg) -> dict[int, torch.Tensor]:
+    """View id -> (3, H, W) IBR of the run's rendered test views with `IBRConfig` ``cfg``."""
+    from svolsdf.ibr import ibr_render
+    from svolsdf.io.images import read_image
+    from svolsdf.scene.loaders import load_scene
+
+    scene, d_src = input_depths(out)
+    tsc = load_scene(scene_dir, views=ids, image_size=SIZE, load_images=False)
+    res = {}
+    for k, v in enumerate(ids):
+        vr = read_image(out / "renders" / f"{v}.png")
+        d = torch.from_numpy(np.load(out / "renders" / "depth" / f"{v}.npy")).float()
+        res[v] = ibr_render(tsc.cameras[[k]].to(dtype=torch.float64), d, vr, scene.images,
+                            scene.cameras.to(dtype=torch.float64), d_src, cfg).rgb
+    return res
+
+
+def diagnose(out: Path, scene_dir: Path, ids: list[int], gts: torch.Tensor, masks: torch.Tensor,
+             ref: dict[int, torch.Tensor], pictures: Path | None) -> dict:
+    """The split of module docstring "Diagnosis" for one run folder; returns per-class shares,
+    per-view class PSNRs and the swaps' mean PSNRs."""
+    from svolsdf.ibr import IBRConfig, ibr_render
+    from svolsdf.io.images import read_image
+    from svolsdf.scene.loaders import load_scene
+
+    scene, d_src = input_depths(out)
     src_imgs = scene.images
     src_cams = scene.cameras.to(dtype=torch.float64)
     in_ids = scene.view_ids
@@ -248,7 +274,6 @@ _CLASS_RGB = torch.tensor([[0.95, 0.8, 0.1], [0.2, 0.4, 1.0], [0.9, 0.15, 0.15],
 def _picture(path: Path, gt, vr, ibr, m, cls, se) -> None:
     """photo | VR | IBR | IBR's RMS error inside the mask (0..0.5) | classes; half size, JPEG."""
     import matplotlib
-
     from PIL import Image
 
     err = se.sqrt().clamp(0, 0.5) / 0.5
@@ -285,6 +310,8 @@ def main() -> None:
                     help="scan folder names a choice of the project was made on (not held out)")
     ap.add_argument("--diagnose", action="store_true")
     ap.add_argument("--pictures", action="store_true")
+    ap.add_argument("--inpaint", action="store_true",
+                    help="also score IBR with --ibr-unseen inpaint (docs/novel-views.md)")
     ap.add_argument("--skip-runs", action="store_true",
                     help="score existing run folders in WORK without rerunning anything")
     args = ap.parse_args()
@@ -327,6 +354,15 @@ def main() -> None:
                 preds = {v: read_image(out / folder / f"{v}.png") for v in test
                          if (out / folder / f"{v}.png").is_file()}
                 r[kind] = score_views(preds, gts, masks, test, lp)
+            if args.inpaint:  # IBR with the unseen surface inpainted (svolsdf render
+                from svolsdf.ibr import IBRConfig  # --ibr-unseen inpaint), scored the same way
+
+                kind = "IBR, unseen inpainted"
+                if args.skip_runs and kind in earlier.get(key, {}):
+                    r[kind] = earlier[key][kind]
+                else:
+                    preds = ibr_variant(out, scene_dir, test, IBRConfig(unseen="inpaint"))
+                    r[kind] = score_views(preds, gts, masks, test, lp)
             if ref is not None:
                 pic = (args.results.parent / "novel_views_dtu" / scene_dir.name / mode
                        if args.pictures else None)
@@ -356,9 +392,11 @@ def _write(args, results: dict, seconds: float) -> None:
              "|---|---|---|---|---|---|---|---|---|"]
     for key, r in results.items():
         scan, mode = key.split("/")
-        for kind in ("volume rendering", "IBR"):
+        for kind in ("volume rendering", "IBR", "IBR, unseen inpainted"):
+            if kind not in r:
+                continue
             m = r[kind]["mean"]
-            pp = PAPER["VolSDF"] if mode.startswith("volsdf") else PAPER[kind]
+            pp = PAPER["VolSDF"] if mode.startswith("volsdf") else PAPER[kind.split(",")[0]]
             paper = " / ".join("-" if x is None else f"{x:g}" for x in pp)
             lines.append(f"| {scan} | {'yes' if r['held_out'] else 'no'} | {mode} | {kind} "
                          f"| {m['psnr']:.2f} | {m['ssim']:.3f} | {m['lpips']:.3f} "

@@ -16,6 +16,7 @@ from svolsdf.ibr import (
     fill_candidates,
     ibr_render,
     laplacian_blend,
+    push_pull_fill,
     view_softmax_weights,
     warp_sources,
 )
@@ -281,3 +282,48 @@ def test_source_depths_at_lower_resolution_and_uint8(scene):
     r = ibr_render(tgt, d_t, torch.full_like(img_t, 0.5), imgs_u8, srcs, ds_half)
     assert float((r.n_valid > 0).float().mean()) > 0.95
     assert psnr(r.rgb, img_t, r.n_valid > 0) > 35.0
+
+
+def test_push_pull_fill_keeps_known_and_fills_from_neighbours():
+    img = torch.zeros(3, 40, 60)
+    img[0, :, :30] = 1.0  # red left half, blue right half
+    img[2, :, 30:] = 1.0
+    known = torch.ones(40, 60, dtype=torch.bool)
+    known[10:30, 5:20] = False  # a hole inside the red half
+    garbage = torch.where(known[None], img, torch.full_like(img, 0.5))
+    out = push_pull_fill(garbage, known, levels=6)
+    assert torch.equal(out[:, known], img[:, known])
+    hole = ~known
+    assert float(out[0, hole].min()) > 0.7  # filled red, mostly from its own side
+    assert float(out[2, hole].max()) < 0.3
+    const = push_pull_fill(torch.full((3, 40, 60), 0.3) * known, known, levels=6)
+    assert torch.allclose(const, torch.full_like(const, 0.3) * 1, atol=1e-6)
+    nothing = torch.zeros(40, 60, dtype=torch.bool)  # nothing known: the image unchanged
+    assert torch.equal(push_pull_fill(garbage, nothing), garbage)
+    with pytest.raises(ValueError):
+        push_pull_fill(img, known[:, :10])
+
+
+def test_unseen_inpaint_replaces_the_render_only_where_no_source_sees(scene):
+    tgt, img_t, d_t, srcs, imgs, ds = scene
+    d_src = ds
+    wrong = torch.zeros_like(img_t)  # a black render: what the field shows where it saw nothing
+    # hide a block of the target from every source: corrupt the target depth there (still > 0)
+    d = d_t.clone()
+    d[16:32, 24:40] *= 1.3
+    r_paper = ibr_render(tgt, d, wrong, imgs, srcs, d_src)
+    r_fill = ibr_render(tgt, d, wrong, imgs, srcs, d_src, IBRConfig(unseen="inpaint"))
+    block = torch.zeros(48, 64, dtype=torch.bool)
+    block[16:32, 24:40] = True
+    assert bool((r_paper.n_valid[block] == 0).all())
+    # paper: the black render shows through; inpaint: the seen colours around the block
+    assert psnr(r_fill.rgb, img_t, block) > psnr(r_paper.rgb, img_t, block) + 3.0
+    far = torch.zeros_like(block)
+    far[:, :6] = True  # seen pixels away from the block are unchanged
+    assert torch.allclose(r_fill.rgb[:, far], r_paper.rgb[:, far], atol=1e-5)
+    no_surface = d.clone()
+    no_surface[16:32, 24:40] = 0.0  # no depth: the render stays, as in the paper
+    r_bg = ibr_render(tgt, no_surface, wrong, imgs, srcs, d_src, IBRConfig(unseen="inpaint"))
+    assert torch.allclose(r_bg.composite[:, block], wrong[:, block])
+    with pytest.raises(ValueError):
+        IBRConfig(unseen="nearest")

@@ -209,13 +209,22 @@ def render(
         "--size", help="Render size WxH, e.g. 768x576 (default: the run's working size).")
     ] = None,
     chunk: Annotated[int, typer.Option("--chunk", help="Rays per batch.")] = 4096,
+    ibr_unseen: Annotated[str, typer.Option(
+        "--ibr-unseen", help="IBR where no input view sees the surface: 'render' (the paper: "
+                             "the volume-rendered colour) or 'inpaint' (the seen colours spread "
+                             "by push-pull; docs/novel-views.md).")] = "render",
 ) -> None:
     """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
     from svolsdf.commands.render import render_outputs
+    from svolsdf.errors import InputError
+    from svolsdf.ibr import IBRConfig
 
+    if ibr_unseen not in ("render", "inpaint"):
+        raise InputError(f"--ibr-unseen {ibr_unseen!r}: expected 'render' or 'inpaint'")
     out = input_dir(out, "run folder")
     res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
-                         size=_parse_size(size), frames=frames, chunk=chunk, progress=True)
+                         size=_parse_size(size), frames=frames, chunk=chunk, progress=True,
+                         ibr_config=IBRConfig(unseen=ibr_unseen))
     w, h = res["size"]
     typer.echo(f"rendered {len(res['files'])} view(s) at {w}x{h} "
                f"({res['seconds_per_view']:.1f} s per view) -> {out / 'renders'}"

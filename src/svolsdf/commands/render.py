@@ -303,6 +303,11 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
         d = r["depth"] * s
         d = torch.where(r["opacity"] >= OPACITY_SURFACE, d, torch.zeros_like(d))
         src = (scene.images, scene.cameras.to(dtype=torch.float64), d.float())
+        import dataclasses
+        import json
+
+        idir.mkdir(parents=True, exist_ok=True)  # which IBR made these files (evaluate reads it)
+        (idir / "ibr.json").write_text(json.dumps(dataclasses.asdict(cfg_ibr), indent=1))
         log.info("IBR: rendered the depth of the %d input views in %.1f s", len(scene),
                  time.perf_counter() - t0)
 

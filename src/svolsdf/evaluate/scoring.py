@@ -229,6 +229,17 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
     metrics["settings"]["scene"] = str(scene_path)
     metrics["settings"]["image_size"] = [int(scene.width), int(scene.height)]
     metrics["settings"]["masks"] = scene.masks is not None
+    metrics["settings"]["ground_truth_resize"] = "bicubic without antialiasing (official)"
+    ibr_json = Path(cfg.out) / "renders_ibr" / "ibr.json"
+    if ibr_json.is_file() and "images_ibr" in loaded:  # which IBR made renders_ibr/
+        import json
+
+        ibr_cfg = json.loads(ibr_json.read_text())
+        metrics["settings"]["ibr"] = ibr_cfg
+        if ibr_cfg.get("unseen", "render") != "render":
+            notes.append(f"IBR: where no input view sees the surface the colour is "
+                         f"'{ibr_cfg['unseen']}' (svolsdf render --ibr-unseen), not the paper's "
+                         "volume-rendered colour.")
     from svolsdf.evaluate.lpips import LPIPS, lpips_distance
 
     lp = lp_missing = None

@@ -8,6 +8,7 @@ from svolsdf.ibr.blend import (
     fill_candidates,
     ibr_render,
     laplacian_blend,
+    push_pull_fill,
     view_softmax_weights,
     warp_sources,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "look_at_point",
     "look_at_rotation",
     "orbit_cameras",
+    "push_pull_fill",
     "slerp_rotation",
     "slerp_unit",
     "view_softmax_weights",
