@@ -367,8 +367,9 @@ def push_pull_fill(image: Tensor, known: Tensor, levels: int = 8) -> Tensor:
         den.append(F.avg_pool2d(den[-1][None], 2, ceil_mode=True)[0])
     est = num[-1] / den[-1].clamp_min(1e-12)
     have = den[-1] > 0
-    for n, d in zip(reversed(num[:-1]), reversed(den[:-1])):  # pull: coarse fills fine
-        up = F.interpolate(est[None], size=n.shape[-2:], mode="bilinear", align_corners=False)[0]
+    for n, d in zip(reversed(num[:-1]), reversed(den[:-1]), strict=True):  # pull: coarse->fine
+        up = F.interpolate(est[None], size=n.shape[-2:], mode="bilinear",
+                           align_corners=False)[0]
         hup = F.interpolate(have[None].to(image.dtype), size=n.shape[-2:], mode="bilinear",
                             align_corners=False)[0] > 0
         own = d > 0
