@@ -19,10 +19,14 @@ independent of the runs (DTU-trained PatchmatchNet on all 49 views, each pixel k
 its eight best-paired views agree, as benchmarks/dtu_pseudo_gt.py builds its reference), splits
 each test view's mask into pixels
 
-- ``unseen``: no input view sees the surface there (the reference geometry is consistent with no
-  input view's reference depth, or the reference has no depth);
-- ``hole``: seen, but the run's rendered opacity is < 0.5 (the render shows background);
-- ``misplaced``: seen, the run's depth is more than 1 % (about 6 mm) from the reference;
+- ``object missing``: the run renders nothing there, or something beyond the object's far end
+  (the reference's 99th-percentile depth in the mask + 2 %): the table shows where the object is;
+- ``unseen, no reference``: the reference has no depth there (textureless or badly lit surface
+  that even 49 views do not agree on), and no input view's reference depth explains it;
+- ``unseen, placed`` / ``unseen, misplaced``: the reference surface there is consistent with none
+  of the three input views' reference depths (no input view sees it); the run's depth within /
+  beyond 1 % of the reference;
+- ``misplaced``: seen, the run's depth more than 1 % (about 6 mm) from the reference;
 - ``placed``: seen, the run's depth within 1 % of the reference;
 
 and gives each class's share of the mask, its share of the squared error and the dB the mean PSNR
@@ -151,7 +155,8 @@ def _psnr_of_mse(mse: float) -> float:
     return math.inf if mse <= 0 else -10 * math.log10(mse)
 
 
-CLASSES = ("unseen", "hole", "misplaced", "placed")
+CLASSES = ("object missing", "unseen, no reference", "unseen, placed", "unseen, misplaced",
+           "misplaced", "placed")
 
 
 def input_depths(out: Path):
@@ -220,10 +225,16 @@ def diagnose(out: Path, scene_dir: Path, ids: list[int], gts: torch.Tensor, mask
         gt, m = gts[k], masks[k].bool()
         rr = ibr_render(cam, g, vr, src_imgs, src_cams, g_src, cfg)
         seen = rr.n_valid > 0
-        cls = torch.full(m.shape, 3, dtype=torch.long)  # placed
-        cls[(d > 0) & (g > 0) & ((d - g).abs() > 0.01 * g)] = 2
-        cls[d <= 0] = 1
-        cls[~seen] = 0
+        # the object's far end in this view: the reference's 99th percentile depth in the mask
+        far = torch.quantile(g[m & (g > 0)], 0.99) * 1.02 if bool((m & (g > 0)).any()) else 0
+        missing = (d <= 0) | (d > far)  # the render shows the table or nothing: no object there
+        off = (g > 0) & ((d - g).abs() > 0.01 * g)  # > 1 % (about 6 mm) from the reference
+        cls = torch.full(m.shape, 5, dtype=torch.long)  # placed
+        cls[off] = 4  # misplaced
+        cls[~seen & ~off] = 2  # unseen, placed
+        cls[~seen & off] = 3  # unseen, misplaced
+        cls[~seen & (g <= 0)] = 1  # unseen, no reference depth
+        cls[missing] = 0  # object missing
         se_vr = ((vr - gt) ** 2).mean(0)
         se_ibr = ((ibr - gt) ** 2).mean(0)
         n = float(m.sum())
@@ -267,8 +278,10 @@ def diagnose(out: Path, scene_dir: Path, ids: list[int], gts: torch.Tensor, mask
     return res
 
 
-_CLASS_RGB = torch.tensor([[0.95, 0.8, 0.1], [0.2, 0.4, 1.0], [0.9, 0.15, 0.15],
-                           [0.2, 0.75, 0.3]])  # unseen yellow, hole blue, misplaced red, placed
+_CLASS_RGB = torch.tensor([[0.2, 0.4, 1.0], [0.6, 0.6, 0.6], [0.95, 0.8, 0.1],
+                           [0.95, 0.45, 0.1], [0.9, 0.15, 0.15], [0.2, 0.75, 0.3]])
+# object missing blue; unseen: no reference grey, placed yellow, misplaced orange; seen: misplaced
+# red, placed green
 
 
 def _picture(path: Path, gt, vr, ibr, m, cls, se) -> None:
@@ -388,7 +401,7 @@ def _write(args, results: dict, seconds: float) -> None:
              "INTER_CUBIC), mask bilinear > 0.5; SSIM and LPIPS-VGG on white "
              "(docs/method.md 8.3, svolsdf.evaluate.protocol)",
              f"- whole benchmark: {seconds:.0f} s", "",
-             "| scan | held out | mode | renderer | PSNR | SSIM | LPIPS | reconstruct s | paper |",
+             "| scan | held out | mode | renderer | PSNR | SSIM | LPIPS | pipeline s | paper (PSNR / SSIM / LPIPS) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for key, r in results.items():
         scan, mode = key.split("/")
@@ -400,7 +413,7 @@ def _write(args, results: dict, seconds: float) -> None:
             paper = " / ".join("-" if x is None else f"{x:g}" for x in pp)
             lines.append(f"| {scan} | {'yes' if r['held_out'] else 'no'} | {mode} | {kind} "
                          f"| {m['psnr']:.2f} | {m['ssim']:.3f} | {m['lpips']:.3f} "
-                         f"| {r.get('reconstruct_s', float('nan')):.0f} | {paper} |")
+                         f"| {r.get('pipeline_s', float('nan')):.0f} | {paper} |")
     diag = {k: r["diagnosis"] for k, r in results.items() if "diagnosis" in r}
     if diag:
         lines += ["", "## Where the dB go (means over the test views)", "",
