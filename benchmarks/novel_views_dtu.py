@@ -401,7 +401,8 @@ def _write(args, results: dict, seconds: float) -> None:
              "INTER_CUBIC), mask bilinear > 0.5; SSIM and LPIPS-VGG on white "
              "(docs/method.md 8.3, svolsdf.evaluate.protocol)",
              f"- whole benchmark: {seconds:.0f} s", "",
-             "| scan | held out | mode | renderer | PSNR | SSIM | LPIPS | pipeline s | paper (PSNR / SSIM / LPIPS) |",
+             "| scan | held out | mode | renderer | PSNR | SSIM | LPIPS | pipeline s "
+             "| paper (PSNR / SSIM / LPIPS) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for key, r in results.items():
         scan, mode = key.split("/")
