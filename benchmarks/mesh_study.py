@@ -25,7 +25,9 @@ and the seconds the mesh took (the method, plus the cleaning). The ``--summary``
 (method, free space, k), the mean and worst ratio over the runs: the trade-off curve.
 
 A method is a name with, optionally, options of the ``mesh`` section after a colon:
-``poisson``, ``poisson:poisson.trim=7``, ``tsdf:tsdf.fill_holes=40``; ``run`` is the run's own
+``poisson``, ``poisson:poisson.trim=7``, ``tsdf:tsdf.fill_holes=40``; ``support=K`` and
+``free_space_steps=S`` there clean that method's mesh with that k and tolerance only (instead of
+``--support`` and ``--free-steps``; its base mesh is made once); ``run`` is the run's own
 OUT/mesh.ply; ``field`` is the field's zero level as the mesh stage makes it (fitted to the
 points with the run's ``mesh.fit_points``), made by rerunning the mesh stage of a copy of the run
 in ``--cache`` (issue 47).
@@ -210,8 +212,12 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
     rows = []
     for spec in methods:
         method, opts = parse_method(spec)
+        # the cleaning options of a method's own: its only (free, k) instead of the grid
+        fs_list = [float(opts.pop("free_space_steps"))] if "free_space_steps" in opts \
+            else free_steps
+        k_list = [float(opts.pop("support"))] if "support" in opts else support
         t0 = time.perf_counter()
-        tag = spec.replace(":", "_").replace("=", "").replace(",", "_")
+        tag = "_".join([method, *(f"{k}{v}" for k, v in sorted(opts.items()))])
         cached = None if cache is None else cache / f"{name}_{tag}.npz"
         if cached is not None and cached.is_file():  # the base mesh of an earlier pass
             z = np.load(cached)
@@ -235,8 +241,8 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
             if cached is not None:
                 cache.mkdir(parents=True, exist_ok=True)
                 np.savez(cached, v=vw.numpy(), f=f.numpy(), t=t_method)
-        for fs in free_steps:
-            for k in support:
+        for fs in fs_list:
+            for k in k_list:
                 t1 = time.perf_counter()
                 v2, f2, _, info = clean_mesh(
                     vw, f, None, scene, observed=observed if fs > 0 else None,
