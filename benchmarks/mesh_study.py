@@ -1,5 +1,5 @@
 """The mesh against the points: mesh methods, free-space culling and support trimming on
-finished runs (issue 37).
+finished runs (issues 37 and 47).
 
 For every run folder (a finished `svolsdf reconstruct`), this script makes the mesh of each
 method from the run's own fused points and depth maps (the Poisson surface, `poisson`, and the
@@ -24,9 +24,18 @@ Each row: accuracy, completeness and Chamfer of the mesh, their ratios to the po
 and the seconds the mesh took (the method, plus the cleaning). The ``--summary`` lines give, per
 (method, free space, k), the mean and worst ratio over the runs: the trade-off curve.
 
+A method is a name with, optionally, options of the ``mesh`` section after a colon:
+``poisson``, ``poisson:poisson.trim=7``, ``tsdf:tsdf.fill_holes=40``; ``support=K`` and
+``free_space_steps=S`` there clean that method's mesh with that k and tolerance only (instead of
+``--support`` and ``--free-steps``; its base mesh is made once); ``run`` is the run's own
+OUT/mesh.ply; ``field`` is the field's zero level as the mesh stage makes it (fitted to the
+points with the run's ``mesh.fit_points``), made by rerunning the mesh stage of a copy of the run
+in ``--cache`` (issue 47).
+
 Usage:
     python benchmarks/mesh_study.py --runs NAME=RUN [NAME=RUN ...] [--pgt NAME=DIR ...]
-        [--free-steps 0 2 4 8] [--support 0 1.5 2 3 4 6] [--methods poisson tsdf]
+        [--free-steps 0 2 4 8] [--support 0 1.5 2 3 4 6]
+        [--methods poisson poisson:poisson.trim=7 tsdf tsdf:tsdf.fill_holes=40 field]
         [--cache DIR] --results FILE.md
 """
 
@@ -128,6 +137,54 @@ class Scorer:
         return {k: r[k] for k in ("accuracy", "completeness", "overall")}
 
 
+def parse_method(spec: str) -> tuple[str, dict[str, str]]:
+    """``"poisson:poisson.trim=7,support=0"`` -> ("poisson", {"poisson.trim": "7", ...}): a
+    mesh method and options of the ``mesh`` section it runs with."""
+    name, _, opts = spec.partition(":")
+    return name, dict(o.split("=", 1) for o in opts.split(",") if o)
+
+
+def _mesh_options(mesh, opts: dict[str, str]):
+    """A copy of the run's ``mesh`` section with ``opts`` (dotted names under it) set."""
+    import copy
+
+    from svolsdf.config import apply_overrides, parse_set
+    from svolsdf.config.schema import Config
+
+    c = Config()
+    c.mesh = copy.deepcopy(mesh)
+    c = apply_overrides(c, parse_set([f"mesh.{k}={v}" for k, v in opts.items()]))
+    return c.mesh
+
+
+def _field_mesh_of(out: Path, work: Path, opts: dict[str, str]):
+    """The field's zero level as the mesh stage makes it (``mesh.method=field`` and the
+    run's ``mesh.fit_points``: fitted to the points), with free-space culling and trimming off
+    (the study cleans it): made by rerunning the mesh stage of a copy of the run in ``work``.
+    Returns (vw, faces, mesh stage seconds)."""
+    import subprocess
+
+    from _machine import copy_run
+
+    from svolsdf.io.ply import read_ply
+
+    def edit(cfg):
+        cfg.mesh = _mesh_options(cfg.mesh, {"method": "field", "free_space": "false",
+                                            "support": "0", **opts})
+        scene["path"] = cfg.scene.path
+
+    scene = {}
+    copy_run(out, work, edit)
+    subprocess.run([sys.executable, "-m", "svolsdf", "reconstruct", scene["path"], "-o", str(work),
+                    "--config", str(work / "config.yaml")], check=True)
+    timing = json.loads((work / "timing.json").read_text())
+    if timing["mesh"].get("mesh_source", "field") != "field":
+        raise RuntimeError(f"{work}: mesh source {timing['mesh']['mesh_source']}")
+    m = read_ply(work / "mesh.ply")
+    return (torch.from_numpy(m["points"]).float(), torch.from_numpy(m["faces"]).long(),
+            float(timing["mesh"]["seconds"]))
+
+
 def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
               free_steps: list[float], support: list[float], cache: Path | None = None
               ) -> tuple[dict, list[dict]]:
@@ -153,9 +210,15 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
     observed = observed_depths_of(run, pts)
     t_obs = time.perf_counter() - t0
     rows = []
-    for method in methods:
+    for spec in methods:
+        method, opts = parse_method(spec)
+        # the cleaning options of a method's own: its only (free, k) instead of the grid
+        fs_list = [float(opts.pop("free_space_steps"))] if "free_space_steps" in opts \
+            else free_steps
+        k_list = [float(opts.pop("support"))] if "support" in opts else support
         t0 = time.perf_counter()
-        cached = None if cache is None else cache / f"{name}_{method}.npz"
+        tag = "_".join([method, *(f"{k}{v}" for k, v in sorted(opts.items()))])
+        cached = None if cache is None else cache / f"{name}_{tag}.npz"
         if cached is not None and cached.is_file():  # the base mesh of an earlier pass
             z = np.load(cached)
             vw, f, t_method = torch.from_numpy(z["v"]), torch.from_numpy(z["f"]), float(z["t"])
@@ -163,18 +226,23 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
             m = read_ply(out / "mesh.ply")
             vw, f = torch.from_numpy(m["points"]).float(), torch.from_numpy(m["faces"]).long()
             t_method = float(json.loads((out / "timing.json").read_text())["mesh"]["seconds"])
+        elif method == "field":  # the mesh stage of a copy of the run (it fits the field)
+            if cache is None:
+                sys.exit("method field: give --cache DIR (the run is copied there)")
+            vw, f, t_method = _field_mesh_of(out, cache / f"{name}_{tag}", opts)
         else:  # a registered points method, as the mesh stage runs it
             inputs = MeshInputs(points=pts, colours=cols, scene=scene, observed=observed,
-                                model=run.model(), field_mesh=None, mesh=cfg.mesh, depth_step=step,
+                                model=run.model(), field_mesh=None,
+                                mesh=_mesh_options(cfg.mesh, opts), depth_step=step,
                                 use_masks=use_masks, device=run.device)
             vw, f, _ = get_mesh_method(method).run(inputs)
-        if method != "run" and (cached is None or not cached.is_file()):
+        if method not in ("run", "field") and (cached is None or not cached.is_file()):
             t_method = time.perf_counter() - t0 + (t_obs if method == "tsdf" else 0.0)
             if cached is not None:
                 cache.mkdir(parents=True, exist_ok=True)
                 np.savez(cached, v=vw.numpy(), f=f.numpy(), t=t_method)
-        for fs in free_steps:
-            for k in support:
+        for fs in fs_list:
+            for k in k_list:
                 t1 = time.perf_counter()
                 v2, f2, _, info = clean_mesh(
                     vw, f, None, scene, observed=observed if fs > 0 else None,
@@ -182,7 +250,7 @@ def study_run(name: str, out: Path, pgt: Path | None, methods: list[str],
                 t_clean = time.perf_counter() - t1 + (t_obs if fs > 0 and method != "tsdf"
                                                        else 0.0)
                 s = scorer.mesh(v2.double().numpy(), f2.numpy()) if len(f2) else None
-                row = {"run": name, "method": method, "free_steps": fs, "k": k,
+                row = {"run": name, "method": spec, "free_steps": fs, "k": k,
                        "faces": int(len(f2)), "seconds": round(t_method + t_clean, 1),
                        **({f"mesh_{a}": s[a] for a in s} if s else {}),
                        **({f"ratio_{a}": s[a] / pscore[a] for a in s} if s else {})}
@@ -202,8 +270,9 @@ def main() -> None:
                     help="pseudo ground truth cache (benchmarks/dtu_pseudo_gt.py --out) per "
                          "DTU run name")
     ap.add_argument("--methods", nargs="+", default=["poisson", "tsdf"],
-                    help="poisson, tsdf, or run (the run's own mesh.ply, e.g. the fast "
-                         "preset's Poisson mesh, without making it again)")
+                    help="poisson, tsdf, field, or run (the run's own mesh.ply, e.g. the "
+                         "fast preset's Poisson mesh, without making it again); NAME:OPT=V,... "
+                         "sets options of the mesh section (poisson.trim=7)")
     ap.add_argument("--free-steps", nargs="+", type=float, default=[0, 2, 4, 8])
     ap.add_argument("--support", nargs="+", type=float, default=[0, 1.5, 2, 3, 4, 6])
     ap.add_argument("--results", type=Path, required=True)

@@ -148,3 +148,10 @@ def test_one_conftest_under_tests():
     tests/ would be imported under the same name first and break that import in a full run."""
     tests = Path(__file__).resolve().parent
     assert [p.relative_to(tests).as_posix() for p in tests.rglob("conftest.py")] == ["conftest.py"]
+
+
+def test_the_readme_stays_short():
+    """The README is for users (what, install, run, commands, what to expect): under 1,000
+    words; results and their history belong in benchmarks/results/ and docs/ (issue 47)."""
+    words = len((REPO / "README.md").read_text().split())
+    assert words < 1000, f"README.md has {words} words; move detail to docs/ or benchmarks/"

@@ -285,8 +285,10 @@ def test_a_forgotten_option_is_found():
         return {**keys, "fusion": keys["fusion"] + str(cfg.mesh.support)}
 
     bad = violations("svolsdf-poisson", TABLE["svolsdf-poisson"], holds)[0]
-    assert bad == ["svolsdf-poisson: the key of stage fusion changes with mesh.support"
-                   "=0.5 but neither it nor what it consumes reads mesh.support"]
+    # the value tried is the first other valid one, which follows the preset's default
+    assert len(bad) == 1 and bad[0].startswith(
+        "svolsdf-poisson: the key of stage fusion changes with mesh.support=")
+    assert bad[0].endswith(" but neither it nor what it consumes reads mesh.support")
 
 
 def test_the_table_covers_every_stage_and_the_setup_reads_are_known():
@@ -315,8 +317,10 @@ def test_the_table_covers_every_stage_and_the_setup_reads_are_known():
 PINNED = {
     "defaults": "d260427d8ce9 16dbf7e854f9 d9476149c525 f3d8359a7d80 877dddc38d85 1d3f62cc08d1 "
                 "5fa6188dcc53",
+    # the mesh key changed with mesh.support = 4 in the fast preset (issue 47): only the mesh
+    # stage of an earlier fast run reruns
     "fast": "d260427d8ce9 1218d9474c96 0fe1ef086889 b76036cc2e7f 877dddc38d85 b1c53c12160f "
-            "13aa79bc6083",
+            "73a9612944e7",
     "paper": "d260427d8ce9 407d7e6ab236 70cdfa8b5213 cfee6f54c244 877dddc38d85 9db389992f52 "
              "595955346277",
 }

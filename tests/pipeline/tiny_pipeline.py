@@ -34,9 +34,10 @@ def tiny_cfg(scene, steps: int = 300) -> Config:
     # fitted mesh follows (test_mesh_fitted_to_the_points covers it)
     cfg.mesh.fit_points = 0
     cfg.mesh.method = "field"  # the field's own mesh; Poisson has its own tests
-    # free-space culling reads the fused points too, so fusion options would rerun the mesh
-    # (test_tsdf_mesh_with_free_space_and_support covers it)
+    # free-space culling and support trimming read the fused points too, so fusion options
+    # would rerun the mesh (test_tsdf_mesh_with_free_space_and_support covers them)
     cfg.mesh.free_space = False
+    cfg.mesh.support = 0.0
     return cfg
 
 

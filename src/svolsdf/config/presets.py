@@ -33,6 +33,7 @@ def _fast() -> Config:
     c.mesh.method = "poisson"  # the mesh of the fused points, not of the field
     c.mesh.fit_points = 300  # with mesh.method field: that surface refined to the points
     c.mesh.free_space = True  # no face in space an input view saw empty (docs/meshing.md)
+    c.mesh.support = 4.0  # no face farther than 4 point spacings from a point (docs/meshing.md)
     return c
 
 

@@ -309,6 +309,11 @@ class TSDFConfig:
     truncation)."""
     truncation_steps: float = _limited(4.0, gt=0)
     """Truncation distance in final-stage depth steps."""
+    fill_holes: float = _limited(0.0, min=0)
+    """Fill the TSDF mesh's holes up to this size (in point spacings, across) with the screened
+    Poisson surface of the fused points (``mesh.poisson``'s options), leaving larger holes and
+    the Poisson surface past the silhouettes out (`svolsdf.fusion.meshing.fill_small_holes`);
+    0 = off."""
 
 
 @dataclass

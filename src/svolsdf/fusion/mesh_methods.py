@@ -8,7 +8,8 @@ and the mesh stage (`svolsdf.pipeline.mesh.build_mesh`) runs it, falls back to t
 zero level when it gives no surface, and cleans what it returns like every other method.
 
 Built in: "field" (the field's zero level), "poisson" (screened Poisson of the fused points),
-"tsdf" (the TSDF of the observed final depth); `svolsdf.fusion.meshing` holds their algorithms.
+"tsdf" (the TSDF of the observed final depth; with ``mesh.tsdf.fill_holes`` its small holes
+filled from the Poisson surface); `svolsdf.fusion.meshing` holds their algorithms.
 """
 
 from __future__ import annotations
@@ -166,7 +167,15 @@ def _tsdf(m: MeshInputs) -> MeshResult:
     if m.observed is None:
         raise RuntimeError("no final depth maps to fuse")
     o = m.mesh
-    return points_tsdf_mesh(m.points, m.colours, m.scene, m.observed,
-                            trunc=float(o.tsdf.truncation_steps * m.depth_step.mean()),
-                            resolution=o.tsdf.resolution, use_masks=m.use_masks,
-                            unseen=o.cull_unseen, rel_tol=o.cull_tol)
+    trunc = float(o.tsdf.truncation_steps * m.depth_step.mean())
+    vw, f, c = points_tsdf_mesh(m.points, m.colours, m.scene, m.observed, trunc=trunc,
+                                resolution=o.tsdf.resolution, use_masks=m.use_masks,
+                                unseen=o.cull_unseen, rel_tol=o.cull_tol)
+    if o.tsdf.fill_holes > 0:  # the small holes from the Poisson surface (docs/meshing.md)
+        from svolsdf.fusion.meshing import fill_small_holes
+        from svolsdf.fusion.observe import point_spacing
+
+        pv, pf, pc = _poisson(m)
+        size = o.tsdf.fill_holes * point_spacing(m.points)
+        vw, f, c, _ = fill_small_holes(vw, f, c, pv, pf, pc, gap=trunc, max_size=size)
+    return vw, f, c

@@ -20,8 +20,8 @@ from torch import Tensor
 
 from svolsdf.scene.scene import Scene
 
-__all__ = ["MeshCleanup", "clean_mesh", "field_mesh", "field_mesh_colours", "poisson_mesh",
-           "points_tsdf_mesh"]
+__all__ = ["MeshCleanup", "clean_mesh", "field_mesh", "field_mesh_colours", "fill_small_holes",
+           "poisson_mesh", "points_tsdf_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +198,90 @@ def points_tsdf_mesh(
     vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
                                rel_tol=rel_tol, largest=False)
     return vw, f, (None if c is None else c[idx])
+
+
+def fill_small_holes(
+    vw: Tensor,
+    faces: Tensor,
+    colours: Tensor | None,
+    patch_vw: Tensor,
+    patch_faces: Tensor,
+    patch_colours: Tensor | None,
+    gap: float,
+    max_size: float,
+) -> tuple[Tensor, Tensor, Tensor | None, int]:
+    """The mesh (``vw``, ``faces``) with the small holes in it filled from a second surface of
+    the same object (the TSDF mesh's holes from the Poisson surface, ``mesh.tsdf.fill_holes``).
+
+    The second surface's faces whose centroid lies farther than ``gap`` from every vertex of the
+    mesh are where the mesh has no surface; grouped in connected parts (faces sharing vertices),
+    a part is added when it spans at most ``max_size`` (the diagonal of its box) and touches the
+    mesh (a vertex within 2 ``gap`` of it): a patch over a hole the mesh surrounds. Larger
+    parts (surface extrapolated over a large hole or past a silhouette) and parts away from the
+    mesh (islands) are left out. The patch is not stitched to the mesh: its border lies within
+    about ``gap`` of the hole's rim.
+
+    Args:
+        vw: (V, 3) world vertices of the mesh; faces: (F, 3); colours: (V, 3) uint8 or None.
+        patch_vw, patch_faces, patch_colours: the second surface, likewise.
+        gap: distance beyond which the mesh has no surface there, world units (more than the
+            mesh's vertex spacing, e.g. the TSDF's truncation).
+        max_size: the largest part added, world units.
+
+    Returns:
+        vw (V + P, 3), faces (F + Q, 3), colours or None (None when a patch is added and either
+        mesh has none), and the number of faces added.
+    """
+    from scipy import sparse
+    from scipy.sparse import csgraph
+    from scipy.spatial import cKDTree
+
+    from svolsdf.fusion.mesh_ops import _check_mesh, submesh
+
+    vw, faces = _check_mesh(vw, faces)
+    patch_vw, patch_faces = _check_mesh(patch_vw, patch_faces)
+    if gap <= 0 or max_size < 0:
+        raise ValueError(f"gap must be > 0 and max_size >= 0, got {gap} and {max_size}")
+    none = (vw, faces, colours, 0)
+    if len(faces) == 0 or len(patch_faces) == 0 or max_size == 0:
+        return none
+    workers = max(1, torch.get_num_threads())
+    used = np.unique(faces.numpy())  # vertices no face uses are no surface
+    tree = cKDTree(vw.double().numpy()[used])
+    pv = patch_vw.double().numpy()
+    pf = patch_faces.numpy()
+    d, _ = tree.query(pv[pf].mean(axis=1), distance_upper_bound=gap, workers=workers)
+    hole = ~np.isfinite(d)
+    if not hole.any():
+        return none
+    hv, hf, hidx = submesh(patch_vw, patch_faces, torch.from_numpy(hole))
+    f = hf.numpy()
+    n = len(hv)
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    adj = sparse.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
+    n_parts, label = csgraph.connected_components(adj, directed=False)
+    x = hv.double().numpy()
+    lo = np.full((n_parts, 3), np.inf)
+    hi = np.full((n_parts, 3), -np.inf)
+    np.minimum.at(lo, label, x)
+    np.maximum.at(hi, label, x)
+    size = np.linalg.norm(hi - lo, axis=1)
+    dv, _ = tree.query(x, distance_upper_bound=2 * gap, workers=workers)
+    touches = np.zeros(n_parts, dtype=bool)
+    touches[label[np.isfinite(dv)]] = True
+    keep_part = touches & (size <= max_size)
+    keep = torch.from_numpy(keep_part[label[f[:, 0]]])
+    if not keep.any():
+        return none
+    kv, kf, kidx = submesh(hv, hf, keep)
+    log.info("small holes: %d of %d parts outside the mesh filled (%d faces; at most %.4g "
+             "across)", int(keep_part.sum()), n_parts, len(kf), max_size)
+    out_c = None
+    if colours is not None and patch_colours is not None:
+        out_c = torch.cat([colours, patch_colours[hidx[kidx]].to(colours.dtype)])
+    return (torch.cat([vw, kv.to(vw.dtype)]), torch.cat([faces, kf + len(vw)]), out_c,
+            int(len(kf)))
 
 
 @dataclass

@@ -133,6 +133,12 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                    *((["tsdf", c["output"]["tsdf_resolution"],
                        c["output"]["tsdf_truncation_steps"], k_fusion])
                      if mesh_from_points(cfg) == "tsdf" else []),
+                   # issue 47: the TSDF's small holes filled from the Poisson surface; enters
+                   # only when set (mesh.tsdf.fill_holes is newer than the old layout)
+                   *((["tsdf-fill", cfg.mesh.tsdf.fill_holes, cfg.mesh.poisson.depth,
+                       cfg.mesh.poisson.trim])
+                     if mesh_from_points(cfg) == "tsdf" and cfg.mesh.tsdf.fill_holes > 0
+                     else []),
                    # a method registered beyond these three (svolsdf.fusion.mesh_methods)
                    # enters by name, with the fusion it reads when it meshes the points
                    *((["mesh-method", c["output"]["mesh_method"],
