@@ -199,6 +199,7 @@ def diagnose(out: Path, scene_dir: Path, ids: list[int], gts: torch.Tensor, mask
              ref: dict[int, torch.Tensor], pictures: Path | None) -> dict:
     """The split of module docstring "Diagnosis" for one run folder; returns per-class shares,
     per-view class PSNRs and the swaps' mean PSNRs."""
+    from svolsdf.evaluate.images import masked_psnr
     from svolsdf.ibr import IBRConfig, ibr_render
     from svolsdf.io.images import read_image
     from svolsdf.scene.loaders import load_scene
@@ -257,8 +258,6 @@ def diagnose(out: Path, scene_dir: Path, ids: list[int], gts: torch.Tensor, mask
         ref_geo_exact = torch.where(unseen[None], gt, ref_geo)
         swap_psnr["vr"].append(pv["psnr_vr"])
         swap_psnr["ibr"].append(pv["psnr_ibr"])
-        from svolsdf.evaluate.images import masked_psnr
-
         swap_psnr["ibr_ref_geometry"].append(masked_psnr(ref_geo, gt, m))
         rel = ibr_render(cam, d, vr, src_imgs, src_cams, d_src, IBRConfig.released()).rgb
         swap_psnr["ibr_released"].append(masked_psnr(rel, gt, m))

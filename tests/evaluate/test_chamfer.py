@@ -11,7 +11,7 @@ from scipy.io import savemat
 
 from conftest import shared_path
 from svolsdf.errors import InputError
-from svolsdf.evaluate import chamfer as chamfer_module
+from svolsdf.evaluate import points as points_module
 from svolsdf.evaluate.chamfer import (
     ObsMask,
     chamfer_fscore,
@@ -281,7 +281,7 @@ def test_real_obsmask_loads():
 @pytest.fixture
 def always_sort(monkeypatch):
     """Force the Morton-sorted KD-tree paths (normally only for >= 20k points)."""
-    monkeypatch.setattr(chamfer_module, "_SORT_MIN", 0)
+    monkeypatch.setattr(points_module, "_SORT_MIN", 0)
 
 
 @pytest.mark.parametrize("radius", [0.05, 0.3])
@@ -353,7 +353,7 @@ def test_dtu_protocol_agrees_on_the_real_obsmask(monkeypatch, sort):
     prediction stands in), protocol vs the slow transcription, with and without sorting."""
     obs = load_obs_mask(shared_path("data", "dtu_raw", "ObsMask", "ObsMask9_10.mat"))
     if sort:
-        monkeypatch.setattr(chamfer_module, "_SORT_MIN", 0)
+        monkeypatch.setattr(points_module, "_SORT_MIN", 0)
     rng = np.random.default_rng(14)
     # A 20 x 20 mm patch near the middle of the box, a mix of observed and unobserved voxels.
     centre = obs.bb.mean(0).astype(np.float64)
@@ -496,7 +496,7 @@ def test_mesh_density_rule_and_the_dtu_mesh_mode():
     # evenly spread: no two points within the density, every grid point (at half of it) within
     # it of one
     assert len(pts) > 100
-    d, _ = chamfer_module._kdtree(pts).query(pts, k=2)
+    d, _ = points_module._kdtree(pts).query(pts, k=2)
     assert d[:, 1].min() > 0.5
     assert nn_distances(sample_mesh_surface(v, f, 0.25), pts).max() <= 0.5 + 1e-9
     # the DTU protocol's mesh mode is the scorer on DTUeval-python's grids (oversample 1)

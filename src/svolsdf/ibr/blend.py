@@ -534,11 +534,12 @@ def ibr_render(
         seen = valid.any(0)
         w_seen = W / W.sum(0, keepdim=True).clamp_min(1e-12)
         blended = (w_seen[:, None].to(colours.dtype) * colours).sum(0)
-        fill = push_pull_fill(blended, seen, cfg.inpaint_levels)
-        reached = push_pull_fill(seen[None].to(blended.dtype), seen, cfg.inpaint_levels) > 0.5
+        # one pass: a 4th channel that is 1 where seen comes out 1 where the fill reached
+        filled = push_pull_fill(torch.cat([blended, seen[None].to(blended.dtype)]), seen,
+                                cfg.inpaint_levels)
         surface = torch.isfinite(target_depth) & (target_depth > 0)
-        use = (surface & ~seen & reached[0])[None]
-        rendered = torch.where(use, fill.to(rendered.dtype), rendered)
+        use = (surface & ~seen & (filled[3] > 0.5))[None]
+        rendered = torch.where(use, filled[:3].to(rendered.dtype), rendered)
     cands = fill_candidates(colours, valid, W, rendered, cfg)
 
     # docs/method.md 7 step 6: M_j = erode(W_j > thr) W_j, M_render = W_render + bias, normalized.
