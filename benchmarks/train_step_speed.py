@@ -54,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import cpu_name, write_results  # noqa: E402
 
 from svolsdf.config import load_config  # noqa: E402
+from svolsdf.config.io import apply_overrides  # noqa: E402
 from svolsdf.field.grid_ops import _corners, device_vector  # noqa: E402
 from svolsdf.field.initial import init_grid_from_mvs  # noqa: E402
 from svolsdf.optimize.trainer import Trainer  # noqa: E402
@@ -142,13 +143,16 @@ def safe_clip_previous(self, params: list[torch.Tensor]) -> None:
 
 
 # ---------------------------------------------------------------------- set-up
-def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None = None
-                  ) -> Trainer:
+def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None = None,
+                  overrides: dict | None = None) -> Trainer:
     """The field stage's trainer on ``run``'s config and stage-1 volumes (model, MVS
     initialisation, prior, sampler and grid schedule as the pipeline builds them), at step 0 with
     the grid at its start resolution, with the ``previous`` parts swapped in; ``steps`` replaces
-    ``train.steps`` (the grid schedule follows it). It reads ``run`` and writes nothing there."""
+    ``train.steps`` (the grid schedule follows it); ``overrides`` ({"section.option": value}, as
+    ``--set``) change the run's config. It reads ``run`` and writes nothing there."""
     cfg = load_config(run / "config.yaml")
+    if overrides:
+        apply_overrides(cfg, overrides)
     if steps is not None:
         cfg.train.steps = steps
     p = Pipeline(cfg, run, progress=False)
@@ -178,8 +182,8 @@ def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None
     return t
 
 
-def make_trainer(run: Path, previous: set[str], warm_steps: int, phase: int | None = None
-                 ) -> Trainer:
+def make_trainer(run: Path, previous: set[str], warm_steps: int, phase: int | None = None,
+                 overrides: dict | None = None) -> Trainer:
     """A fast-preset trainer on ``run``'s stage-1 volumes with the ``previous`` parts swapped
     in, after ``warm_steps`` steps. ``phase`` None: a run of ``warm_steps`` steps (its grid
     reaches the full resolution at half of them). ``phase`` = a grid resolution of the run's
@@ -187,10 +191,10 @@ def make_trainer(run: Path, previous: set[str], warm_steps: int, phase: int | No
     and the step counter past the phase's start (the RGB warm-up over), so the warm-up steps
     and the timed ones see that phase's losses, grid and schedules."""
     if phase is None:
-        t = build_trainer(run, previous, steps=warm_steps)
+        t = build_trainer(run, previous, steps=warm_steps, overrides=overrides)
         t.fit(progress=False)  # warm-up: grid growth done, optimizer state built
     else:
-        t = build_trainer(run, previous)
+        t = build_trainer(run, previous, overrides=overrides)
         starts = {t.model.resolution: 0} | {r: k for k, r in t.grid_schedule}
         if phase not in starts:
             sys.exit(f"train_step_speed: --phase {phase} is not a grid resolution of the run "

@@ -86,6 +86,9 @@ INERT_READS: dict[str, Rule] = {
     "mesh.fit_points": (
         "read to ask whether the fit applies (options.wants_mesh_fit); it does not here",
         lambda c: not opt.wants_mesh_fit(c)),
+    "mvs.save_volumes": (
+        "which files the stages 2-3 keep (their volumes), not what they compute; keys.py leaves "
+        "it out", always),
     "guide:scene.use_masks": (
         "the field's PSNR over the masks, for timing.json only, when the guide is rendered on "
         "every pixel", lambda c: c.guide.mask_dilation is None),
@@ -167,7 +170,7 @@ def other_values(option: str, value: Any) -> list[Any]:
         out.append(value + 1 if hi is None or value + 1 <= hi else value - 1)
     elif isinstance(value, float):
         v = value * 2 if value else 0.5
-        out.append(v if hi is None or v <= hi else value / 2)
+        out.append(v if hi is None or v <= hi else value / 2 if value else hi)
     elif isinstance(value, list):
         out.append([x + 1 for x in value])
     elif isinstance(value, str) and not out:

@@ -131,3 +131,32 @@ def test_validity_rules_and_accumulation():
     assert torch.allclose(p_prime(p_ref, p_src), p_ref * p_src)
     pp, vv = prior.p_prime(pts, torch.tensor([2, 2]))
     assert torch.allclose(pp, p_ref * p_src) and vv.equal(valid)
+
+
+@pytest.mark.parametrize("ref_view", [[0, 1, 2, 1, 0, 2, 2], [1] * 7])
+def test_label_is_lookups_p_prime_and_reads_sources_only_where_p_ref_counts(ref_view):
+    """MVSPrior.label: P' = P_ref * sum P_src bit for bit where P_ref > label_floor (with the
+    default 0: everywhere), 0 elsewhere; the source views are read only at those points."""
+    vols = _volumes()
+    for i, v in enumerate(vols):  # zero stretches, as a volume far from its peak has
+        v.prob[:, :, : 3 + i] = 0.0
+    prior = MVSPrior(vols, Normalization(CENTER, SCALE))
+    pts = _points(R=7, S=40)
+    ref = torch.tensor(ref_view)
+    p_ref, p_src, _ = prior.lookup(pts, ref)
+    exact = p_ref * p_src
+    read = []
+    view_lookup = prior.view_lookup
+    prior.view_lookup = lambda i, q: (read.append(len(q)), view_lookup(i, q))[1]
+    assert torch.equal(prior.label(pts, ref), exact)
+    zero = int((p_ref == 0).sum())
+    assert 0 < zero < p_ref.numel()
+    n = p_ref.numel()
+    others = 2 if len(set(ref_view)) == 1 else 3  # a single ray view is not its own source
+    assert sum(read) == n + others * (n - zero), (read, n, zero)
+    floor = float(p_ref[p_ref > 0].median())
+    prior.label_floor = floor
+    lab = prior.label(pts, ref)
+    keep = p_ref > floor
+    assert torch.equal(lab[keep], exact[keep]) and (lab[~keep] == 0).all()
+    assert (exact[~keep] <= floor * 2 + 1e-7).all()

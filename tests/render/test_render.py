@@ -201,3 +201,55 @@ def test_max_rule_filled_finds_the_low_weight_pixels():
     assert max_rule_filled(torch.zeros(4, 5)).all()  # nothing covered: all fill
     with pytest.raises(ValueError, match=r"\(H, W\)"):
         max_rule_filled(guide[None])
+
+
+def _grid_sphere_field():
+    """A grid field holding the SDF of a sphere of radius 0.5, random colour features and
+    colour network (seeded)."""
+    from svolsdf.field.grid import GridFieldConfig, GridSDFField
+
+    torch.manual_seed(3)
+    model = GridSDFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), GridFieldConfig(resolution=32))
+    Z, Y, X = model.grid_shape
+    lo, hi = model.bounds
+    zz, yy, xx = torch.meshgrid(*(torch.linspace(float(lo[i]), float(hi[i]), n)
+                                  for i, n in zip((2, 1, 0), (Z, Y, X))), indexing="ij")
+    with torch.no_grad():
+        model.sdf_grid.copy_((torch.stack([xx, yy, zz], -1).norm(dim=-1) - 0.5)[None])
+        for fg in model.feature_grids:
+            fg.normal_(0.0, 0.5)
+    model.beta_min = 1e-4
+    return model.train()
+
+
+def test_training_colour_only_where_it_counts_matches_every_sample():
+    """render_rays with create_graph and colour_min_weight: the colour network sees only the
+    samples whose weight exceeds the threshold; the colour, depth and the gradients of the SDF
+    grid, the feature grids and the colour network stay those of every sample within the
+    bound (the dropped colour terms sum to < S x threshold per ray)."""
+    cams = _camera(W=12, H=9, f=9.0)
+    rays = rays_from_cameras(cams, 0)
+    model = _grid_sphere_field()
+    z = uniform_sampler(rays.near, rays.far, 96, stratified=False)
+    calls = []
+    colour = model.colour
+    model.colour = lambda x, *a: (calls.append(len(x)), colour(x, *a))[1]
+    outs, grads = [], []
+    for tau in (0.0, 1e-4):
+        model.zero_grad()
+        calls.clear()
+        out = render_rays(model, rays, z, create_graph=True, colour_min_weight=tau)
+        (out.rgb.sum() + out.depth.sum()).backward()
+        outs.append((out, list(calls)))
+        grads.append({n: p.grad.clone() for n, p in model.named_parameters()
+                      if p.grad is not None})
+    (full, n_full), (part, n_part) = outs
+    assert n_full == [len(rays) * 96] and 0 < n_part[0] < 0.5 * n_full[0], (n_full, n_part)
+    bound = 96 * 1e-4
+    assert (part.rgb - full.rgb).abs().max() < bound
+    assert torch.equal(part.weights, full.weights) and torch.equal(part.depth, full.depth)
+    assert grads[0].keys() == grads[1].keys() and "sdf_grid" in grads[0]
+    for name, g in grads[0].items():
+        rel = (grads[1][name] - g).norm() / g.norm().clamp_min(1e-12)
+        # beta's gradient sums over every sample, the dropped ones' colour terms included
+        assert rel < (0.05 if "beta" in name else 0.01), (name, float(rel))

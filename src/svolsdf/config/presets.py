@@ -23,6 +23,8 @@ def _fast() -> Config:
     c = Config(preset="fast")
     c.train.beta_start = 0.05  # beta annealed, not learned: a short run cannot wait for it
     c.train.anneal_rgb = 50  # the paper's 200 warm-up steps would be 20 % of this run
+    c.train.colour_min_weight = 1e-4  # colour only at samples whose weight counts (as rendering)
+    c.train.prior_floor = 1e-4  # the prior's sources only where P_ref counts
     c.field.init_unverified_weight = 0.05  # one-view stage-1 depth votes in the initial surface
     c.fusion.surface = 5e-4  # the optimized surface counts as one consistent view
     c.fusion.guided_dilation = 4  # field-guided depth fused within 4 px of the masks

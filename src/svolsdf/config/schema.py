@@ -113,6 +113,10 @@ class MVSConfig:
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
     its depth again and centre stage 3 on it (svolsdf mode;
     `svolsdf.pipeline.finer.finer_stage_cascade`)."""
+    save_volumes: bool = False
+    """Also keep the stage-2 and stage-3 probability volumes (OUT/mvs/stage2, stage3, about 70 MB
+    a view at 768x576); nothing in the pipeline reads them again. Stage 1's are always kept (the
+    field's prior and a resumed run read them). `svolsdf mvs` writes every stage's."""
     guide_network: bool = True
     """Backbones that can start from a depth map (patchmatchnet): rerun the network from the
     field's guide depth at the guided stage 2, so that the surface guides the network itself, as
@@ -224,6 +228,17 @@ class TrainConfig:
     """mvs sampler: stratified samples along the ray."""
     samples_fine: int = _limited(48, min=0)
     """mvs sampler: importance samples from P' and the current weights."""
+    colour_min_weight: float = _limited(0.0, min=0, max=0.01)
+    """> 0: during training the colour features and network are evaluated only at samples whose
+    rendering weight exceeds this (the SDF and its gradient at every sample); the colour terms
+    left out sum to less than samples x this per ray (`svolsdf.render.volume.render_rays`).
+    0 = every sample, as the paper. Fields without a separate colour-feature lookup (mlp) use
+    every sample."""
+    prior_floor: float = _limited(0.0, min=0, max=0.01)
+    """The labels P' (docs/method.md 3) read the source views only at samples whose own view's
+    probability P_ref exceeds this; below it P' is left at 0 (less than this x (views - 1)).
+    0: the sources are skipped only where P_ref = 0, which leaves P' exact
+    (`svolsdf.prior.consistency.MVSPrior.label`)."""
     beta_min: float = _limited(0.0, min=0)
     """> 0: replaces the Laplace density's floor beta_min (docs/method.md 5.4: 1e-4); 0 keeps it."""
     beta_start: float = _limited(0.0, min=0)

@@ -444,6 +444,14 @@ class GridSDFField(SurfaceModel):
             grad = grad.detach()
         return sdf, grad
 
+    def colour_features(self, x: Tensor) -> Tensor:
+        """x: (N, 3) -> (N, feature_dim) the colour network's features at x, the third output
+        of `sdf_and_grad` without its SDF (training renders the colour only where a sample's
+        weight counts, `svolsdf.render.volume.render_rays`)."""
+        self._check_points(x)
+        p, _, _ = self._to_box(x)
+        return self._features(p)
+
     def colour(self, x: Tensor, view_dir: Tensor, normal: Tensor, feature: Tensor) -> Tensor:
         """x, view_dir, normal: (N, 3), feature: (N, feature_dim) -> rgb (N, 3) in [0, 1].
 

@@ -68,7 +68,8 @@ class RunFolder:
       inputs and the digest of the config.yaml it finished or was last reused under;
       "manifest": the input files, `svolsdf.pipeline.keys.input_manifest`), ``timing.json``,
       ``log``, ``.svolsdf.lock`` (`folder_lock`: every command that writes here);
-    - ``mvs/stage{1,2,3}/<id>.npz``, ``depth/<id>.npy`` (+ .png), ``confidence/<id>.npy``;
+    - ``mvs/stage1/<id>.npz`` (stages 2-3 too with ``mvs.save_volumes``), ``depth/<id>.npy``
+      (+ .png), ``confidence/<id>.npy``;
     - ``field/model.pt`` (+ checkpoints), ``field/render_depth/<id>.npy``, ``field/render_rgb/``,
       ``normals/``, ``field/stage2/`` (the finer-stage optimization), ``field/surface.pt``;
     - ``unguided/{depth,confidence}/<id>.npy``, ``network/{depth,confidence}/<id>.npy``;

@@ -93,11 +93,13 @@ def _save_npy(path: Path, arr: np.ndarray) -> None:
 
 
 def save_cascade(result: dict[int, list[ProbabilityVolume]], out_dir: Path | str,
-                 picture=None, volumes: bool = True) -> dict[int, dict[str, Path]]:
+                 picture=None, volumes: bool | tuple[int, ...] = True
+                 ) -> dict[int, dict[str, Path]]:
     """Write the cascade's outputs under ``out_dir``.
 
     Files: ``mvs/stage{k}/{view_id}.npz`` (`ProbabilityVolume.save`, deflated where it pays) for
-    every stage when ``volumes``; for the last stage run: ``depth/{view_id}.npy`` (z-depth, world
+    every stage when ``volumes`` is True, for the stages listed when it is a tuple, none when
+    False; for the last stage run: ``depth/{view_id}.npy`` (z-depth, world
     units, float32, at its size), ``confidence/{view_id}.npy`` (product over stages,
     docs/method.md 6.2) and, when ``picture`` is given, ``depth/{view_id}.png`` written by
     ``picture(depth (H,W) ndarray, path)``.
@@ -107,7 +109,10 @@ def save_cascade(result: dict[int, list[ProbabilityVolume]], out_dir: Path | str
     """
     out_dir = Path(out_dir)
     files: dict[int, dict[str, Path]] = {}
-    for k, vols in result.items() if volumes else ():
+    keep = tuple(result) if volumes is True else tuple(volumes or ())
+    for k, vols in result.items():
+        if k not in keep:
+            continue
         d = out_dir / "mvs" / f"stage{k}"
         d.mkdir(parents=True, exist_ok=True)
         for v in vols:
@@ -138,7 +143,7 @@ def run_and_save_cascade(
     prev: dict[int, ProbabilityVolume] | None = None,
     earlier: dict[int, list[ProbabilityVolume]] | None = None,
     picture=None,
-    volumes: bool = True,
+    volumes: bool | tuple[int, ...] = True,
 ) -> dict[int, Tensor]:
     """`run_cascade` and `save_cascade` one reference view at a time, so that only one view's
     finer volumes are in memory (at 2x the working size a view's stage-2 and stage-3 volumes are

@@ -36,7 +36,7 @@ from svolsdf.render.rays import RayBundle, rays_from_cameras
 from svolsdf.render.volume import render_rays
 from svolsdf.scene.cameras import Cameras
 
-__all__ = ["Trainer", "TrainData"]
+__all__ = ["Trainer", "TrainData", "distinct_pixels"]
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +60,22 @@ class TrainData:
     near_far: Tensor | None = None
     mvs_depth: Tensor | None = None
     focus: Tensor | None = None
+
+
+def distinct_pixels(count: int, n: int, generator: torch.Generator | None = None,
+                    device=None) -> Tensor:
+    """(min(n, count),) distinct pixel indices in [0, count), uniform over the subsets (as
+    ``randperm(count)[:n]``, docs/method.md 4.6): n draws with replacement, the repeated ones
+    drawn again until none is left, in increasing order. A step's 512 of 442k pixels repeat
+    about once in three steps, so this costs the draws, not a permutation of every pixel."""
+    n = min(n, count)
+    if 4 * n > count:  # a large share of the pixels: the permutation is as cheap
+        return torch.randperm(count, generator=generator, device=device)[:n]
+    pix = torch.unique(torch.randint(count, (n,), generator=generator, device=device))
+    while len(pix) < n:
+        more = torch.randint(count, (n - len(pix),), generator=generator, device=device)
+        pix = torch.unique(torch.cat([pix, more]))
+    return pix
 
 
 class Trainer:
@@ -129,8 +145,12 @@ class Trainer:
 
         clamp_arg = "clamp" in inspect.signature(self.model.sdf_and_grad).parameters
         self._noclamp = {"clamp": False} if clamp_arg else {}
-        # the NaN-safe update branches on the host where that costs nothing (`_safe_clip`)
+        # the NaN-safe update (`_safe_clip`), the step's pixels, the colour only where it counts
+        # (train.colour_min_weight) and the prior's sources only where P_ref counts
+        # (`MVSPrior.label`) read sizes or flags on the host where that costs nothing
         self.host_branch = torch.device(self.device).type == "cpu"
+        if prior is not None and hasattr(prior, "label_floor"):
+            prior.label_floor = cfg.prior_floor  # (the sampler reads the same prior)
 
     # ------------------------------------------------------------------ setup
     def _build_optimizer(self) -> None:
@@ -174,8 +194,11 @@ class Trainer:
         n_focus = 0
         if self.focus_index is not None:
             n_focus = min(n, int(round(self.cfg.object_ray_fraction * n)))
-        pix = torch.randperm(self.H * self.W, generator=self.generator,
-                             device=self.device)[:n - n_focus]
+        if self.host_branch:  # (unique's size is read on the host)
+            pix = distinct_pixels(self.H * self.W, n - n_focus, self.generator, self.device)
+        else:
+            pix = torch.randperm(self.H * self.W, generator=self.generator,
+                                 device=self.device)[:n - n_focus]
         if n_focus:  # uniform inside the view's dilated object mask (with replacement)
             r = torch.rand(n_focus, generator=self.generator, device=self.device)
             k = (r * self.focus_count[t]).long().clamp_max(self.focus_count[t] - 1)
@@ -212,12 +235,18 @@ class Trainer:
         """One batch -> dict of loss terms and "total" (docs/method.md 4.6)."""
         cfg = self.cfg
         model = self.model
+        # the shortcuts that read sizes on the host (the colour where it counts, the prior's
+        # sources where P_ref counts) only where that costs nothing (host_branch: the CPU)
+        host = self.host_branch
+        if self.prior is not None and hasattr(self.prior, "host_reads"):
+            self.prior.host_reads = host
         with record_function("svolsdf.rays"):
             rays, pix, t = self.sample_rays(cfg.rays)
         with record_function("svolsdf.sampling"):
             s = self.sampler(model, rays, training=True)
         with record_function("svolsdf.render"):
-            out = render_rays(model, rays, s.z, background=self.background, create_graph=True)
+            out = render_rays(model, rays, s.z, background=self.background, create_graph=True,
+                              colour_min_weight=cfg.colour_min_weight if host else 0.0)
         R = len(rays)
         target = self.images[t].reshape(3, -1)[:, pix].T  # (R, 3)
         terms: dict[str, Tensor] = {}
@@ -229,9 +258,9 @@ class Trainer:
                 mvs_d = self.mvs_depth[t].reshape(-1)[pix]
                 if cfg.ablation == "no-prob-volume":
                     p_label = L.onehot_label(out.z, mvs_d, rays.cos)
-            else:  # (MVSPrior.lookup labels itself svolsdf.prior_lookup)
-                p_ref, p_src, _ = self.prior.lookup(out.points, rays.view)
-                p_label = p_ref * p_src  # P' = P_ref * sum_j P_src^j (docs/method.md 3)
+            else:  # (MVSPrior.label labels itself svolsdf.prior_lookup)
+                # P' = P_ref * sum_j P_src^j (docs/method.md 3)
+                p_label = self.prior.label(out.points, rays.view)
 
         with record_function("svolsdf.losses"):
             warm = self.smoothed is not None and self.step < cfg.anneal_rgb

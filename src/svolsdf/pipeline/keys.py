@@ -69,7 +69,9 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # keys run folders had before the option existed
     if not sig["config"].get("native_images", True):
         del sig["config"]["native_images"]
-    c["mvs"] = {**{k: v for k, v in c["mvs"].items() if k != "guide_network"},
+    # mvs.save_volumes only says which files are kept, not what they hold
+    c["mvs"] = {**{k: v for k, v in c["mvs"].items()
+                   if k not in ("guide_network", "save_volumes")},
                 "signature": sig}
     # how the views were picked does not matter once they are known (views), and run
     # folders from before the option keep their keys
@@ -89,6 +91,11 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # or drawing a share of its rays in them; the guide rendered within the dilated masks (a
     # field's: mvs-only and the soft-consistency ablation render none). True, the default,
     # stays out: run folders keep their keys
+    # train.colour_min_weight and prior_floor enter only when set: run folders from before keep
+    # their keys (0 is the exact computation)
+    for k in ("colour_min_weight", "prior_floor"):
+        if not c["train"].get(k):
+            c["train"].pop(k, None)
     no_masks = [] if cfg.scene.use_masks else ["no masks"]
     reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0)
     k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],

@@ -115,6 +115,8 @@ class MVSPrior:
             False: pixel centres of the volume's own camera map exactly onto its cells.
         quirk_image_size: (W, H) of the VolSDF images for ``align_quirk``.
         device: where the volumes live (default: where they are).
+        label_floor: `label` reads the source views only at points where P_ref exceeds it
+            (0: where P_ref > 0, which leaves P' exact; the trainer sets ``train.prior_floor``).
 
     Example:
         >>> prior = MVSPrior(volumes, scene.normalization)            # doctest: +SKIP
@@ -124,10 +126,14 @@ class MVSPrior:
 
     def __init__(self, volumes: list[ProbabilityVolume], normalization: Normalization,
                  align_quirk: bool = False, quirk_image_size: tuple[int, int] | None = None,
-                 device=None):
+                 device=None, label_floor: float = 0.0):
         if not volumes:
             raise ValueError("MVSPrior: no probability volumes given")
         self.align_quirk = bool(align_quirk)
+        self.label_floor = float(label_floor)
+        # `label`'s skipping reads which points pass on the host (a sync on a GPU); the
+        # trainer sets False where its steps must not wait for the device
+        self.host_reads = True
         self.views = [_unit_view(v.to(device) if device is not None else v, normalization,
                                  self.align_quirk, quirk_image_size) for v in volumes]
 
@@ -208,6 +214,59 @@ class MVSPrior:
                 valid = valid | (ok & ~is_ref)
             p_ref = torch.where(valid, p_ref, torch.zeros_like(p_ref))
             return p_ref.reshape(R, S), p_src.reshape(R, S), valid.reshape(R, S)
+
+    @torch.no_grad()
+    def label(self, points: Tensor, ref_view: Tensor) -> Tensor:
+        """P' = P_ref * sum_j P_src^j at ray samples (docs/method.md 3), the ray's own view read
+        first and the source views only where P_ref > ``label_floor``: P' is left at 0 where
+        P_ref <= label_floor, which with the default 0 is P' exactly (`lookup`'s P_ref * P_src,
+        bit for bit) and otherwise drops less than label_floor * (views - 1) per point. About a
+        third of a step's samples have P_ref = 0 (outside the view's frustum or depth range),
+        half have P_ref < 1e-4. With ``host_reads`` False every view is read at every point
+        (no data-dependent sizes: no device-host synchronisation) and P' is exact.
+
+        Args:
+            points: (R, S, 3) unit-frame sample positions.
+            ref_view: (R,) long index of each ray's view into the volumes.
+
+        Returns:
+            (R, S) P', no gradients.
+        """
+        if points.ndim != 3 or points.shape[-1] != 3:
+            raise ValueError(f"MVSPrior.label: points must be (R, S, 3), got "
+                             f"{tuple(points.shape)}")
+        R, S, _ = points.shape
+        if ref_view.shape != (R,):
+            raise ValueError(f"MVSPrior.label: ref_view must be (R,) = ({R},), "
+                             f"got {tuple(ref_view.shape)}")
+        if not self.host_reads:
+            p_ref, p_src, _ = self.lookup(points, ref_view)
+            return p_ref * p_src
+        with record_function("svolsdf.prior_lookup"):
+            pts = points.detach().reshape(-1, 3).float()
+            ref = ref_view.to(pts.device).long()[:, None].expand(R, S).reshape(-1)
+            refs = ref.unique().tolist()
+            p_ref = torch.zeros(R * S, device=pts.device)
+            for i in refs:
+                if len(refs) == 1:
+                    p_ref = self.view_lookup(i, pts)[0]
+                else:
+                    sel = (ref == i).nonzero()[:, 0]
+                    p_ref[sel] = self.view_lookup(i, pts[sel])[0]
+            idx = (p_ref > self.label_floor).nonzero()[:, 0]
+            q, rq = pts[idx], ref[idx]
+            p_src = torch.zeros(len(idx), device=pts.device)
+            valid = torch.zeros(len(idx), dtype=torch.bool, device=pts.device)
+            for i in range(len(self.views)):
+                if refs == [i]:  # every ray's own view: no source here
+                    continue
+                cost, ok = self.view_lookup(i, q)
+                not_ref = rq != i
+                p_src = p_src + torch.where(not_ref, cost, torch.zeros_like(cost))
+                valid = valid | (ok & not_ref)
+            label = torch.zeros(R * S, device=pts.device)
+            label[idx] = torch.where(valid, p_ref[idx], torch.zeros_like(p_src)) * p_src
+            return label.reshape(R, S)
 
     def p_prime(self, points: Tensor, ref_view: Tensor) -> tuple[Tensor, Tensor]:
         """(R, S, 3), (R,) -> P' (R, S) and valid (R, S)."""

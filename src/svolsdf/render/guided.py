@@ -88,8 +88,7 @@ class MVSGuidedSampler:
         w_n = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
         pdf = w_n
         if self.prior is not None and (training or self.use_prior_at_eval):
-            p_ref, p_src, _ = self.prior.lookup(pts, rays.view)
-            pp = (p_ref * p_src)[:, :-1]  # P' (docs/method.md 3)
+            pp = self.prior.label(pts, rays.view)[:, :-1]  # P' (docs/method.md 3)
             s = pp.sum(-1, keepdim=True)
             supported = s > cfg.thresh
             pp_n = pp / s.clamp_min(1e-12)

@@ -98,7 +98,9 @@ def render_rays(
         bounded_last: see above (implied by ``background``).
         create_graph: keep the SDF gradient differentiable (default ``model.training``).
         colour_min_weight: > 0 evaluates the colour only at samples whose weight exceeds it
-            (for rendering without gradients; 0 = every sample, exact).
+            (0 = every sample, exact). Without gradients any model; with ``create_graph``
+            (training) models with ``sdf_grad`` and ``colour_features`` (the grid field), others
+            take every sample.
 
     Returns:
         RenderOutput (its S excludes the far bound when the last interval is bounded).
@@ -117,7 +119,22 @@ def render_rays(
     view_dirs = rays.dirs[:, None].expand(R, S, 3).reshape(-1, 3)
     last = (z_max - z[:, -1:]) if bounded else torch.full_like(z[:, :1], 1e10)
     deltas = torch.cat([z[:, 1:] - z[:, :-1], last], dim=-1)
-    if colour_min_weight > 0:
+    if colour_min_weight > 0 and create_graph and _has_split_colour(model):
+        # training (docs/method.md 5.4 compositing, train.colour_min_weight): the SDF and its
+        # gradient at every sample (the weights, the eikonal sample and the normals need them),
+        # the colour features and the colour network only where a sample's weight exceeds the
+        # threshold; the dropped samples' colour terms w_i c_i sum to less than
+        # S * colour_min_weight per ray, and their weights keep their gradient through the
+        # transmittance of the kept ones
+        sdf, grad = model.sdf_grad(flat, create_graph=True)
+        sdf = sdf.reshape(R, S)
+        w, t_after = composite(model.density(sdf), deltas)
+        keep = (w.detach().reshape(-1) > colour_min_weight).nonzero()[:, 0]
+        f_k = model.colour_features(flat[keep])
+        rgb_k = model.colour(flat[keep], view_dirs[keep], grad[keep], f_k)
+        rgb_s = torch.zeros(R * S, 3, dtype=rgb_k.dtype, device=w.device).index_copy(
+            0, keep, rgb_k).reshape(R, S, 3)
+    elif colour_min_weight > 0:
         # rendering: the weights need only the SDF; gradients, features and colour are then
         # evaluated only where a sample contributes (the dropped terms sum to less than
         # S * colour_min_weight per ray)
@@ -150,6 +167,13 @@ def render_rays(
         depth_all = rays.cos * ((w * z).sum(-1) + t_after * wz_bg) / (
             opacity + t_after * wsum_bg + 1e-8)
     return RenderOutput(rgb, depth, w, opacity, normals, sdf, points, grad, z, depth_all, t_after)
+
+
+def _has_split_colour(model: SurfaceModel) -> bool:
+    """The model computes the SDF's gradient without the colour features (``sdf_grad``) and
+    the colour features on their own (``colour_features``): the grid field."""
+    return callable(getattr(model, "sdf_grad", None)) and \
+        callable(getattr(model, "colour_features", None))
 
 
 def render_image(
