@@ -91,10 +91,10 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # or drawing a share of its rays in them; the guide rendered within the dilated masks (a
     # field's: mvs-only and the soft-consistency ablation render none). True, the default,
     # stays out: run folders keep their keys
-    # train.colour_min_weight and prior_floor enter only when set: run folders from before keep
-    # their keys (0 is the exact computation)
+    # train.colour_min_weight and prior_floor enter only when set (0 is the exact computation)
+    # and a field is trained: run folders from before, and mvs-only runs, keep their keys
     for k in ("colour_min_weight", "prior_floor"):
-        if not c["train"].get(k):
+        if not (c["train"].get(k) and has_field(cfg)):
             c["train"].pop(k, None)
     no_masks = [] if cfg.scene.use_masks else ["no masks"]
     reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0)
