@@ -160,3 +160,23 @@ def test_label_is_lookups_p_prime_and_reads_sources_only_where_p_ref_counts(ref_
     keep = p_ref > floor
     assert torch.equal(lab[keep], exact[keep]) and (lab[~keep] == 0).all()
     assert (exact[~keep] <= floor * 2 + 1e-7).all()
+
+
+def test_selected_sources_sum_only_their_volumes_in_lookup_and_label():
+    """sources: a ray's P_src sums only its view's listed sources, in `lookup` and `label`
+    alike; None is every other view (the paper's sum)."""
+    vols = _volumes()
+    norm = Normalization(CENTER, SCALE)
+    pts = _points(R=6, S=30)
+    ref = torch.tensor([0, 1, 2, 0, 1, 2])
+    full = MVSPrior(vols, norm)
+    assert torch.equal(MVSPrior(vols, norm, sources=[[1, 2], [0, 2], [0, 1]]).lookup(pts, ref)[1],
+                       full.lookup(pts, ref)[1])
+    sel = MVSPrior(vols, norm, sources=[[1], [2], [0]])
+    one = [full.view_lookup(i, pts.reshape(-1, 3))[0].reshape(6, 30) for i in range(3)]
+    want = torch.stack([one[[1, 2, 0][int(r)]][k] for k, r in enumerate(ref)])
+    p_ref, p_src, valid = sel.lookup(pts, ref)
+    assert torch.equal(p_src, want) and (p_src != full.lookup(pts, ref)[1]).any()
+    assert torch.equal(sel.label(pts, ref), p_ref * p_src)
+    with pytest.raises(ValueError, match="sources"):
+        MVSPrior(vols, norm, sources=[[0], [2], [0]])  # a view is not its own source

@@ -239,6 +239,11 @@ class TrainConfig:
     probability P_ref exceeds this; below it P' is left at 0 (less than this x (views - 1)).
     0: the sources are skipped only where P_ref = 0, which leaves P' exact
     (`svolsdf.prior.consistency.MVSPrior.label`)."""
+    prior_sources: Literal["all", "selected"] = "all"
+    """Whose P_src enter a ray's label P' (docs/method.md 3): all (every other input view, the
+    paper) | selected (the view's MVS sources, at most ``mvs.max_sources`` by pair score,
+    `svolsdf.mvs.backbone.select_sources`: with more views than that, each label reads fewer
+    volumes). Three views: the same."""
     beta_min: float = _limited(0.0, min=0)
     """> 0: replaces the Laplace density's floor beta_min (docs/method.md 5.4: 1e-4); 0 keeps it."""
     beta_start: float = _limited(0.0, min=0)

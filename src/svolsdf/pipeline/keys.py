@@ -96,6 +96,9 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     for k in ("colour_min_weight", "prior_floor"):
         if not (c["train"].get(k) and has_field(cfg)):
             c["train"].pop(k, None)
+    # ditto train.prior_sources: only "selected", with a field
+    if not (c["train"].get("prior_sources") == "selected" and has_field(cfg)):
+        c["train"].pop("prior_sources", None)
     no_masks = [] if cfg.scene.use_masks else ["no masks"]
     reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0)
     k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],

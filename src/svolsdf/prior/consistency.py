@@ -115,6 +115,9 @@ class MVSPrior:
             False: pixel centres of the volume's own camera map exactly onto its cells.
         quirk_image_size: (W, H) of the VolSDF images for ``align_quirk``.
         device: where the volumes live (default: where they are).
+        sources: for each view (the volumes' order) the indices of its source views, whose
+            P_src enter the sum (``train.prior_sources = selected``: the MVS's selected sources,
+            `svolsdf.mvs.backbone.select_sources`); None: every other view (docs/method.md 3).
         label_floor: `label` reads the source views only at points where P_ref exceeds it
             (0: where P_ref > 0, which leaves P' exact; the trainer sets ``train.prior_floor``).
 
@@ -126,7 +129,8 @@ class MVSPrior:
 
     def __init__(self, volumes: list[ProbabilityVolume], normalization: Normalization,
                  align_quirk: bool = False, quirk_image_size: tuple[int, int] | None = None,
-                 device=None, label_floor: float = 0.0):
+                 device=None, label_floor: float = 0.0,
+                 sources: list[list[int]] | None = None):
         if not volumes:
             raise ValueError("MVSPrior: no probability volumes given")
         self.align_quirk = bool(align_quirk)
@@ -136,6 +140,18 @@ class MVSPrior:
         self.host_reads = True
         self.views = [_unit_view(v.to(device) if device is not None else v, normalization,
                                  self.align_quirk, quirk_image_size) for v in volumes]
+        V = len(volumes)
+        # is_source[r, i]: view i's P_src enters the label of rays of view r
+        self.is_source = ~torch.eye(V, dtype=torch.bool)
+        if sources is not None:
+            if len(sources) != V or any(not 0 <= i < V or i == r
+                                        for r, s in enumerate(sources) for i in s):
+                raise ValueError(f"MVSPrior: sources must list, for each of the {V} views, "
+                                 f"other views' indices, got {sources}")
+            self.is_source = torch.zeros(V, V, dtype=torch.bool)
+            for r, s in enumerate(sources):
+                self.is_source[r, list(s)] = True
+        self.is_source = self.is_source.to(self.views[0].prob.device)
 
     def __len__(self) -> int:
         return len(self.views)
@@ -182,7 +198,8 @@ class MVSPrior:
         """P_ref, sum of P_src and validity at ray samples (docs/method.md 3, steps 1-9).
 
         For each view i, the points are projected into its volume; the ray's own view gives
-        P_ref, the others add to P_src_sum and OR their validity into ``valid``. P_ref is set to
+        P_ref, its sources (every other view unless the prior was given ``sources``) add to
+        P_src_sum and OR their validity into ``valid``. P_ref is set to
         0 where no source view is valid. Views are processed in a loop, points all at once.
 
         Args:
@@ -209,9 +226,10 @@ class MVSPrior:
             for i in range(len(self.views)):
                 cost, ok = self.view_lookup(i, pts)
                 is_ref = ref == i
+                is_src = self.is_source[ref, i]
                 p_ref = torch.where(is_ref, cost, p_ref)
-                p_src = p_src + torch.where(is_ref, torch.zeros_like(cost), cost)
-                valid = valid | (ok & ~is_ref)
+                p_src = p_src + torch.where(is_src, cost, torch.zeros_like(cost))
+                valid = valid | (ok & is_src)
             p_ref = torch.where(valid, p_ref, torch.zeros_like(p_ref))
             return p_ref.reshape(R, S), p_src.reshape(R, S), valid.reshape(R, S)
 
@@ -258,12 +276,12 @@ class MVSPrior:
             p_src = torch.zeros(len(idx), device=pts.device)
             valid = torch.zeros(len(idx), dtype=torch.bool, device=pts.device)
             for i in range(len(self.views)):
-                if refs == [i]:  # every ray's own view: no source here
+                if not bool(self.is_source[refs, i].any()):  # no ray's source
                     continue
                 cost, ok = self.view_lookup(i, q)
-                not_ref = rq != i
-                p_src = p_src + torch.where(not_ref, cost, torch.zeros_like(cost))
-                valid = valid | (ok & not_ref)
+                is_src = self.is_source[rq, i]
+                p_src = p_src + torch.where(is_src, cost, torch.zeros_like(cost))
+                valid = valid | (ok & is_src)
             label = torch.zeros(R * S, device=pts.device)
             label[idx] = torch.where(valid, p_ref[idx], torch.zeros_like(p_src)) * p_src
             return label.reshape(R, S)
