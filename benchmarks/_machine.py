@@ -6,7 +6,7 @@ import platform
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["copy_run", "cpu_name", "peak_rss_gb", "write_results"]
+__all__ = ["copy_run", "cpu_name", "peak_rss_gb", "public_argv", "write_results"]
 
 
 def cpu_name() -> str:
@@ -26,6 +26,25 @@ def peak_rss_gb() -> float:
     from svolsdf.pipeline import peak_rss_gb as _peak
 
     return _peak()
+
+
+def public_argv(argv: list[str]) -> str:
+    """A command line as a results file prints it: a path inside the repository relative to
+    it, any other absolute path as DATA/<its name> (also in NAME=PATH), so no machine's
+    folders are committed."""
+    repo = Path(__file__).resolve().parents[1]
+
+    def path(p: str) -> str:
+        q = Path(p).resolve()
+        return str(q.relative_to(repo)) if q.is_relative_to(repo) else f"DATA/{q.name}"
+
+    def one(a: str) -> str:
+        name, eq, rest = a.partition("=")
+        if eq and rest.startswith("/") and not name.startswith("-"):
+            return f"{name}={path(rest)}"
+        return path(a) if a.startswith("/") else a
+
+    return " ".join(one(a) for a in argv)
 
 
 def write_results(path: Path, text: str) -> None:

@@ -368,7 +368,11 @@ def public_command(argv: list[str], out: Path) -> str:
 
 def report(meta: dict, scenes: list[dict], many: list[dict], targets: dict) -> str:
     old, new = meta["old"], meta["new"]
-    L = [f"# Fast preset, side by side: {new['short']} against {old['short']} (issue 39)", "",
+    title = (f"# Fast preset, side by side: {new['short']} against {old['short']} (issue 39)"
+             if not new.get("preset") else
+             f"# {new['preset'].capitalize()} preset of {new['short']} against the fast preset "
+             f"of {old['short']}, side by side (issue 39)")
+    L = [title, "",
          f"- machine: nproc = {meta['nproc']}, CPU: {meta['cpu']}; load average at the start "
          f"{meta['load_start']}, at the end {meta.get('load_end', '-')} (a shared machine: other "
          "jobs may have been running; compare the ratio, not the seconds)",
@@ -384,11 +388,7 @@ def report(meta: dict, scenes: list[dict], many: list[dict], targets: dict) -> s
          "(timing.json); process = the reconstruct process's wall time (imports and loading "
          "included; - when resumed from a cache); peak = the largest stage peak resident memory "
          "(timing.json)",
-         "- Chamfer (acc + comp) / 2 in the scene's units, scored for both by the new checkout: "
-         "synthetic scenes against the ground truth the input views observe, DTU against the "
-         "many-view pseudo ground truth (benchmarks/dtu_pseudo_gt.py, scored as benchmarks/"
-         "mesh_study.py); a mesh by its surface, sampled at 0.1 % of the ground truth's "
-         "diagonal (svolsdf.evaluate.chamfer.mesh_density), not by its vertices",
+         _protocol_line(meta),
          f"- held-out PSNR: volume rendering (`svolsdf render`, each side's code) of the first "
          f"{meta['held_out_views']} test views (never inputs) at {meta['held_out_scale']:g} x "
          "the working size, masked PSNR against the scene's images at that size "
@@ -506,7 +506,154 @@ def report(meta: dict, scenes: list[dict], many: list[dict], targets: dict) -> s
             notes = [runs[n].get("error"), (runs[n].get("render") or {}).get("error")]
             if any(notes):
                 L.append(f"\n- {n}: " + "; ".join(x for x in notes if x))
+    L += computed_notes(meta, scenes, many, targets)
     return "\n".join(L) + "\n"
+
+
+def _protocol_line(meta: dict) -> str:
+    """How the Chamfer was scored. Results written before meshes were scored by their surface
+    (no ``mesh_scored`` in their meta) scored a synthetic scene's mesh by its vertices."""
+    if meta.get("mesh_scored") == "surface":
+        return ("- Chamfer (acc + comp) / 2 in the scene's units, scored for both by the new "
+                "checkout: synthetic scenes against the ground truth the input views observe, DTU "
+                "against the many-view pseudo ground truth (benchmarks/dtu_pseudo_gt.py, scored "
+                "as benchmarks/mesh_study.py); a mesh by its surface, sampled at 0.1 % of the "
+                "ground truth's diagonal (svolsdf.evaluate.chamfer.mesh_density), not by its "
+                "vertices")
+    return ("- Chamfer (acc + comp) / 2 in the scene's units, scored for both by the new "
+            "checkout: synthetic scenes against the ground truth the input views observe (mesh by "
+            "its vertices), DTU against the many-view pseudo ground truth "
+            "(benchmarks/dtu_pseudo_gt.py, scored as benchmarks/mesh_study.py: mesh sampled on "
+            "its surface)")
+
+
+# -------------------------------------------------------------------------------------------------
+# the notes: computed from the same data as the tables (no hand-written notes in a results file;
+# the reasoning about them belongs in docs/, e.g. docs/presets.md)
+
+
+def _span(vals: list[float], fmt: str, unit: str = "") -> str:
+    """"a-b" (or "a" when they round alike) for unsigned values, "a to b" for signed ones."""
+    lo, hi = fmt.format(min(vals)), fmt.format(max(vals))
+    if lo == hi:
+        return lo + unit
+    return f"{lo}{' to ' if '+' in fmt else '-'}{hi}{unit}"
+
+
+def _by_kind(scenes: list[dict], value) -> list[tuple[str, list[float], list[str]]]:
+    """[(kind, values, tags)] of ``value(scene)`` (None skipped) per scene kind, in the order the
+    kinds first appear."""
+    out: dict[str, tuple[list, list]] = {}
+    for s in scenes:
+        v = value(s)
+        if v is not None:
+            vals, tags = out.setdefault(s.get("kind") or "other", ([], []))
+            vals.append(v)
+            tags.append(s["tag"])
+    return [(k, v, t) for k, (v, t) in out.items()]
+
+
+def _per_kind(scenes: list[dict], value, fmt: str, unit: str = "") -> str:
+    """The span over all scenes, then per kind: "x to y % over the 6 scenes (synthetic x to z %;
+    dtu_scan65 y %)" (a kind of one scene is named by the scene)."""
+    groups = _by_kind(scenes, value)
+    every = [v for _, vals, _ in groups for v in vals]
+    if not every:
+        return "-"
+    parts = [f"{kind} {_span(vals, fmt, unit)}" if len(vals) > 1 else
+             f"{tags[0]} {fmt.format(vals[0])}{unit}" for kind, vals, tags in groups]
+    n = len(every)
+    return (f"{_span(every, fmt, unit)} over the {n} scene{'s' if n > 1 else ''}"
+            + (f" ({'; '.join(parts)})" if len(groups) > 1 else ""))
+
+
+def computed_notes(meta: dict, scenes: list[dict], many: list[dict], targets: dict) -> list[str]:
+    """The "Notes" section: ranges, counts and shares over the scenes, computed from the data."""
+    def run(s, side):
+        return s["runs"].get(side) or {}
+
+    def ratio(a, b):
+        return a / b if a is not None and b else None
+
+    def wall_ratio(s):
+        return ratio(run(s, "new").get("wall_s"), run(s, "old").get("wall_s"))
+
+    def change(key):
+        return lambda s: _rel(_get(run(s, "new"), key), _get(run(s, "old"), key))
+
+    def psnr_diff(s):
+        o, n = _get(run(s, "old"), "images", "psnr"), _get(run(s, "new"), "images", "psnr")
+        return None if o is None or n is None else n - o
+
+    both = [s for s in scenes if wall_ratio(s) is not None]
+    if not both and not many:
+        return []
+    L = ["", "## Notes (computed from the JSON beside this file)", ""]
+    if both:
+        rs = [wall_ratio(s) for s in both]
+        met = [s for s in both if wall_ratio(s) <= targets["ratio"]]
+        missed = [s for s in both if wall_ratio(s) > targets["ratio"]]
+
+        def listed(group):
+            return ", ".join(f"{s['tag']} {wall_ratio(s):.2f}" for s in group)
+
+        walls = {side: _span([run(s, side)["wall_s"] for s in both], "{:.0f}", " s")
+                 for side in ("old", "new")}
+        L.append(f"- Three-view wall new/old: {_span(rs, '{:.2f}')} (mean "
+                 f"{sum(rs) / len(rs):.2f}); new wall {walls['new']}, old {walls['old']}. The "
+                 f"target (<= {targets['ratio']}) is met on {len(met)} of {len(both)} scenes"
+                 + (f" ({listed(met)})" if met else "")
+                 + (f" and missed on {len(missed)} ({listed(missed)})" if missed else "") + ".")
+        stages: list[str] = []
+        for s in both:
+            for side in ("old", "new"):
+                stages += [k for k in run(s, side).get("stages", {}) if k not in stages]
+        L += ["- Stage times new/old, per stage (range over the scenes of each kind):", "",
+              "| stage | " + " | ".join(k for k, _, _ in _by_kind(both, lambda s: 1.0)) + " |",
+              "|---|" + "---:|" * len(_by_kind(both, lambda s: 1.0))]
+        for st in stages:
+            def st_ratio(s, st=st):
+                return ratio(run(s, "new").get("stages", {}).get(st),
+                             run(s, "old").get("stages", {}).get(st))
+            cells = [_span(v, "{:.2f}") for _, v, _ in _by_kind(both, st_ratio)]
+            L.append(f"| {st} | " + " | ".join(cells) + " |")
+        L.append("")
+
+        def field_share(s):
+            st = run(s, "new").get("stages", {})
+            return 100.0 * st["field"] / run(s, "new")["wall_s"] if "field" in st else None
+
+        L.append(f"- The field's share of the new side's wall: "
+                 f"{_per_kind(both, field_share, '{:.0f}', ' %')}.")
+        for key in ("points", "mesh"):
+            L.append(f"- {key.capitalize()} Chamfer, new against old: "
+                     f"{_per_kind(both, change(key), '{:+.1f}', ' %')}.")
+        L.append(f"- Held-out PSNR, new minus old: {_per_kind(both, psnr_diff, '{:+.2f}', ' dB')}.")
+        for side in ("old", "new"):
+            pk = [run(s, side).get("peak_gb") for s in both]
+            pk = [x for x in pk if x is not None]
+            if pk:
+                L.append(f"- Peak memory, three views, {side}: {_span(pk, '{:.2f}', ' GB')}.")
+    for s in many:
+        n = run(s, "new")
+        if n.get("wall_s") is None:
+            continue
+        st = n.get("stages", {})
+        line = (f"- {len(s.get('inputs') or [])} views ({s['tag']}), new: wall {n['wall_s']:.0f} s "
+                f"(" + ", ".join(f"{k} {v:.0f}" for k, v in st.items()) + " s), peak "
+                f"{_f(n.get('peak_gb'))} GB")
+        three = next((x for x in scenes if x["scene"] == s["scene"]), None)
+        f3 = run(three, "new").get("stages", {}).get("field") if three else None
+        if f3 and st.get("field"):
+            line += (f"; its field stage {st['field'] / f3:.2f} x the {three['tag']} three-view "
+                     f"run's ({f3:.0f} s)")
+        L.append(line + ".")
+    return L
+
+
+def render(data: dict) -> str:
+    """The results file of one side-by-side run, from its JSON (``--from-json``)."""
+    return report(data["meta"], data["scenes"], data["many_views"], data["targets"])
 
 
 def side_by_side(args, argv: list[str]) -> None:
@@ -516,7 +663,7 @@ def side_by_side(args, argv: list[str]) -> None:
 
     if not Path(svolsdf.__file__).resolve().is_relative_to((REPO / "src").resolve()):
         sys.exit(f"svolsdf imported from {svolsdf.__file__}, not from {REPO / 'src'}")
-    from _machine import cpu_name, write_results
+    from _machine import cpu_name
 
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -546,7 +693,7 @@ def side_by_side(args, argv: list[str]) -> None:
     meta = {"old": sides["old"], "new": sides["new"], "nproc": os.cpu_count(),
             "cpu": cpu_name(), "load_start": " ".join(f"{x:.1f}" for x in os.getloadavg()),
             "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
-            "command": public_command(argv, out), "args": run_args,
+            "command": public_command(argv, out), "args": run_args, "mesh_scored": "surface",
             "held_out_views": args.held_out_views, "held_out_scale": args.held_out_scale}
     meta["old"] = {k: v for k, v in sides["old"].items() if k != "src"}
     meta["new"] = {k: v for k, v in sides["new"].items() if k != "src"}
@@ -557,10 +704,11 @@ def side_by_side(args, argv: list[str]) -> None:
 
     def write() -> None:
         meta["load_end"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
-        text = report(meta, done, many, targets)
-        write_results(results, text)
         data = {"meta": meta, "targets": targets, "scenes": done, "many_views": many}
-        results.with_suffix(".json").write_text(json.dumps(_public(data, out), indent=1))
+        public = _public(data, out)
+        # the Markdown is rendered from the JSON as written, so --from-json reproduces it
+        results.with_suffix(".json").write_text(json.dumps(public, indent=1))
+        results.write_text(render(json.loads(json.dumps(public))))
         (out / "side_by_side.json").write_text(json.dumps(data, indent=1))
 
     for sc in scenes:

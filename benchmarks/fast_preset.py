@@ -55,6 +55,12 @@ Usage:
 
 Everything is cached in OUT: a rerun reuses the finished pipeline stages (`svolsdf reconstruct`
 resumes), and the wall time reported is the sum of the stages' recorded times.
+
+Either mode writes its data as JSON beside the Markdown (--results with .json) and renders the
+Markdown, its tables, checks and notes, from that JSON alone:
+  --from-json FILE.json    render that JSON's Markdown again (to --results, default FILE.md),
+                           running nothing; e.g. python benchmarks/fast_preset.py --from-json
+                           benchmarks/results/fast_preset_side_by_side.json
 """
 
 from __future__ import annotations
@@ -68,7 +74,7 @@ import time
 from pathlib import Path
 
 # benchmarks/_machine.py (the script's folder is on sys.path)
-from _machine import copy_run, cpu_name, peak_rss_gb, write_results
+from _machine import copy_run, cpu_name, peak_rss_gb, public_argv
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -322,160 +328,16 @@ def _triple(p: dict) -> str:
     return " / ".join(_fmt(p.get(k)) for k in ("accuracy", "completeness", "overall"))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--size", default="768x576")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--object", default="random")
-    ap.add_argument("--out", type=Path, default=Path("/tmp/fast_bench"))
-    ap.add_argument("--results", type=Path, default=REPO / "benchmarks/results/fast_preset.md")
-    ap.add_argument("--only", default="a,b,c,d")
-    ap.add_argument("--more", nargs="*", default=[], metavar="SEED:OBJECT",
-                    help="more synthetic scenes on which only (a) and (d) run, e.g. 3:random "
-                         "7:blobs (a second table with the ratio per scene)")
-    ap.add_argument("--rescore", action="store_true",
-                    help="score the runs saved in OUT/fast_preset.json again and rewrite the "
-                         "results, without reconstructing")
-    ap.add_argument("--scenes", nargs="*", type=Path, default=[], metavar="PATH",
-                    help="more scene folders with exact ground truth (the layout of `svolsdf "
-                         "synth`: gt_points.ply, gt_depth/); (a) and (d) run on each")
-    ap.add_argument("--dtu", action="store_true", help="also the fast preset on dtu_scan65")
-    ap.add_argument("--dtu-scenes", nargs="*", type=Path, default=[], metavar="PATH",
-                    help="more real DTU scans in the IDR layout (as dtu_scan65)")
-    ap.add_argument("--dtu-gt", type=Path, default=None, metavar="ROOT",
-                    help="DTU ground-truth root (ObsMask/, Points/stl/): also run (a) on the "
-                         "DTU scans and score (a) and (d) by the DTU protocol")
-    ap.add_argument("--dtu-test-views", type=int, default=5,
-                    help="held-out DTU views rendered and scored")
-    sbs = ap.add_argument_group("side by side with a baseline commit (issue 39)")
-    sbs.add_argument("--against", default=None, metavar="REV",
-                     help="baseline commit: run the fast preset of REV and of this checkout side "
-                          "by side on --scenes / --dtu / --dtu-scenes (nothing else runs)")
-    sbs.add_argument("--pgt", nargs="*", default=[], metavar="NAME=DIR",
-                     help="pseudo ground truth folder (dtu_pseudo_gt.py --out) per DTU scene "
-                          "folder name, e.g. dtu_scan65=DIR")
-    sbs.add_argument("--many-views", type=Path, default=None, metavar="SCENE",
-                     help="also a run on --many-views-n views of this scene (new only)")
-    sbs.add_argument("--many-views-n", type=int, default=9)
-    sbs.add_argument("--many-views-old", action="store_true",
-                     help="the many-view run for the baseline too")
-    sbs.add_argument("--held-out-views", type=int, default=3,
-                     help="held-out test views rendered and scored per scene")
-    sbs.add_argument("--held-out-scale", type=float, default=0.5,
-                     help="held-out renders at this fraction of the working size")
-    sbs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                     help="passed as --set to both sides' svolsdf reconstruct (against a "
-                          "commit before the config sections, give the old output.* names: "
-                          "the new code still reads them)")
-    sbs.add_argument("--new-preset", default=None, metavar="NAME",
-                     help="the new side runs this preset (e.g. draft), in OUT/new-NAME; the old "
-                          "side keeps the fast preset and its cached runs in OUT/old")
-    args = ap.parse_args()
-    if args.against is not None:
-        from _side_by_side import side_by_side
-
-        if args.results == ap.get_default("results"):
-            args.results = REPO / "benchmarks/results/fast_preset_side_by_side.md"
-        side_by_side(args, sys.argv[1:])
-        return
-
-    import svolsdf  # noqa: F401
-    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
-
-    w, h = (int(x) for x in args.size.split("x"))
-
-    def make(seed: int, obj: str) -> Path:
-        d = args.out / f"scene_{obj}_{seed}_{w}x{h}"
-        if not (d / "gt_points.ply").is_file():
-            make_synthetic_scene(d, SynthConfig(views=5, width=w, height=h, seed=seed,
-                                                object=obj))
-        return d
-
-    only = set(args.only.split(",")) if not args.rescore else set()
-    # the first table's scene, generated only when a run needs it (e.g. not for --only "" --dtu)
-    scene = make(args.seed, args.object) if only & set("abcd") else None
-    args.out.mkdir(parents=True, exist_ok=True)
-    dump = args.out / "fast_preset.json"
-    if args.rescore:
-        # score the finished runs again (e.g. after a change of the evaluation), keep the rest
-        saved = json.loads(dump.read_text())
-        runs, more, dtu = saved["runs"], saved["more"], saved.get("dtu", {})
-        for r in [*runs.values(), *(x for m in more.values() for x in m.values())]:
-            if r.get("dir"):
-                d = Path(r["dir"])
-                views = json.loads((d / "views.json").read_text())["inputs"]
-                r.pop("points", None)
-                if (d / "points.ply").is_file():
-                    r["points"] = _score_ply(Path(r["scene"]), d / "points.ply", views)
-                g = d.parent / (d.name + "_guided_only")
-                if "guided_only" in r and (g / "points.ply").is_file():
-                    r["guided_only"].update(_score_ply(Path(r["scene"]), g / "points.ply",
-                                                       views))
-                r.update(_score_mesh(Path(r["scene"]), d, views))
-    else:
-        runs, more, dtu = {}, {}, {}
-
-    def save() -> None:
-        dump.write_text(json.dumps({"runs": runs, "more": more, "dtu": dtu}, indent=1))
-
-    def run(sc: Path, out: Path, *extra: str) -> dict:
-        _reconstruct(sc, out, *extra)
-        r = {**_score(sc, out), "dir": str(out), "scene": str(sc)}
-        if (out / "unguided").is_dir():  # (d): also its points without the unguided set
-            r["guided_only"] = _guided_only(sc, out)
-        return r
-
-    if "d" in only:
-        runs["(d) S-VolSDF fast preset"] = run(scene, args.out / "d_fast")
-        save()
-    if "a" in only:
-        runs["(a) MVS backbone alone (plane sweep)"] = run(scene, args.out / "a_mvs",
-                                                           "--mode", "mvs-only")
-        save()
-    if "b" in only:
-        runs["(b) VolSDF alone (fast field, no prior)"] = run(scene, args.out / "b_volsdf",
-                                                              "--mode", "volsdf")
-        save()
-    if "c" in only:
-        c_out = args.out / "c_paper"
-        runs["(c) S-VolSDF paper preset, equal time"] = {
-            **_paper_equal_time(scene, c_out,
-                                runs.get("(d) S-VolSDF fast preset", {}).get("wall_s") or 300.0),
-            "dir": str(c_out), "scene": str(scene)}
-        save()
-    extra_scenes = []
-    for item in args.more:
-        seed, _, obj = item.partition(":")
-        extra_scenes.append((f"seed {seed}, {obj or 'random'}",
-                             lambda seed=seed, obj=obj: make(int(seed), obj or "random")))
-    for path in args.scenes:
-        path = path.resolve()  # the scene path enters the stage keys: keep it stable
-        for f in ("gt_points.ply", "gt_depth"):
-            if not (path / f).exists():
-                sys.exit(f"--scenes {path}: no {f} (a scene with exact ground truth in the "
-                         "layout `svolsdf synth` writes is needed)")
-        extra_scenes.append((path.name, lambda path=path: path))
-    for name, get_scene in extra_scenes if not args.rescore else []:
-        sc = get_scene()
-        r = {}
-        for tag, extra in (("d", ()), ("a", ("--mode", "mvs-only"))):
-            r[tag] = run(sc, args.out / f"{sc.name}_{tag}", *extra)
-        more[name] = r
-        save()
-    dtu_scenes = ([SHARED / "data/dtu_scan65"] if args.dtu else []) + list(args.dtu_scenes)
-    for sc in dtu_scenes:
-        sc = sc.resolve()
-        if not sc.is_dir():
-            sys.exit(f"DTU scene {sc} does not exist")
-        dtu[sc.name] = _dtu_scan(sc, args.out, args.dtu_test_views, args.dtu_gt)
-        save()
-
+def render_issue5(data: dict) -> str:
+    """The issue-5 results file (tables (a)-(d), more scenes, DTU scans), from the JSON the run
+    wrote beside it (``{"meta", "runs", "more", "dtu"}``)."""
+    meta, runs, more, dtu = data["meta"], data["runs"], data["more"], data["dtu"]
     lines = ["# Fast preset benchmark (issue 5)", "",
-             f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}, torch threads = default "
+             f"- machine: nproc = {meta['nproc']}, CPU: {meta['cpu']}, torch threads = default "
              f"(OMP_WAIT_POLICY=PASSIVE); shared machine, other jobs may have been running",
-             f"- command: `python benchmarks/fast_preset.py {' '.join(sys.argv[1:])}`",
-             f"- scene: `svolsdf synth --seed {args.seed} --views 5 --size {args.size}` "
-             f"(object {args.object}); 3 input views (default choice); Chamfer in mm against "
+             f"- command: `python benchmarks/fast_preset.py {meta['command']}`",
+             f"- scene: `svolsdf synth --seed {meta['seed']} --views 5 --size {meta['size']}` "
+             f"(object {meta['object']}); 3 input views (default choice); Chamfer in mm against "
              "the ground-truth surface the input views observe (evaluate/synthetic.py), "
              "distances clipped at 5% of the object's diagonal (holes cost the cut-off); "
              "\"DTU rule\": the same with distances beyond the cut-off left out of the means "
@@ -546,13 +408,13 @@ def main() -> None:
         d0 = next((r for n, r in runs.items() if n.startswith("(d)")), None)
         a0 = next((r for n, r in runs.items() if n.startswith("(a)")), None)
         if d0 and a0 and d0.get("points") and a0.get("points"):
-            groups[_has_masks(Path(d0["scene"]))].append(ratios_of(d0["points"], a0["points"],
+            groups[bool(d0.get("masks"))].append(ratios_of(d0["points"], a0["points"],
                                                     d0.get("guided_only", {})))
         for name, r in more.items():
             pd, pa = r["d"].get("points", {}), r["a"].get("points", {})
             pg = r["d"].get("guided_only", {})
             x = ratios_of(pd, pa, pg)
-            masks = _has_masks(Path(r["d"]["scene"]))
+            masks = bool(r["d"].get("masks"))
             groups[masks].append(x)
             lines.append(f"| {name} | {'yes' if masks else 'no'} | {_fmt(r['d']['wall_s'], 0)} | "
                          f"{_fmt(r['d']['peak_gb'])} | {_triple(pd)} | {_triple(pa)} | "
@@ -607,10 +469,193 @@ def main() -> None:
                   "dtu_scan65 (views 25 22 28, all 25 DTU test views) are measured by "
                   "`python benchmarks/novel_views_dtu.py` (benchmarks/results/novel_views_dtu.md);"
                   " `--dtu` here runs a shorter version."]
-    write_results(args.results, "\n".join(lines) + "\n")
-    (args.results.with_suffix(".json")).write_text(
-        json.dumps({"runs": runs, "more": more, "dtu": dtu}, indent=1))
-    print("\n".join(lines))
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", default="768x576")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--object", default="random")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/fast_bench"))
+    ap.add_argument("--results", type=Path, default=REPO / "benchmarks/results/fast_preset.md")
+    ap.add_argument("--only", default="a,b,c,d")
+    ap.add_argument("--more", nargs="*", default=[], metavar="SEED:OBJECT",
+                    help="more synthetic scenes on which only (a) and (d) run, e.g. 3:random "
+                         "7:blobs (a second table with the ratio per scene)")
+    ap.add_argument("--rescore", action="store_true",
+                    help="score the runs saved in OUT/fast_preset.json again and rewrite the "
+                         "results, without reconstructing")
+    ap.add_argument("--scenes", nargs="*", type=Path, default=[], metavar="PATH",
+                    help="more scene folders with exact ground truth (the layout of `svolsdf "
+                         "synth`: gt_points.ply, gt_depth/); (a) and (d) run on each")
+    ap.add_argument("--dtu", action="store_true", help="also the fast preset on dtu_scan65")
+    ap.add_argument("--dtu-scenes", nargs="*", type=Path, default=[], metavar="PATH",
+                    help="more real DTU scans in the IDR layout (as dtu_scan65)")
+    ap.add_argument("--dtu-gt", type=Path, default=None, metavar="ROOT",
+                    help="DTU ground-truth root (ObsMask/, Points/stl/): also run (a) on the "
+                         "DTU scans and score (a) and (d) by the DTU protocol")
+    ap.add_argument("--dtu-test-views", type=int, default=5,
+                    help="held-out DTU views rendered and scored")
+    sbs = ap.add_argument_group("side by side with a baseline commit (issue 39)")
+    sbs.add_argument("--against", default=None, metavar="REV",
+                     help="baseline commit: run the fast preset of REV and of this checkout side "
+                          "by side on --scenes / --dtu / --dtu-scenes (nothing else runs)")
+    sbs.add_argument("--pgt", nargs="*", default=[], metavar="NAME=DIR",
+                     help="pseudo ground truth folder (dtu_pseudo_gt.py --out) per DTU scene "
+                          "folder name, e.g. dtu_scan65=DIR")
+    sbs.add_argument("--many-views", type=Path, default=None, metavar="SCENE",
+                     help="also a run on --many-views-n views of this scene (new only)")
+    sbs.add_argument("--many-views-n", type=int, default=9)
+    sbs.add_argument("--many-views-old", action="store_true",
+                     help="the many-view run for the baseline too")
+    sbs.add_argument("--held-out-views", type=int, default=3,
+                     help="held-out test views rendered and scored per scene")
+    sbs.add_argument("--held-out-scale", type=float, default=0.5,
+                     help="held-out renders at this fraction of the working size")
+    sbs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="passed as --set to both sides' svolsdf reconstruct (against a "
+                          "commit before the config sections, give the old output.* names: "
+                          "the new code still reads them)")
+    sbs.add_argument("--new-preset", default=None, metavar="NAME",
+                     help="the new side runs this preset (e.g. draft), in OUT/new-NAME; the old "
+                          "side keeps the fast preset and its cached runs in OUT/old")
+    ap.add_argument("--from-json", type=Path, default=None, metavar="FILE.json",
+                    help="render the Markdown of a run from the JSON it wrote (to --results, "
+                         "default FILE.md) and run nothing")
+    args = ap.parse_args()
+    if args.from_json is not None:
+        from _side_by_side import render
+
+        data = json.loads(args.from_json.read_text())
+        if "scenes" in data and "targets" in data:
+            text = render(data)
+        elif "runs" in data and "meta" in data:
+            text = render_issue5(data)
+        else:
+            sys.exit(f"{args.from_json}: not a JSON this script renders (a side-by-side run's, "
+                     "or an issue-5 run's with its meta; JSON written before issue 50 has no "
+                     "meta: benchmarks/results/history/README.md)")
+        results = (args.from_json.with_suffix(".md")
+                   if args.results == ap.get_default("results") else args.results)
+        results.write_text(text)
+        print(f"wrote {results}")
+        return
+    if args.against is not None:
+        from _side_by_side import side_by_side
+
+        if args.results == ap.get_default("results"):
+            args.results = REPO / "benchmarks/results/fast_preset_side_by_side.md"
+        side_by_side(args, sys.argv[1:])
+        return
+
+    import svolsdf  # noqa: F401
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    w, h = (int(x) for x in args.size.split("x"))
+
+    def make(seed: int, obj: str) -> Path:
+        d = args.out / f"scene_{obj}_{seed}_{w}x{h}"
+        if not (d / "gt_points.ply").is_file():
+            make_synthetic_scene(d, SynthConfig(views=5, width=w, height=h, seed=seed,
+                                                object=obj))
+        return d
+
+    only = set(args.only.split(",")) if not args.rescore else set()
+    # the first table's scene, generated only when a run needs it (e.g. not for --only "" --dtu)
+    scene = make(args.seed, args.object) if only & set("abcd") else None
+    args.out.mkdir(parents=True, exist_ok=True)
+    dump = args.out / "fast_preset.json"
+    if args.rescore:
+        # score the finished runs again (e.g. after a change of the evaluation), keep the rest
+        saved = json.loads(dump.read_text())
+        runs, more, dtu = saved["runs"], saved["more"], saved.get("dtu", {})
+        for r in [*runs.values(), *(x for m in more.values() for x in m.values())]:
+            if r.get("dir"):
+                d = Path(r["dir"])
+                views = json.loads((d / "views.json").read_text())["inputs"]
+                r.pop("points", None)
+                if (d / "points.ply").is_file():
+                    r["points"] = _score_ply(Path(r["scene"]), d / "points.ply", views)
+                g = d.parent / (d.name + "_guided_only")
+                if "guided_only" in r and (g / "points.ply").is_file():
+                    r["guided_only"].update(_score_ply(Path(r["scene"]), g / "points.ply",
+                                                       views))
+                r.update(_score_mesh(Path(r["scene"]), d, views))
+                if Path(r["scene"]).is_dir():
+                    r["masks"] = _has_masks(Path(r["scene"]))
+    else:
+        runs, more, dtu = {}, {}, {}
+
+    meta = {"nproc": os.cpu_count(), "cpu": cpu_name(), "command": public_argv(sys.argv[1:]),
+            "seed": args.seed, "size": args.size, "object": args.object}
+
+    def save() -> None:
+        dump.write_text(json.dumps({"meta": meta, "runs": runs, "more": more, "dtu": dtu},
+                                   indent=1))
+
+    def run(sc: Path, out: Path, *extra: str) -> dict:
+        _reconstruct(sc, out, *extra)
+        r = {**_score(sc, out), "dir": str(out), "scene": str(sc), "masks": _has_masks(sc)}
+        if (out / "unguided").is_dir():  # (d): also its points without the unguided set
+            r["guided_only"] = _guided_only(sc, out)
+        return r
+
+    if "d" in only:
+        runs["(d) S-VolSDF fast preset"] = run(scene, args.out / "d_fast")
+        save()
+    if "a" in only:
+        runs["(a) MVS backbone alone (plane sweep)"] = run(scene, args.out / "a_mvs",
+                                                           "--mode", "mvs-only")
+        save()
+    if "b" in only:
+        runs["(b) VolSDF alone (fast field, no prior)"] = run(scene, args.out / "b_volsdf",
+                                                              "--mode", "volsdf")
+        save()
+    if "c" in only:
+        c_out = args.out / "c_paper"
+        runs["(c) S-VolSDF paper preset, equal time"] = {
+            **_paper_equal_time(scene, c_out,
+                                runs.get("(d) S-VolSDF fast preset", {}).get("wall_s") or 300.0),
+            "dir": str(c_out), "scene": str(scene)}
+        save()
+    extra_scenes = []
+    for item in args.more:
+        seed, _, obj = item.partition(":")
+        extra_scenes.append((f"seed {seed}, {obj or 'random'}",
+                             lambda seed=seed, obj=obj: make(int(seed), obj or "random")))
+    for path in args.scenes:
+        path = path.resolve()  # the scene path enters the stage keys: keep it stable
+        for f in ("gt_points.ply", "gt_depth"):
+            if not (path / f).exists():
+                sys.exit(f"--scenes {path}: no {f} (a scene with exact ground truth in the "
+                         "layout `svolsdf synth` writes is needed)")
+        extra_scenes.append((path.name, lambda path=path: path))
+    for name, get_scene in extra_scenes if not args.rescore else []:
+        sc = get_scene()
+        r = {}
+        for tag, extra in (("d", ()), ("a", ("--mode", "mvs-only"))):
+            r[tag] = run(sc, args.out / f"{sc.name}_{tag}", *extra)
+        more[name] = r
+        save()
+    dtu_scenes = ([SHARED / "data/dtu_scan65"] if args.dtu else []) + list(args.dtu_scenes)
+    for sc in dtu_scenes:
+        sc = sc.resolve()
+        if not sc.is_dir():
+            sys.exit(f"DTU scene {sc} does not exist")
+        dtu[sc.name] = _dtu_scan(sc, args.out, args.dtu_test_views, args.dtu_gt)
+        save()
+
+    from _side_by_side import _public
+
+    # the results' JSON names no machine path (OUT/..., DATA/<name>); OUT/fast_preset.json keeps
+    # them for --rescore
+    data = _public({"meta": meta, "runs": runs, "more": more, "dtu": dtu}, args.out)
+    args.results.with_suffix(".json").write_text(json.dumps(data, indent=1))
+    # rendered from the JSON as written, so --from-json reproduces it
+    text = render_issue5(json.loads(args.results.with_suffix(".json").read_text()))
+    args.results.write_text(text)
+    print(text)
 
 
 if __name__ == "__main__":

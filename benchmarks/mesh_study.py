@@ -32,11 +32,17 @@ OUT/mesh.ply; ``field`` is the field's zero level as the mesh stage makes it (fi
 points with the run's ``mesh.fit_points``), made by rerunning the mesh stage of a copy of the run
 in ``--cache`` (issue 47).
 
+The rows and the points' scores go to FILE.json beside FILE.md (``--json``), with the machine
+and the command of each pass; ``--append`` adds a pass on the same runs (e.g. more methods on
+the cached base meshes) to the rows already there. The Markdown is rendered from that JSON and
+only from it: ``--from-json FILE.json`` renders it again without running anything.
+
 Usage:
     python benchmarks/mesh_study.py --runs NAME=RUN [NAME=RUN ...] [--pgt NAME=DIR ...]
         [--free-steps 0 2 4 8] [--support 0 1.5 2 3 4 6]
         [--methods poisson poisson:poisson.trim=7 tsdf tsdf:tsdf.fill_holes=40 field]
-        [--cache DIR] --results FILE.md
+        [--cache DIR] [--append] --results FILE.md
+    python benchmarks/mesh_study.py --from-json FILE.json [--results FILE.md]
 """
 
 from __future__ import annotations
@@ -50,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _machine import cpu_name, peak_rss_gb, write_results
+from _machine import cpu_name, peak_rss_gb, public_argv
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -263,43 +269,25 @@ def _fmt(x, digits=2):
     return "-" if x is None else f"{x:.{digits}f}"
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--runs", nargs="+", required=True, metavar="NAME=DIR")
-    ap.add_argument("--pgt", nargs="*", default=[], metavar="NAME=DIR",
-                    help="pseudo ground truth cache (benchmarks/dtu_pseudo_gt.py --out) per "
-                         "DTU run name")
-    ap.add_argument("--methods", nargs="+", default=["poisson", "tsdf"],
-                    help="poisson, tsdf, field, or run (the run's own mesh.ply, e.g. the "
-                         "fast preset's Poisson mesh, without making it again); NAME:OPT=V,... "
-                         "sets options of the mesh section (poisson.trim=7)")
-    ap.add_argument("--free-steps", nargs="+", type=float, default=[0, 2, 4, 8])
-    ap.add_argument("--support", nargs="+", type=float, default=[0, 1.5, 2, 3, 4, 6])
-    ap.add_argument("--results", type=Path, required=True)
-    ap.add_argument("--cache", type=Path, default=None,
-                    help="keep each run's base meshes here; a rerun only cleans and scores")
-    ap.add_argument("--json", type=Path, default=None, help="rows as JSON (default: next to "
-                    "--results)")
-    args = ap.parse_args()
-    pgt = dict(item.split("=", 1) for item in args.pgt)
-    all_rows, points = [], {}
-    for item in args.runs:
-        name, _, d = item.rpartition("=")
-        name = name or Path(d).name
-        p = Path(pgt[name]) if name in pgt else None
-        points[name], rows = study_run(name, Path(d), p, args.methods, args.free_steps,
-                                       args.support, args.cache)
-        all_rows += rows
-    jpath = args.json or args.results.with_suffix(".json")
-    jpath.write_text(json.dumps({"points": points, "rows": all_rows}, indent=1))
+def render(data: dict) -> str:
+    """The results file of a study, from its JSON (``{"meta", "points", "rows"}``)."""
+    meta, points, all_rows = data["meta"], data["points"], data["rows"]
+    passes = meta["passes"]
     lines = ["# The mesh against the points: methods, free-space culling, support trimming", "",
-             f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}; peak RSS "
-             f"{peak_rss_gb():.2f} GB",
-             f"- command: `python benchmarks/mesh_study.py {' '.join(sys.argv[1:])}`",
-             "- columns: the mesh's accuracy / completeness / Chamfer (the scene's units), their "
-             "ratios to the points' (mesh / points; 1 = as good), faces, and the seconds the "
-             "mesh took (method + cleaning). free = free-space tolerance in final depth steps "
-             "(0 = off); k = support trimming in point spacings (0 = off).", ""]
+             f"- machine: nproc = {meta['nproc']}, CPU: {meta['cpu']}"]
+    first = 1
+    for i, ps in enumerate(passes, 1):
+        peak = ("peak RSS not recorded" if ps.get("peak_rss_gb") is None
+                else f"peak RSS {ps['peak_rss_gb']:.2f} GB")
+        label = "command" if len(passes) == 1 else (
+            f"pass {i} (rows {first}-{first + ps['rows'] - 1} of Every run"
+            + ("" if i == 1 else "; the same runs and cached base meshes") + ")")
+        lines.append(f"- {label}: `python benchmarks/mesh_study.py {ps['command']}`; {peak}")
+        first += ps["rows"]
+    lines += ["- columns: the mesh's accuracy / completeness / Chamfer (the scene's units), their "
+              "ratios to the points' (mesh / points; 1 = as good), faces, and the seconds the "
+              "mesh took (method + cleaning). free = free-space tolerance in final depth steps "
+              "(0 = off); k = support trimming in point spacings (0 = off).", ""]
     lines += ["## Points", "", "| run | acc | comp | Chamfer |", "|---|---:|---:|---:|"]
     lines += [f"| {n} | {_fmt(s['accuracy'])} | {_fmt(s['completeness'])} | "
               f"{_fmt(s['overall'])} |" for n, s in points.items()]
@@ -307,8 +295,10 @@ def main() -> None:
               "| method | free | k | Chamfer ratio mean | worst | acc ratio mean | worst | "
               "comp ratio mean | worst | seconds mean |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    order = [m for ps in passes for m in ps["methods"]]
     keys = sorted({(r["method"], r["free_steps"], r["k"]) for r in all_rows},
-                  key=lambda t: (args.methods.index(t[0]), t[1], t[2]))
+                  key=lambda t: (order.index(t[0]), t[1], t[2]))
+    means = []
     for m, fs, k in keys:
         rs = [r for r in all_rows if (r["method"], r["free_steps"], r["k"]) == (m, fs, k)
               and "ratio_overall" in r]
@@ -319,6 +309,7 @@ def main() -> None:
             v = [r[key] for r in rs]
             return f"{np.mean(v):.3f} | {max(v):.3f}"
 
+        means.append((float(np.mean([r["ratio_overall"] for r in rs])), m, fs, k, len(rs)))
         lines.append(f"| {m} | {fs:g} | {k:g} | {agg('ratio_overall')} | {agg('ratio_accuracy')}"
                      f" | {agg('ratio_completeness')} | "
                      f"{np.mean([r['seconds'] for r in rs]):.1f} |")
@@ -332,7 +323,72 @@ def main() -> None:
                      f"{_fmt(r.get('mesh_overall'))} | {_fmt(r.get('ratio_accuracy'), 3)} | "
                      f"{_fmt(r.get('ratio_completeness'), 3)} | "
                      f"{_fmt(r.get('ratio_overall'), 3)} | {r['faces']:,} | {r['seconds']} |")
-    write_results(args.results, "\n".join(lines) + "\n")
+    if means:
+        lines += ["", "## Notes (computed from the JSON beside this file)", "",
+                  "Ranked by the mean Chamfer ratio over the runs (mesh / points; lower is "
+                  "better):", "", "| rank | method | free | k | Chamfer ratio mean | runs |",
+                  "|---:|---|---:|---:|---:|---:|"]
+        for i, (mean, m, fs, k, n) in enumerate(sorted(means, key=lambda t: t[0]), 1):
+            lines.append(f"| {i} | {m} | {fs:g} | {k:g} | {mean:.3f} | {n} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", nargs="+", metavar="NAME=DIR")
+    ap.add_argument("--pgt", nargs="*", default=[], metavar="NAME=DIR",
+                    help="pseudo ground truth cache (benchmarks/dtu_pseudo_gt.py --out) per "
+                         "DTU run name")
+    ap.add_argument("--methods", nargs="+", default=["poisson", "tsdf"],
+                    help="poisson, tsdf, field, or run (the run's own mesh.ply, e.g. the "
+                         "fast preset's Poisson mesh, without making it again); NAME:OPT=V,... "
+                         "sets options of the mesh section (poisson.trim=7)")
+    ap.add_argument("--free-steps", nargs="+", type=float, default=[0, 2, 4, 8])
+    ap.add_argument("--support", nargs="+", type=float, default=[0, 1.5, 2, 3, 4, 6])
+    ap.add_argument("--results", type=Path, default=None)
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep each run's base meshes here; a rerun only cleans and scores")
+    ap.add_argument("--json", type=Path, default=None, help="rows as JSON (default: next to "
+                    "--results)")
+    ap.add_argument("--append", action="store_true",
+                    help="add this pass's rows to those of the JSON already there (the same "
+                         "runs), as a further pass")
+    ap.add_argument("--from-json", type=Path, default=None, metavar="FILE.json",
+                    help="render the Markdown from this JSON (to --results, default FILE.md) "
+                         "and run nothing")
+    args = ap.parse_args()
+    if args.from_json is not None:
+        results = args.results or args.from_json.with_suffix(".md")
+        results.write_text(render(json.loads(args.from_json.read_text())))
+        print(f"wrote {results}")
+        return
+    if not args.runs or args.results is None:
+        ap.error("--runs and --results are needed (or --from-json)")
+    jpath = args.json or args.results.with_suffix(".json")
+    data = {"meta": {"nproc": os.cpu_count(), "cpu": cpu_name(), "passes": []}, "points": {},
+            "rows": []}
+    if args.append:
+        data = json.loads(jpath.read_text())
+    pgt = dict(item.split("=", 1) for item in args.pgt)
+    all_rows, points = [], {}
+    for item in args.runs:
+        name, _, d = item.rpartition("=")
+        name = name or Path(d).name
+        p = Path(pgt[name]) if name in pgt else None
+        points[name], rows = study_run(name, Path(d), p, args.methods, args.free_steps,
+                                       args.support, args.cache)
+        all_rows += rows
+    if args.append and set(points) != set(data["points"]):
+        sys.exit(f"--append: runs {sorted(points)} differ from {sorted(data['points'])} in "
+                 f"{jpath}")
+    data["points"] = points
+    data["rows"] += all_rows
+    data["meta"]["passes"].append({"command": public_argv(sys.argv[1:]),
+                                   "peak_rss_gb": round(peak_rss_gb(), 2),
+                                   "methods": args.methods, "rows": len(all_rows)})
+    jpath.write_text(json.dumps(data, indent=1))
+    # rendered from the JSON as written, so --from-json reproduces it
+    args.results.write_text(render(json.loads(jpath.read_text())))
     print(f"wrote {args.results}")
 
 

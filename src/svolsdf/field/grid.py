@@ -1,6 +1,6 @@
 """The `fast` preset's surface: an explicit dense SDF grid plus a multi-level feature grid.
 
-Design (measured by ``benchmarks/field_speed.py``; ``benchmarks/results/field_speed.md``):
+Design (measured by ``benchmarks/field_speed.py``; ``benchmarks/results/history/field_speed.md``):
 
 - Geometry is an explicit dense SDF grid over an axis-aligned box of the unit frame, interpolated
   trilinearly (``grid_sample`` semantics, align_corners=True) and initialised to a sphere SDF
@@ -12,7 +12,7 @@ Design (measured by ``benchmarks/field_speed.py``; ``benchmarks/results/field_sp
   resolution) feeding a small MLP with the view-direction encoding and the normal, like IDR's
   rendering network (docs/method.md 5.3) but 2x64 wide. The levels are read by `trilinear_sample`
   (a corner gather; ~2x faster than the single-threaded ``grid_sample`` 3-D CPU kernel with its
-  backward, benchmarks/results/train_step_speed.md).
+  backward, benchmarks/results/history/train_step_speed.md).
 - Optionally (``sdf_residual``) the same features feed a second small MLP whose output is added to
   the grid SDF; its x-gradient then goes through autograd (slower, see the benchmark).
 - Outside the box the SDF continues as f(p) + |x - p| with p the closest box point, so rays

@@ -121,9 +121,9 @@ class GradBuffers:
     A fresh (C, M) zero gradient of a fine feature grid (52 MB at the fast preset's final
     resolution) is new memory every step: the allocator maps it and the zero fill pays a page
     fault per 4 kB, ~4x the cost of zeroing memory already in use
-    (benchmarks/results/train_step_speed.md). The owner gives a gradient back only when nothing
-    else refers to it (`svolsdf.field.grid.GridSDFField.recycle_grads`, called by the trainer
-    before it clears the gradients).
+    (benchmarks/results/history/train_step_speed.md). The owner gives a gradient back only when
+    nothing else refers to it (`svolsdf.field.grid.GridSDFField.recycle_grads`, called by the
+    trainer before it clears the gradients).
     """
 
     def __init__(self) -> None:
@@ -161,7 +161,7 @@ def trilinear_sample(grid: Tensor, u: Tensor, buffers: GradBuffers | None = None
     (``at::parallel_for(0, N, ...)`` in ATen's GridSampler.cpp), so one grid runs on one thread,
     and its backward was the slowest op of a training step. The gather and its backward (an
     index-add of N x 8 x C values) run multi-threaded, and the weights make the backward one
-    product instead of the seven lerps' chain (benchmarks/results/train_step_speed.md).
+    product instead of the seven lerps' chain (benchmarks/results/history/train_step_speed.md).
     """
     _check_grid_points(grid, u)
     C = grid.shape[0]
@@ -185,9 +185,10 @@ class _CornerSum(torch.autograd.Function):
     (corners last, (C, N, 8)) the transposed output's gradient reached the product in a
     strided layout, and the product and the view before the index-add made strided passes over
     C x N x 8 values (``aten::copy_`` and ``aten::mul``, then the largest ops of a training
-    step; benchmarks/results/train_step_speed.md). The weights are constants here (callers that
-    differentiate with respect to the points take the autograd expression); the backward is
-    made of differentiable ops, so a gradient of the grid's gradient is still available.
+    step; benchmarks/results/history/train_step_speed.md). The weights are constants here
+    (callers that differentiate with respect to the points take the autograd expression); the
+    backward is made of differentiable ops, so a gradient of the grid's gradient is still
+    available.
     """
 
     @staticmethod

@@ -12,7 +12,8 @@ signed distance built from the stage-1 depth maps:
    their confidence (without masks they would be mostly background): a part
    of the object that only one view sees has no consistent depth, and without its own votes it
    starts at the hull the other views' free space leaves, in front of the true surface, where
-   three views' losses cannot move it (benchmarks/results/fast_preset.md, notes of commit 9143dbd).
+   three views' losses cannot move it (benchmarks/results/history/fast_preset.md, notes of
+   commit 9143dbd).
 2. Truncated signed-distance fusion (Curless and Levoy 1996): every grid node projects into each
    view; s = d(u, v) - z is its signed distance along the ray to that view's surface (> 0 in
    front, i.e. outside). Views where the node lies more than ``trunc`` behind the surface do not

@@ -202,7 +202,7 @@ def cull_to_views(
     only faces some view sees (`cull_unseen`).
 
     Visibility comes after the largest component: culling splits the surface where no view
-    looked, and the parts it leaves are all observed (benchmarks/results/fast_preset.md,
+    looked, and the parts it leaves are all observed (benchmarks/results/history/fast_preset.md,
     notes of commit 9143dbd).
 
     Args:

@@ -144,7 +144,8 @@ def poisson_mesh(
     normals = orient_normals(points, normals, scene.cameras.centers.double().numpy(),
                              guide=torch.cat(grads).double().numpy())
     # PoissonRecon with one thread: with more, its parallel sums make the mesh differ from run
-    # to run on the same points, and it was no faster (benchmarks/results/poisson_threads.md)
+    # to run on the same points, and it was no faster
+    # (benchmarks/results/history/poisson_threads.md)
     v, f, c = poisson_surface(points, normals, colours, depth=depth, trim=trim, threads=1)
     vw, f = torch.from_numpy(v), torch.from_numpy(f)
     c = None if c is None else torch.from_numpy(c)

@@ -164,7 +164,7 @@ class AdapterConfig:
     when stage 2 gets one, and stages 2-3 follow that prediction (module docstring). False: the
     network runs once per view, unguided, and the guide only centres the hypotheses. Points
     Chamfer of the pipeline with PatchmatchNet 16-19 % lower on three synthetic scenes and 12 %
-    on dtu_scan65 (benchmarks/results/patchmatchnet_guided.md)."""
+    on dtu_scan65 (benchmarks/results/history/patchmatchnet_guided.md)."""
 
 
 class DepthConfidenceAdapter(MVSBackbone):

@@ -287,7 +287,7 @@ def with_expected_depth(volumes: list[ProbabilityVolume]) -> list[ProbabilityVol
     The field stage (box, SDF initialisation, the ablations' MVS depth) uses this depth: the
     plane sweep stores the main-mode depth (`PlaneSweepConfig.depth_radius`), which centres its
     own next stage better, while the smoother full expectation initialises the SDF grid better
-    (synthetic benchmark scene, points Chamfer 2.12 vs 2.34 mm; benchmarks/results/
+    (synthetic benchmark scene, points Chamfer 2.12 vs 2.34 mm; benchmarks/results/history/
     fast_preset.md).
     """
     from dataclasses import replace

@@ -87,7 +87,7 @@ class PlaneSweepConfig:
     """ZNCC window side (odd, pixels at the stage's resolution) per stage."""
     gradient_weight: float = 0.5
     """Weight of the ZNCC cost on x/y image gradients, added to the grayscale cost (0 = off).
-    Gradients sharpen the cost at texture edges (benchmarks/results/mvs_planesweep.md)."""
+    Gradients sharpen the cost at texture edges (benchmarks/results/history/mvs_planesweep.md)."""
     keep_fraction: float = 0.5
     """Fraction of the valid sources whose best costs are averaged (robustness to occlusion)."""
     filter: str = "guided"
@@ -99,7 +99,7 @@ class PlaneSweepConfig:
     sgm_p2: float = 2.0
     """SGM penalty for larger jumps away from intensity edges (above the cost range [0, 2]:
     away from edges the depth may jump only where no smooth path explains the costs;
-    benchmarks/results/mvs_planesweep.md, notes)."""
+    benchmarks/results/history/mvs_planesweep.md, notes)."""
     sgm_sigma: float = 0.04
     """Intensity difference (on [0, 1]) over which the SGM jump penalty drops from P2 to P1."""
     sgm_directions: int = 8
@@ -134,7 +134,7 @@ class PlaneSweepConfig:
     code's x2_mvsres, docs/method.md 9.2.2) and the volumes, depth maps and fused points follow.
     2 against 1 on six synthetic scenes (768x576, 3 views): the backbone alone's points Chamfer
     up to 20 % lower (1 % higher on one scene), the fast preset's 9-26 % lower, for ~2.5 min
-    more per three-view run (benchmarks/results/fast_preset.md, notes of commit ecd04c9)."""
+    more per three-view run (benchmarks/results/history/fast_preset.md, notes of commit ecd04c9)."""
     native_images: bool = False
     """Stages larger than the working size read the images again from their files when those are
     larger (`Scene.images_at`): a 1600x1200 DTU photo gives stage 3 its own detail at 1536x1152.
@@ -173,7 +173,7 @@ def box_filter(x: Tensor, radius: int) -> Tensor:
 
     Written as shifted adds rather than ``F.avg_pool2d(..., count_include_pad=False)`` (the
     same result to float rounding): on the CPU the pooling kernel was 4-8x slower at the
-    plane sweep's sizes and a third of the MVS time (benchmarks/results/mvs_speed.md).
+    plane sweep's sizes and a third of the MVS time (benchmarks/results/history/mvs_speed.md).
     kornia's box blur pads the border instead of shrinking the window.
 
     Args:

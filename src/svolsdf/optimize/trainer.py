@@ -168,7 +168,7 @@ class Trainer:
         # docs/method.md 4.6: Adam, default betas, constant learning rate. The fused kernel does the
         # same update in one pass per tensor: on the fast preset's dense grids (~11 M
         # parameters) it measured ~6x faster than the per-tensor loop on the CPU, 1.36x on a
-        # whole step (benchmarks/results/train_step_speed.md).
+        # whole step (benchmarks/results/history/train_step_speed.md).
         fused = all(p.device.type in ("cpu", "cuda") and p.dtype.is_floating_point
                     for g in groups for p in g["params"])
         self.optimizer = torch.optim.Adam(groups, fused=fused or None)

@@ -181,7 +181,8 @@ class MVSPrior:
         g = torch.stack([uh, vh, zh], dim=-1)  # (N, 3)
         # grid_sample's 3-D CPU kernel parallelises over the batch only (ATen GridSampler.cpp),
         # so the points are split into one batch entry per thread over the same (expanded, not
-        # copied) volume: identical values, 1.5x faster on two cores (train_step_speed.md)
+        # copied) volume: identical values, 1.5x faster on two cores
+        # (benchmarks/results/history/train_step_speed.md)
         parts = max(1, torch.get_num_threads()) if g.device.type == "cpu" else 1
         n = g.shape[0]
         m = -(-n // parts)

@@ -74,7 +74,8 @@ def _mvs(s: SamplerInputs):
     if s.training:
         gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
     else:
-        # rendering: a converged field needs fewer probes (benchmarks/results/render_speed.md)
+        # rendering: a converged field needs fewer probes
+        # (benchmarks/results/history/render_speed.md)
         gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
     return MVSGuidedSampler(s.prior if s.training else None, gc)
 

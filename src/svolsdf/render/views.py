@@ -25,7 +25,7 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
     """Render every camera of ``cameras_unit`` with the field (``sampler``: the eval-mode one).
 
     ``chunk`` rays at a time: 4096 rendered the fast field ~10 % faster than 2048 or 8192
-    on two cores (benchmarks/results/train_step_speed.md, commit c3e3801).
+    on two cores (benchmarks/results/history/train_step_speed.md, commit c3e3801).
 
     Args:
         model: the `SurfaceModel` (put in eval mode here); its ``background`` (docs/method.md 5.5)
