@@ -243,3 +243,36 @@ def test_fusion_second_hypothesis_per_view():
     with pytest.raises(ValueError, match="alt_confidences"):
         fuse_depth_maps(first, cams, confidences={v: torch.ones(40, 48) for v in cams},
                         alt_depths=alt)
+
+
+def test_checking_only_the_kept_pixels_keeps_the_same_points(monkeypatch):
+    """The sources are checked only at the pixels the confidence and the mask keep: the fused
+    points (positions, colours, order) are those of checking every pixel."""
+    import svolsdf.fusion.filter as filt
+
+    cams = three_cameras()
+    g = torch.Generator().manual_seed(2)
+    depths = {v: (sphere_depth(c) * (1 + 0.004 * torch.randn(40, 48, generator=g,
+                                                              dtype=torch.float64))).float()
+              for v, c in cams.items()}
+    conf = {v: torch.rand(40, 48, generator=g) for v in cams}
+    masks = {v: torch.zeros(80, 96) for v in cams}
+    for v in cams:
+        masks[v][20:60, 30:70] = 1
+    images = {v: torch.rand(3, 40, 48, generator=g) for v in cams}
+    cfg = FusionFilterConfig(conf=0.3, mask_dilation=2, surface=0.01)
+    kw = dict(images=images, confidences=conf, masks=masks, cfg=cfg,
+              surface_depths={v: d * 1.001 for v, d in depths.items()})
+    fast = fuse_depth_maps(depths, cams, **kw)
+    every = []
+
+    def full_check(*a, pixels=None, **k):
+        every.append(pixels)
+        return check_geometric_consistency(*a, **k)
+
+    monkeypatch.setattr(filt, "check_geometric_consistency", full_check)
+    slow = fuse_depth_maps(depths, cams, **kw)
+    assert all(p is not None for p in every)  # the fast run did choose pixels
+    assert 0 < len(fast.points) and torch.equal(fast.points, slow.points)
+    assert torch.equal(fast.colors, slow.colors)
+    assert fast.stats == slow.stats

@@ -73,3 +73,26 @@ def test_vectorized_matches_reference():
     both = m & mr
     torch.testing.assert_close(r[both], rr[both], rtol=1e-5, atol=1e-5)
     torch.testing.assert_close((r > 0), (rr > 0))
+
+
+def test_chosen_pixels_get_the_full_checks_values():
+    """pixels=: the checked pixels get exactly the full image check's mask, reprojected depth
+    and source coordinates; the others False, 0 and NaN."""
+    cams = three_cameras()
+    g = torch.Generator().manual_seed(5)
+    d0 = (sphere_depth(cams[0]) * (1 + 0.01 * torch.randn(40, 48, generator=g,
+                                                           dtype=torch.float64))).float()
+    d1 = sphere_depth(cams[1]).float()
+    cam0 = cams[0].resize(24, 20)  # a reference depth at another size than its camera
+    d0 = torch.nn.functional.interpolate(d0[None, None], size=(20, 24), mode="nearest")[0, 0]
+    full = check_geometric_consistency(d0, cam0, d1, cams[1])
+    pix = torch.randperm(20 * 24, generator=g)[:150]
+    part = check_geometric_consistency(d0, cam0, d1, cams[1], pixels=pix)
+    chosen = torch.zeros(20 * 24, dtype=torch.bool)
+    chosen[pix] = True
+    chosen = chosen.reshape(20, 24)
+    assert full[0][chosen].any() and (~full[0][chosen]).any()
+    assert torch.equal(part[0][chosen], full[0][chosen]) and not part[0][~chosen].any()
+    assert torch.equal(part[1][chosen], full[1][chosen]) and (part[1][~chosen] == 0).all()
+    for a, b in zip(part[2], full[2]):
+        assert torch.equal(a[chosen], b[chosen]) and a[~chosen].isnan().all()

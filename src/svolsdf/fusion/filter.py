@@ -110,9 +110,10 @@ class FusedPoints(NamedTuple):
         points: (N, 3) float32 world points.
         colors: (N, 3) uint8 colours from the reference images, or None without images.
         normals: (N, 3) float32 unit normals, or None unless ``estimate_normals``.
-        stats: view id -> {"valid", "geo", "surface_only" (geometric only thanks to the
-            surface), "photo", "mask", "kept": share of the depth map's pixels; "points": number
-            of points contributed}.
+        stats: view id -> {"valid", "geo" (consistent; checked only at the pixels the
+            confidence and the mask keep), "surface_only" (geometric only thanks to the surface),
+            "photo", "mask", "kept": share of the depth map's pixels; "points": number of points
+            contributed}.
     """
 
     points: Tensor
@@ -308,6 +309,23 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
     H, W = d_ref.shape
     cam_ref = _at_size(cameras[ref], d_ref)
     valid = torch.isfinite(d_ref) & (d_ref > 0)
+    photo = torch.ones_like(valid)
+    if confs is not None:
+        conf = confs[ref][h].to(d_ref.device)
+        conf = conf.reshape(conf.shape[-2:])
+        if tuple(conf.shape) != (H, W):
+            raise ValueError(f"the confidence of hypothesis {h} of view {ref} is "
+                             f"{tuple(conf.shape)} but its depth map is {(H, W)}")
+        photo = conf > cfg.conf
+    inside = torch.ones_like(valid)
+    if masks is not None and cfg.use_masks:
+        dil = dilate_mask(masks[ref], radius)
+        inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
+    # the sources are checked only at the pixels the photometric test and the mask keep
+    # (each pixel's check is its own, `check_geometric_consistency`): the same points, a
+    # fraction of the work where the object fills a fraction of the image
+    cand = valid & photo & inside
+    pixels = None if bool(cand.all()) else cand.reshape(-1).nonzero()[:, 0]
     count = torch.zeros(H, W, dtype=torch.int32, device=d_ref.device)
     d_sum = torch.where(valid, d_ref, torch.zeros_like(d_ref)).double()
     for src in hyps:
@@ -317,7 +335,7 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         for d_src in hyps[src]:
             m, d_rep, _ = check_geometric_consistency(
                 d_ref, cam_ref, d_src.float().to(d_ref.device), cameras[src],
-                cfg.dist, cfg.rel,
+                cfg.dist, cfg.rel, pixels=pixels,
             )
             new = m & ~agree
             d_sum += torch.where(new, d_rep.double(), torch.zeros_like(d_sum))
@@ -334,22 +352,8 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
         if not _same_map(ds, d_ref):
             on_surface = (ds > 0) & ((d_ref - ds).abs() < cfg.surface * d_ref)
         support = count + on_surface.int()
-    geo = valid & (support >= cfg.min_views)
-    keep = geo.clone()
-    photo = torch.ones_like(geo)
-    if confs is not None:
-        conf = confs[ref][h].to(d_ref.device)
-        conf = conf.reshape(conf.shape[-2:])
-        if tuple(conf.shape) != (H, W):
-            raise ValueError(f"the confidence of hypothesis {h} of view {ref} is "
-                             f"{tuple(conf.shape)} but its depth map is {(H, W)}")
-        photo = conf > cfg.conf
-        keep &= photo
-    inside = torch.ones_like(geo)
-    if masks is not None and cfg.use_masks:
-        dil = dilate_mask(masks[ref], radius)
-        inside = mask_to_depth_resolution(dil, H, W).to(d_ref.device)
-        keep &= inside
+    geo = cand & (support >= cfg.min_views)
+    keep = geo
     fused = (d_sum / (1 + count).double()).float()  # docs/method.md 6.3, "Fused depth"
 
     uv = cam_ref.pixel_grid(device=d_ref.device, dtype=torch.float64).reshape(1, -1, 2)
@@ -369,7 +373,7 @@ def _fuse_reference(ref: int, h: int, hyps: dict[int, list[Tensor]],
     stats = {
         "valid": float(valid.sum()) / n,
         "geo": float(geo.sum()) / n,
-        "surface_only": float((valid & on_surface & (count < cfg.min_views)).sum()) / n,
+        "surface_only": float((cand & on_surface & (count < cfg.min_views)).sum()) / n,
         "photo": float((photo & valid).sum()) / n,
         "mask": float((inside & valid).sum()) / n,
         "kept": float(keep.sum()) / n,

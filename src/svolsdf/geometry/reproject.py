@@ -56,6 +56,7 @@ def check_geometric_consistency(
     cam_src: Cameras,
     dist_thresh: float = 1.0,
     rel_thresh: float = 0.01,
+    pixels: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
     """Forward-backward depth consistency of a reference depth map against one source.
 
@@ -77,6 +78,9 @@ def check_geometric_consistency(
         cam_src: `Cameras` with one view (the source).
         dist_thresh: reprojection distance threshold in reference pixels.
         rel_thresh: relative depth difference threshold.
+        pixels: (K,) long flat indices (v * W + u) of the reference pixels to check; None:
+            every pixel. Each pixel's result does not depend on the others: the checked ones
+            get the values a full check gives them, the others False, 0 and NaN.
 
     Returns:
         mask: (H, W) bool, consistent pixels.
@@ -87,11 +91,24 @@ def check_geometric_consistency(
     _check_depth(depth_src, "depth_src")
     _check_camera(cam_ref, "cam_ref")
     _check_camera(cam_src, "cam_src")
+    if pixels is not None:
+        return _check_pixels(depth_ref, cam_ref, depth_src, cam_src, dist_thresh, rel_thresh,
+                             pixels)
+    cam = _at_size(cam_ref, depth_ref)
+    uv = cam.pixel_grid(device=depth_ref.device, dtype=torch.float64).reshape(-1, 2)
+    return _check_rows(depth_ref, cam, uv, depth_src, cam_src, dist_thresh, rel_thresh)
+
+
+def _check_rows(depth_ref: Tensor, cam_ref: Cameras, uv: Tensor, depth_src: Tensor,
+                cam_src: Cameras, dist_thresh: float, rel_thresh: float
+                ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+    """The check of reference pixels ``uv`` (H * W, 2) with depths ``depth_ref`` (H, W) (an
+    image, or a (1, K) row of chosen pixels), ``cam_ref`` at the reference depth's size."""
     out_dtype = depth_ref.dtype if depth_ref.is_floating_point() else torch.float32
     device = depth_ref.device
     # Geometry in float64: DTU depths are ~600 mm and the test is at 1 % / 1 px.
     dt = torch.float64
-    cam_ref = _at_size(cam_ref, depth_ref).to(device=device, dtype=dt)
+    cam_ref = cam_ref.to(device=device, dtype=dt)
     cam_src = _at_size(cam_src, depth_src).to(device=device, dtype=dt)
     H, W = depth_ref.shape
     Hs, Ws = depth_src.shape
@@ -102,7 +119,7 @@ def check_geometric_consistency(
     ok_src = torch.isfinite(d_src) & (d_src > 0)
     d_src = torch.where(ok_src, d_src, torch.zeros_like(d_src))
 
-    uv = cam_ref.pixel_grid(device=device, dtype=dt).reshape(1, -1, 2)  # (1, HW, 2)
+    uv = uv.to(device=device, dtype=dt).reshape(1, -1, 2)  # (1, HW, 2)
     x_world = cam_ref.unproject(uv, d_ref.reshape(1, -1))  # (1, HW, 3)
     uv_s, z_s = cam_src.project(x_world)  # (1, HW, 2), (1, HW)
 
@@ -220,3 +237,24 @@ def check_geometric_consistency_reference(
         torch.from_numpy(depth_reproj).to(dt),
         (torch.from_numpy(xs).to(dt), torch.from_numpy(ys).to(dt)),
     )
+
+
+def _check_pixels(depth_ref: Tensor, cam_ref: Cameras, depth_src: Tensor, cam_src: Cameras,
+                  dist_thresh: float, rel_thresh: float, pixels: Tensor
+                  ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+    """`check_geometric_consistency` at the reference pixels ``pixels`` (K,) only: the same
+    arithmetic on a (1, K) row of pixels instead of the (H, W) image, scattered back."""
+    H, W = depth_ref.shape
+    K = int(pixels.numel())
+    row_ref = depth_ref.reshape(-1)[pixels].reshape(1, K)
+    cam_row = _at_size(cam_ref, depth_ref)
+    grid = cam_row.pixel_grid(device=depth_ref.device, dtype=torch.float64).reshape(-1, 2)
+    m, d, (xs, ys) = _check_rows(row_ref, cam_row, grid[pixels], depth_src, cam_src,
+                                 dist_thresh, rel_thresh)
+    out_dtype = d.dtype
+    mask = torch.zeros(H * W, dtype=torch.bool, device=depth_ref.device)
+    rep = torch.zeros(H * W, dtype=out_dtype, device=depth_ref.device)
+    x_src = torch.full((H * W,), float("nan"), dtype=out_dtype, device=depth_ref.device)
+    y_src = x_src.clone()
+    mask[pixels], rep[pixels], x_src[pixels], y_src[pixels] = m[0], d[0], xs[0], ys[0]
+    return mask.reshape(H, W), rep.reshape(H, W), (x_src.reshape(H, W), y_src.reshape(H, W))
