@@ -155,21 +155,26 @@ def test_max_sources_caps_the_sources_in_pair_order(monkeypatch, max_sources, ex
             (-0.4, 0.5, -3.9)]
     plane = ((0.0, 0.0, -1.0), -0.5)
     scene, _ = make_scene(make_cameras(32, 24, eyes=eyes), planes=[plane], depth_range=RANGE)
+    import svolsdf.mvs.planesweep as ps
+
     bb = PlaneSweepBackbone(max_sources=max_sources)
-    seen = []
-    real = bb._cost_volume
+    seen, costs = [], []
+    real, real_cost = ps.select_sources, bb._cost_volume
 
-    def spy(k, r, src, *a, **kw):
-        seen.append((r, list(src)))
-        return real(k, r, src, *a, **kw)
+    def spy(scene, vid, n):
+        seen.append((vid, real(scene, vid, n)))
+        return seen[-1][1]
 
-    monkeypatch.setattr(bb, "_cost_volume", spy)
+    def spy_cost(k, ref, g, P_ref, sources, depths):
+        costs.append(len(sources))
+        return real_cost(k, ref, g, P_ref, sources, depths)
+
+    monkeypatch.setattr(ps, "select_sources", spy)
+    monkeypatch.setattr(bb, "_cost_volume", spy_cost)
     bb.stage(1, scene, ref_ids=[0, 3])
-    for r, src in seen:
-        vid = scene.view_ids[r]
-        want = [scene.index(v) for v in scene.source_views(vid)][:expected]
-        assert src == want
-    assert [r for r, _ in seen] == [0, 3]
+    for vid, src in seen:
+        assert src == scene.source_views(vid)[:expected]
+    assert [v for v, _ in seen] == [0, 3] and costs == [expected, expected]
     assert select_sources(scene, 0, 2) == scene.source_views(0)[:2]
     assert select_sources(scene, 0, 0) == scene.source_views(0)
 
@@ -311,3 +316,40 @@ def test_calibrated_temperature():
     gap = (cost.median(0).values - cost.min(0).values).median()
     assert T == pytest.approx(float(gap) / (math.log(32) + 4.0), rel=1e-5)
     assert calibrate_temperature(torch.zeros(8, 3, 3), 2.0) > 0
+
+
+def test_crop_to_masks_runs_stages_2_3_in_the_mask_box_only(sphere_run, monkeypatch):
+    """crop_margin: stages 2-3 cost only the box around the dilated object mask; the depth
+    there is the full run's (the same hypotheses, a little less context for the aggregation),
+    outside it depth and confidence are 0; stage 1 is not cropped."""
+    import dataclasses
+
+    scene, gt, mask, full = sphere_run
+    masked = dataclasses.replace(scene, masks=mask[:, None].float())
+    bb = PlaneSweepBackbone(crop_margin=4)
+    shapes = []
+    real = bb._cost_volume
+
+    def spy(k, ref, g, P_ref, sources, depths):
+        shapes.append((k, tuple(depths.shape[1:])))
+        return real(k, ref, g, P_ref, sources, depths)
+
+    monkeypatch.setattr(bb, "_cost_volume", spy)
+    res = run_cascade(bb, masked)
+    for k, (h, w) in shapes:
+        H, W = res[k][0].depth.shape
+        assert (h, w) == (H, W) if k == 1 else h * w < H * W, (k, h, w, H, W)
+    for i in range(3):
+        v3, f3 = res[3][i], full[3][i]
+        H, W = v3.depth.shape
+        m = F.interpolate(mask[i][None, None].float(), size=(H, W), mode="nearest")[0, 0] > 0
+        ys, xs = m.nonzero(as_tuple=True)
+        s = W // mask.shape[-1]  # stage 3 at the MVS scale (2x here)
+        yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+        far = (xx < int(xs.min()) - 5 * s) | (xx > int(xs.max()) + 5 * s) | \
+            (yy < int(ys.min()) - 5 * s) | (yy > int(ys.max()) + 5 * s)
+        assert (v3.depth[far] == 0).all() and (v3.confidence[far] == 0).all()
+        assert far.any() and v3.depth.shape == f3.depth.shape
+        d = (v3.depth - f3.depth).abs()[m]
+        assert float(d.median()) < 0.002 * (RANGE[1] - RANGE[0])
+        assert _median_error(v3, gt[i], mask[i]) < 0.015

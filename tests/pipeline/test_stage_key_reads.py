@@ -89,6 +89,15 @@ INERT_READS: dict[str, Rule] = {
     "mvs.save_volumes": (
         "which files the stages 2-3 keep (their volumes), not what they compute; keys.py leaves "
         "it out", always),
+    "mvs1:mvs.crop_to_masks": (
+        "the backbone is built with it (backbone_kwargs) for stage 1, which it does not crop: "
+        "only stages 2-3 are cropped, and their keys hold it", always),
+    "mvs1:scene.use_masks": (
+        "ditto: backbone_kwargs reads it to leave the crop out when the run ignores the masks",
+        always),
+    "mvs23:scene.use_masks": (
+        "ditto, for the guided stages 2-3: read with the crop; without one it changes nothing",
+        lambda c: c.mvs.crop_to_masks is None),
     "guide:scene.use_masks": (
         "the field's PSNR over the masks, for timing.json only, when the guide is rendered on "
         "every pixel", lambda c: c.guide.mask_dilation is None),
@@ -322,9 +331,10 @@ PINNED = {
                 "5fa6188dcc53",
     # the mesh key changed with mesh.support = 4 in the fast preset (issue 47); the field key
     # (and the keys chained on it) with train.colour_min_weight and train.prior_floor in the
-    # fast preset (issue 48): an earlier fast run reruns from its field on (stage 1 is reused)
-    "fast": "d260427d8ce9 11eef0e27282 1c56f9684c56 d9ecc99ff9dd 877dddc38d85 e09e979f9606 "
-            "9b0b038e7010",
+    # fast preset (issue 48): an earlier fast run reruns from its field on (stage 1 is reused);
+    # the stages 2-3 keys with mvs.crop_to_masks = 16 (issue 48)
+    "fast": "d260427d8ce9 11eef0e27282 1c56f9684c56 9c11a82f4ef8 987678c973a6 3672cb32d438 "
+            "b4e5c5d19855",
     "paper": "d260427d8ce9 407d7e6ab236 70cdfa8b5213 cfee6f54c244 877dddc38d85 9db389992f52 "
              "595955346277",
 }
@@ -352,8 +362,12 @@ def test_use_masks_enters_the_stages_that_read_the_masks():
     cfg.scene.path = SCENE
     no = changed(cfg, "scene.use_masks", False)
     k, k_no = stage_keys(cfg, VIEWS), stage_keys(no, VIEWS)
-    assert k_no["mvs1"] == k["mvs1"] and k_no["unguided"] == k["unguided"]
+    # the fast preset crops stages 2-3 to the masks (mvs.crop_to_masks): the unguided ones too
+    assert k_no["mvs1"] == k["mvs1"] and k_no["unguided"] != k["unguided"]
     assert all(k_no[s] != k[s] for s in ("field", "guide", "mvs23", "fusion", "mesh"))
+    cfg.mvs.crop_to_masks = None
+    k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "scene.use_masks", False), VIEWS)
+    assert k_no["mvs1"] == k["mvs1"] and k_no["unguided"] == k["unguided"]
     # VolSDF's field reads no mask (its sphere start, every ray uniform): only its guide does
     cfg.train.mode = "volsdf"
     k, k_no = stage_keys(cfg, VIEWS), stage_keys(changed(cfg, "scene.use_masks", False), VIEWS)

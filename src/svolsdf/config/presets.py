@@ -31,6 +31,7 @@ def _fast() -> Config:
     c.fusion.unguided_dilation = 4
     c.fusion.unguided = True  # the unguided stages 2-3 as a second depth hypothesis
     c.guide.mask_dilation = 32  # the guide rendered only near the object masks
+    c.mvs.crop_to_masks = 16  # stages 2-3 only near the masks (fusion keeps 4 px of them)
     c.mesh.cull_unseen = True  # the mesh keeps the surface the input views see
     c.mesh.method = "poisson"  # the mesh of the fused points, not of the field
     c.mesh.fit_points = 300  # with mesh.method field: that surface refined to the points

@@ -113,6 +113,11 @@ class MVSConfig:
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
     its depth again and centre stage 3 on it (svolsdf mode;
     `svolsdf.pipeline.finer.finer_stage_cascade`)."""
+    crop_to_masks: int | None = _limited(None, min=0)
+    """planesweep: stages 2-3 run only in the box around each reference's object mask dilated by
+    this many pixels (working size); outside it those stages give no depth (fusion keeps depth
+    only within ``fusion.*_dilation`` px of the masks anyway). None, a scene without masks, or
+    ``scene.use_masks = false``: every pixel. Other backbones ignore it."""
     save_volumes: bool = False
     """Also keep the stage-2 and stage-3 probability volumes (OUT/mvs/stage2, stage3, about 70 MB
     a view at 768x576); nothing in the pipeline reads them again. Stage 1's are always kept (the

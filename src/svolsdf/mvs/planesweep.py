@@ -53,6 +53,7 @@ from svolsdf.mvs.backbone import (
 from svolsdf.mvs.hypotheses import stage_hypotheses
 from svolsdf.mvs.sgm import sgm_aggregate
 from svolsdf.mvs.volume import ProbabilityVolume
+from svolsdf.scene.cameras import Cameras
 from svolsdf.mvs.warping import homo_warp
 from svolsdf.scene.scene import Scene
 
@@ -140,6 +141,11 @@ class PlaneSweepConfig:
     larger (`Scene.images_at`): a 1600x1200 DTU photo gives stage 3 its own detail at 1536x1152.
     False: the working-size images upsampled, as the released code (docs/method.md 9.2.2); the two
     score the same on dtu_scan65 (`svolsdf.config.MVSConfig.native_images`)."""
+    crop_margin: int | None = None
+    """Stages 2-3 (the per-pixel hypotheses) only inside the box around the reference's object
+    mask dilated by this many pixels at the working size (`mvs.crop_to_masks`); outside it the
+    stage's depth and confidence are 0 (no depth) and its probabilities 0. None, or a scene
+    without masks: every pixel."""
     extra: dict = field(default_factory=dict)
     """Unused; room for experiments without changing the signature."""
 
@@ -359,7 +365,9 @@ class PlaneSweepBackbone(MVSBackbone):
         return {"num_depths": tuple(int(x) for x in mvs.ndepths), "width": mvs.width,
                 "native_images": mvs.native_images, "inverse_depth": mvs.inverse_depth,
                 "max_sources": mvs.max_sources,
-                **({"scale": float(mvs.scale)} if mvs.scale is not None else {})}
+                **({"scale": float(mvs.scale)} if mvs.scale is not None else {}),
+                **({"crop_margin": int(mvs.crop_to_masks)}
+                   if getattr(mvs, "crop_to_masks", None) is not None else {})}
 
     def __init__(self, config: PlaneSweepConfig | None = None,
                  device: torch.device | str | None = None, **fields) -> None:
@@ -455,32 +463,67 @@ class PlaneSweepBackbone(MVSBackbone):
                                           width_mode=self.cfg.width)
                 depths = depths.clamp_min(self.cfg.min_depth_ratio * near)
             src = [scene.index(s) for s in select_sources(scene, vid, self.cfg.max_sources)]
-            cost = self._cost_volume(k, r, src, chans, gray, cams, depths)
+            box = self._crop_box(scene, r, cams.width, cams.height) if k > 1 else None
+            x0, y0, x1, y1 = box or (0, 0, cams.width, cams.height)
+            cam_r = cams[r] if box is None else cams[r].crop(x0, y0, x1 - x0, y1 - y0)
+            hyp = depths[:, y0:y1, x0:x1].contiguous()
+            cost = self._cost_volume(k, chans[r:r + 1, :, y0:y1, x0:x1],
+                                     gray[r:r + 1, :, y0:y1, x0:x1], cam_r.proj.float(),
+                                     [(chans[j:j + 1], cams.proj[j:j + 1].float()) for j in src],
+                                     hyp)
             T = self.cfg.temperature
             if T is None:
                 T = calibrate_temperature(cost, self.cfg.temperature_margin)
             prob = torch.softmax(-cost / T, dim=0)
             log.debug("planesweep stage %d view %d: T = %.4g", k, vid, T)
-            out.append(volume_from_prob(prob, depths, cams[r], vid, k,
-                                        inverse_depth=self.cfg.inverse_depth and k == 1,
-                                        depth_radius=self.cfg.depth_radius))
+            vol = volume_from_prob(prob, hyp, cam_r, vid, k,
+                                   inverse_depth=self.cfg.inverse_depth and k == 1,
+                                   depth_radius=self.cfg.depth_radius)
+            out.append(vol if box is None else _uncrop(vol, depths, cams[r], box))
         return out
 
-    def _cost_volume(self, k, r, src, chans, gray, cams, depths) -> Tensor:
-        """(D, H, W) aggregated matching cost of reference index r over sources ``src``."""
+    def _crop_box(self, scene: Scene, r: int, W: int, H: int) -> tuple[int, int, int, int] | None:
+        """(x0, y0, x1, y1) at the stage's size W x H: the box of view index r's object mask
+        dilated by ``crop_margin`` working-size pixels; None without a margin, masks, or an
+        object in the mask."""
+        m = self.cfg.crop_margin
+        if m is None or scene.masks is None:
+            return None
+        mask = scene.masks[r].reshape(scene.masks.shape[-2:]) > 0.5
+        ys, xs = mask.nonzero(as_tuple=True)
+        if len(xs) == 0:
+            return None
+        Hw, Ww = mask.shape
+        sx, sy = W / Ww, H / Hw
+        # working pixel x spans [x - 0.5, x + 0.5], i.e. stage pixels from (x + 0.5 - 0.5 - m) sx
+        x0 = max(0, math.floor((int(xs.min()) - m) * sx))
+        y0 = max(0, math.floor((int(ys.min()) - m) * sy))
+        x1 = min(W, math.ceil((int(xs.max()) + 1 + m) * sx))
+        y1 = min(H, math.ceil((int(ys.max()) + 1 + m) * sy))
+        return None if (x0, y0, x1, y1) == (0, 0, W, H) else (x0, y0, x1, y1)
+
+    def _cost_volume(self, k: int, ref: Tensor, g: Tensor, P_ref: Tensor,
+                     sources: list[tuple[Tensor, Tensor]], depths: Tensor) -> Tensor:
+        """(D, H, W) aggregated matching cost of the reference over its sources.
+
+        Args:
+            k: the stage.
+            ref: (1, C, H, W) the reference's matching channels (its image or a crop of it).
+            g: (1, 1, H, W) its gray image, the aggregation filter's guide.
+            P_ref: (1, 3, 4) or (1, 4, 4) its projection at (W, H) (`Cameras.proj`).
+            sources: per source, its (1, C, Hs, Ws) channels and (1, ., 4) projection.
+            depths: (D, H, W) hypotheses.
+        """
         cfg = self.cfg
         D, H, W = depths.shape
         rad = cfg.window[k - 1] // 2
         frad = cfg.filter_radius[k - 1]
-        P = cams.proj.float()
-        ref = chans[r:r + 1]  # (1, C, H, W)
         C = ref.shape[1]
         ref_stats = []
         for c in range(C):
             m = box_filter(ref[:, c:c + 1], rad)
             v = (box_filter(ref[:, c:c + 1] ** 2, rad) - m * m).clamp_min(0)
             ref_stats.append((m, v))
-        g = gray[r:r + 1]
         mI = box_filter(g, frad)
         g_stats = (mI, box_filter(g * g, frad) - mI * mI)
         cost = torch.empty(D, H, W, dtype=torch.float32, device=depths.device)
@@ -488,12 +531,11 @@ class PlaneSweepBackbone(MVSBackbone):
         wsum = sum(weights)
         for d0 in range(0, D, cfg.depth_chunk):
             dh = depths[d0:d0 + cfg.depth_chunk][None]
-            per_src = torch.empty(len(src), *dh.shape[1:], dtype=torch.float32,
+            per_src = torch.empty(len(sources), *dh.shape[1:], dtype=torch.float32,
                                   device=depths.device)
             valids = torch.empty(per_src.shape, dtype=torch.bool, device=depths.device)
-            for j, s in enumerate(src):
-                warped, valid = homo_warp(chans[s:s + 1], P[s:s + 1], P[r:r + 1], dh,
-                                          padding_mode="border")
+            for j, (src_chans, P_src) in enumerate(sources):
+                warped, valid = homo_warp(src_chans, P_src, P_ref, dh, padding_mode="border")
                 # sum_c w_c cost_c / sum_c w_c, accumulated in channel order
                 c_s = None
                 for c in range(C):
@@ -514,3 +556,20 @@ class PlaneSweepBackbone(MVSBackbone):
             cost = sgm_aggregate(cost, g[0, 0], cfg.sgm_p1, cfg.sgm_p2, cfg.sgm_sigma,
                                  cfg.sgm_directions)
         return cost
+
+
+def _uncrop(vol: ProbabilityVolume, depths: Tensor, cam: Cameras,
+            box: tuple[int, int, int, int]) -> ProbabilityVolume:
+    """The cropped stage volume ``vol`` placed in the full image: ``depths`` (D, H, W) the full
+    hypotheses, ``cam`` the full reference camera; probabilities, depth and confidence 0
+    outside ``box`` (no depth there)."""
+    x0, y0, x1, y1 = box
+    D, H, W = depths.shape
+    prob = vol.prob.new_zeros(D, H, W)
+    prob[:, y0:y1, x0:x1] = vol.prob
+    depth = vol.depth.new_zeros(H, W)
+    depth[y0:y1, x0:x1] = vol.depth
+    conf = vol.confidence.new_zeros(H, W)
+    conf[y0:y1, x0:x1] = vol.confidence
+    return ProbabilityVolume(depths, prob, depth, conf, cam, vol.view_id, vol.stage,
+                             vol.inverse_depth)

@@ -32,7 +32,10 @@ def backbone_kwargs(cfg: Config) -> dict:
     """
     from svolsdf.mvs.backbone import backbone_options
 
-    return backbone_options(cfg.mvs.backbone, cfg.mvs)
+    out = backbone_options(cfg.mvs.backbone, cfg.mvs)
+    if not cfg.scene.use_masks:  # mvs.crop_to_masks crops to the masks the run uses
+        out.pop("crop_margin", None)
+    return out
 
 
 def build_backbone(cfg: Config, device=None):

@@ -65,13 +65,16 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # mvs.guide_network (the adapters' guide_init) changes only the guided stages 2-3: it
     # enters their key alone, and only for the backbones that take it
     guide_init = sig["config"].pop("guide_init", None)
+    # mvs.crop_to_masks (the plane sweep's crop_margin) changes only stages 2-3: it enters
+    # their keys alone, and only when set
+    crop = sig["config"].pop("crop_margin", None)
     # native_images enters only when set: the default (the released upsampling) keeps the
     # keys run folders had before the option existed
     if not sig["config"].get("native_images", True):
         del sig["config"]["native_images"]
     # mvs.save_volumes only says which files are kept, not what they hold
     c["mvs"] = {**{k: v for k, v in c["mvs"].items()
-                   if k not in ("guide_network", "save_volumes")},
+                   if k not in ("guide_network", "save_volumes", "crop_to_masks")},
                 "signature": sig}
     # how the views were picked does not matter once they are known (views), and run
     # folders from before the option keep their keys
@@ -108,9 +111,10 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     gmd = c["output"]["guide_mask_dilation"]
     k_guide = _hash(k_field, c["output"]["low_weight_rule"],
                     *([gmd, *(no_masks if has_field(cfg) else [])] if gmd is not None else []))
+    cropped = [("crop", crop)] if crop is not None else []
     k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
-                    *([guide_init] if guide_init is not None else []))
-    k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3")
+                    *([guide_init] if guide_init is not None else []), *cropped)
+    k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3", *cropped)
     # options added after runs existed enter only when set: those runs keep their keys
     fo = {k: v for k, v in c["output"].items() if (k.startswith("fusion") or k == "use_masks")
           and not (k in _FUSION_KEYS_WHEN_SET and v is None)}
