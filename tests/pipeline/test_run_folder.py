@@ -286,17 +286,61 @@ def test_every_writer_refuses_a_folder_another_command_writes(field_run, scene, 
         holder.wait()
 
 
+#: `svolsdf evaluate RUN --no-report` that, once it holds RUN's lock, says so and waits until the
+#: file GATE exists: a first evaluation that is certainly still running when the second starts
+_GATED_EVALUATE = """
+import sys, time
+from pathlib import Path
+from svolsdf.cli import main
+from svolsdf.evaluate import scoring
+
+run, gate, real = sys.argv[1], Path(sys.argv[2]), scoring._evaluate_run
+
+def gated(cfg):  # called by evaluate_run inside folder_lock
+    print("evaluating", flush=True)
+    t0 = time.monotonic()
+    while not gate.exists() and time.monotonic() - t0 < 120:
+        time.sleep(0.02)
+    return real(cfg)
+
+scoring._evaluate_run = gated
+main(["evaluate", run, "--no-report"])
+"""
+
+
 def test_two_evaluations_at_once_one_is_refused(mvs_run, tmp_path):
+    """Two evaluations of one folder at once: while the first holds the lock, the second is
+    refused (exit 2, the lock's line naming the first's pid; docs/run-folder.md "One lock for
+    every writer"), and the first then finishes and writes whole metrics. The first waits inside
+    the lock until the second has been refused, so the two overlap on every machine (issue 50:
+    two evaluations started together used to be allowed to run one after the other)."""
+    import os
+
+    import svolsdf
+
     out = _copy(mvs_run, tmp_path / "run")
-    cmd = [sys.executable, "-m", "svolsdf", "evaluate", str(out), "--no-report"]
-    procs = [subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    res = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
-    codes = sorted(c for c, _ in res)
-    # both finish (one after the other) or one is refused with the lock's line; never a tear
-    assert codes in ([0, 0], [0, 2]), res
-    if codes == [0, 2]:
-        assert any("another svolsdf run (svolsdf evaluate, pid" in e for _, e in res)
-    json.loads((out / "metrics.json").read_text())
+    assert not (out / "metrics.json").exists()
+    gate = tmp_path / "gate"
+    env = dict(os.environ, PYTHONPATH=str(Path(svolsdf.__file__).parents[1]))
+    first = subprocess.Popen([sys.executable, "-c", _GATED_EVALUATE, str(out), str(gate)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert first.stdout.readline().strip() == "evaluating", first.stderr.read()
+        second = subprocess.run([sys.executable, "-m", "svolsdf", "evaluate", str(out),
+                                 "--no-report"], capture_output=True, text=True, env=env,
+                                timeout=300)
+        assert second.returncode == 2, (second.returncode, second.stderr)
+        assert f"another svolsdf run (svolsdf evaluate, pid {first.pid})" in second.stderr, \
+            second.stderr
+        assert not (out / "metrics.json").exists()  # the refused one wrote nothing
+        gate.touch()
+        _, err = first.communicate(timeout=300)
+        assert first.returncode == 0, err
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert json.loads((out / "metrics.json").read_text())["chamfer"]
     assert not [p for p in out.iterdir() if ".tmp" in p.name]
 
 
