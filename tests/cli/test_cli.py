@@ -327,7 +327,7 @@ def test_corrupt_model_render_exits_2_reconstruct_trains_again(small_run, tmp_pa
     assert len(res.err.strip().splitlines()) == 1
     main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
     log = (out / "log").read_text()
-    assert "model.pt is unreadable" in log and "running the stage field again" in log
+    assert "model.pt could not be read" in log and "running the stage field again" in log
     import torch
 
     assert "model_state_dict" in torch.load(model, weights_only=False)
@@ -344,7 +344,10 @@ def test_corrupt_checkpoint_is_discarded_and_the_optimization_restarts(small_run
     (out / "field" / "checkpoint.pt").write_bytes(b"not a checkpoint")
     main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
     log = (out / "log").read_text()
-    assert "checkpoint.pt is unreadable" in log and "resumed from" not in log
+    assert "checkpoint.pt could not be read" in log and "resumed from" not in log
+    # the run's outputs say it too (timing.json, copied into metrics.json and the report)
+    why = json.loads((out / "timing.json").read_text())["field"]["rerun"]
+    assert why.startswith(f"{out / 'field' / 'checkpoint.pt'} could not be read"), why
     assert (out / "field" / "model.pt").is_file() and {"field", "mesh"} <= set(_stages(out))
 
 

@@ -192,6 +192,83 @@ def test_contradicting_options_are_refused_naming_both(name, given, a, b):
     assert a in msg and b in msg and len(msg.splitlines()) == 1, msg
 
 
+def test_mvs_only_with_the_field_mesh_is_told_that_no_method_makes_a_mesh():
+    """Issue 50: mvs-only runs no mesh stage (no field; `test_cli.py` checks that its run makes
+    no mesh.ply with mesh.method poisson), so the refusal must not send the user to
+    mesh.method=poisson for a mesh."""
+    cfg = preset("paper")
+    cfg.train.mode = "mvs-only"
+    with pytest.raises(InputError) as e:
+        validate_config(cfg)
+    msg = str(e.value)
+    assert "makes no mesh of any method, only points.ply" in msg, msg
+    assert "for a mesh use train.mode svolsdf" in msg, msg
+    assert "use mesh.method=poisson" not in msg, msg
+    # the way out it names for the points alone is accepted
+    apply_overrides(cfg, {"mesh.method": "poisson"})
+
+
+def test_draft_with_casmvsnet_runs_casmvsnet_at_its_own_size():
+    """Issue 50: the draft preset's mvs.scale 1.5 is the plane sweep's; --backbone casmvsnet
+    (which runs at 1 or 2 only) takes its own size instead of failing on a scale the user never
+    set, and the plane sweep gets 1.5 back."""
+    from svolsdf.config.presets import MVS_SCALE_BY_BACKBONE
+    from svolsdf.mvs.backbone import backbone_options
+
+    labels = {"mvs.backbone": "--backbone"}
+    cfg = apply_overrides(preset("draft"), {"mvs.backbone": "casmvsnet"}, labels=labels)
+    assert cfg.mvs.scale is None and "x2_mvsres" not in backbone_options("casmvsnet", cfg.mvs)
+    assert apply_overrides(cfg, {"mvs.backbone": "planesweep"}).mvs.scale == 1.5
+    assert MVS_SCALE_BY_BACKBONE["draft"] == {"planesweep": 1.5}
+    # a scale the user gives stays theirs: accepted where it runs, refused where not
+    cfg = apply_overrides(preset("draft"), {"mvs.backbone": "casmvsnet", "mvs.scale": 1.0})
+    assert backbone_options("casmvsnet", cfg.mvs)["x2_mvsres"] is False
+    with pytest.raises(InputError, match=r"^--set mvs\.scale=1\.5 with --backbone casmvsnet "
+                                         r"\(mvs\.backbone\): casmvsnet runs at 1 or 2 x "):
+        apply_overrides(preset("draft"), {"mvs.backbone": "casmvsnet", "mvs.scale": 1.5},
+                        labels={**labels, "mvs.scale": "--set mvs.scale"})
+    # the other presets have no per-backbone scale: nothing changes
+    assert apply_overrides(preset("fast"), {"mvs.backbone": "casmvsnet"}).mvs.scale is None
+
+
+@pytest.mark.parametrize("backbone, why", [
+    ("casmvsnet", "casmvsnet runs at 1 or 2 x the working size"),
+    ("patchmatchnet", "the patchmatchnet backbone runs at the working size only"),
+])
+def test_a_scale_the_backbone_cannot_run_at_is_refused_by_validation(backbone, why):
+    """Set in code (no override to follow), the draft's 1.5 with another backbone is refused
+    when the config is validated, before any work, naming both options, the cause and that the
+    value is the preset's."""
+    cfg = preset("draft")
+    cfg.mvs.backbone = backbone
+    with pytest.raises(InputError) as e:
+        validate_config(cfg)
+    msg = str(e.value)
+    assert msg.startswith(f"mvs.scale = 1.5 with mvs.backbone = {backbone}: {why}"), msg
+    assert "(1.5 is the draft preset's scale for planesweep)" in msg, msg
+    assert "--set mvs.scale=null" in msg and len(msg.splitlines()) == 1, msg
+
+
+def test_cli_draft_with_casmvsnet(seen, tmp_path, capsys):
+    """`reconstruct --preset draft --backbone casmvsnet` reaches the pipeline with CasMVSNet at
+    its own size; with `--set mvs.scale=1.5` it exits 2 in one line before any folder is made."""
+    from svolsdf.cli import main
+
+    out = tmp_path / "out"
+    main(["reconstruct", str(tmp_path), "-o", str(out), "--preset", "draft",
+          "--backbone", "casmvsnet"])
+    cfg = seen["cfg"]
+    assert (cfg.preset, cfg.mvs.backbone, cfg.mvs.scale, cfg.train.steps) == (
+        "draft", "casmvsnet", None, 500)
+    with pytest.raises(SystemExit) as e:
+        main(["reconstruct", str(tmp_path), "-o", str(out), "--preset", "draft",
+              "--backbone", "casmvsnet", "--set", "mvs.scale=1.5"])
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and len(err.splitlines()) == 1, err
+    assert "mvs.scale=1.5" in err and "casmvsnet" in err, err
+    assert not out.exists()
+
+
 def test_contradictions_name_the_command_line_options():
     with pytest.raises(InputError, match=r"^--mode volsdf \(train\.mode\) with --ablation mse "
                                          r"\(train\.ablation\): .*never see MVS"):

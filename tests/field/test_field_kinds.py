@@ -171,6 +171,18 @@ def test_the_mlp_keeps_its_refusals():
     with pytest.raises(InputError, match=r"field\.kind = mlp with field\.mlp_depth = 3: the "
                                          r"MLP's skip connection"):
         validate_config(cfg)
+    # 4 hidden layers put the skip (layer 4) on the last layer, where IDR's geometric init gives
+    # no sphere (|grad| ~ 9 at the start, issue 50); 5 are the fewest
+    cfg.field.mlp_depth = 4
+    with pytest.raises(InputError, match=r"field\.mlp_depth = 4: .* must be a hidden layer "
+                                         r"for the sphere start: give field\.mlp_depth >= 5"):
+        validate_config(cfg)
+    cfg.field.mlp_depth = 5
+    validate_config(cfg)
+    from svolsdf.field.volsdf import SDFNetwork
+
+    with pytest.raises(ValueError, match="a hidden layer"):
+        SDFNetwork(n_layers=4, d_hidden=64, skip_in=(4,))
     cfg = preset("paper")
     cfg.field.init = "mvs"
     with pytest.raises(InputError, match=r"field\.kind = mlp with field\.init = mvs: only the "

@@ -3,19 +3,14 @@ surface, is a signed distance (|grad| ~ 1), and ignores inconsistent depth."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import torch
+from tests.mvs.synth import make_cameras, raycast
 
 from svolsdf.field.grid import GridFieldConfig, GridSDFField
 from svolsdf.field.initial import init_grid_from_mvs, signed_distance_from_signs
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.scene import Normalization
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "mvs"))
-from synth import make_cameras, raycast  # noqa: E402
 
 R = 0.8  # sphere radius at the origin (world = unit frame here: centre 0, scale 1)
 

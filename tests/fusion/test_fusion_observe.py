@@ -1,5 +1,6 @@
 """Free-space culling, support trimming and the TSDF mesh on an exact sphere seen by three
-cameras (tests/fusion/fusion_synth.py)."""
+cameras (tests/fusion/fusion_synth.py), with depth maps at the cameras' size and, as the pipeline
+gives them (the MVS size), at twice it."""
 
 from __future__ import annotations
 
@@ -82,6 +83,47 @@ def test_free_space_culling_removes_a_bulge_and_keeps_the_sphere():
     assert len(cull_free_space(vi, fi, cams, obs, tol=0.05)[1]) == len(fi)
     # without the tolerance the same test removes the sphere's own faces at grazing angles
     assert len(fk) < len(f)
+
+
+def _twice(cams: Cameras) -> Cameras:
+    """The cameras of depth maps at twice the size of ``cams``, as the pipeline's MVS stage 3
+    makes them (the plane sweep's and CasMVSNet's 2x; docs/method.md 9.2.2): focal lengths and
+    skew doubled, the principal point c' = 2 (c + 0.5) - 0.5 (docs/architecture.md
+    "Conventions"). Written out here, not through `Cameras.resize`, so that a mistake in that
+    scaling cannot cancel on both sides."""
+    K = cams.K.clone()
+    K[:, 0, :2] *= 2.0  # fx, skew
+    K[:, 1, 1] *= 2.0  # fy
+    K[:, :2, 2] = 2.0 * (K[:, :2, 2] + 0.5) - 0.5
+    return Cameras(K, cams.w2c.clone(), 2 * cams.width, 2 * cams.height)
+
+
+def test_maps_at_twice_the_camera_size_are_read_where_they_were_made():
+    """Issue 50: the pipeline hands `observed_depths` and `cull_free_space` the final depth at
+    the MVS size (twice the working size) with the cameras at the working size, which they
+    rescale to each map. Exact depth maps made by the 2x cameras: every pixel is confirmed by
+    its own point (a half-pixel error in the scaling moves points to the neighbouring pixels),
+    and culling acts as with maps at the cameras' size."""
+    cams = _cams()
+    big = _twice(cams)
+    assert (big.width, big.height) == (192, 160)
+    depths = [sphere_depth(big[[k]]).float() for k in range(3)]
+    assert depths[0].shape == (160, 192)
+    obs = observed_depths(_points(big, depths), cams, [[d] for d in depths])
+    for k in range(3):
+        assert obs[k].shape == depths[k].shape
+        valid = depths[k] > 0
+        assert int((obs[k] > 0).sum()) == int(valid.sum()) > 1000, k
+        torch.testing.assert_close(obs[k][valid], depths[k][valid])
+    v, f = _sphere_mesh(RADIUS, bulge=True)
+    vk, fk, _ = cull_free_space(v, f, cams, obs, tol=0.05)
+    blob = CENTER.float() + torch.tensor([0.0, 0.0, -1.45])
+    assert ((v - blob).norm(dim=-1) < 0.35).sum() > 50
+    assert ((vk - blob).norm(dim=-1) < 0.35).sum() == 0  # the bulge in seen-empty space goes
+    v0, f0 = _sphere_mesh(RADIUS)
+    assert len(cull_free_space(v0, f0, cams, obs, tol=0.05)[1]) == len(f0)  # the surface stays
+    vi, fi = _sphere_mesh(0.6)  # behind what the views saw: never removed
+    assert len(cull_free_space(vi, fi, cams, obs, tol=0.05)[1]) == len(fi)
 
 
 def test_trim_by_support_drops_what_no_point_supports():

@@ -1,14 +1,19 @@
 """`ProbabilityVolume` files: the arrays deflated only where they shrink, the values unchanged,
-and files written deflated throughout (before issue 39) still read."""
+files written deflated throughout (before issue 39) still read, and the writes atomic through the
+project's writer (issue 50)."""
 
 from __future__ import annotations
 
+import errno
+import re
 import zipfile
 
 import numpy as np
+import pytest
 import torch
 from tests.mvs.synth import make_cameras
 
+from svolsdf.errors import InputError
 from svolsdf.mvs.volume import ProbabilityVolume, _deflates_well
 
 
@@ -43,6 +48,46 @@ def test_save_deflates_only_the_arrays_that_shrink(tmp_path):
         back = ProbabilityVolume.load(tmp_path / "v.npz")
         assert torch.equal(back.depths, v.depths)
         assert torch.allclose(back.prob, v.prob, atol=1e-3)  # float16 on disk
+
+
+def test_save_writes_a_temporary_of_its_own_and_renames_it(tmp_path, monkeypatch):
+    """`svolsdf.io.runfolder.atomic_write`: while the file is written, the only new name in the
+    folder is a temporary unique to this writer (``.v.npz.<pid>.<random>.tmp.npz``, not a fixed
+    ``v.npz.tmp.npz`` that two writers would share), renamed to v.npz at the end."""
+    seen = []
+    real = np.lib.format.write_array
+
+    def spy(f, arr, **kw):
+        seen.append(sorted(p.name for p in tmp_path.iterdir()))
+        return real(f, arr, **kw)
+
+    monkeypatch.setattr(np.lib.format, "write_array", spy)
+    v = _volume()
+    v.save(tmp_path / "v.npz")
+    assert seen and all(len(names) == 1 for names in seen), seen
+    assert re.fullmatch(r"\.v\.npz\.\d+\.[0-9a-f]{8}\.tmp\.npz", seen[0][0]), seen[0]
+    assert [p.name for p in tmp_path.iterdir()] == ["v.npz"]
+    assert torch.allclose(ProbabilityVolume.load(tmp_path / "v.npz").prob, v.prob, atol=1e-3)
+
+
+def test_a_full_disk_names_the_file_keeps_the_old_one_and_leaves_no_temporary(tmp_path,
+                                                                               monkeypatch):
+    v = _volume()
+    v.save(tmp_path / "v.npz")
+    before = (tmp_path / "v.npz").read_bytes()
+    real, calls = np.lib.format.write_array, []
+
+    def full(f, arr, **kw):
+        calls.append(1)
+        if len(calls) == 2:  # midway through the archive
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(f, arr, **kw)
+
+    monkeypatch.setattr(np.lib.format, "write_array", full)
+    with pytest.raises(InputError, match=r"v\.npz: cannot write it, the disk is full"):
+        _volume(planes=False).save(tmp_path / "v.npz")
+    assert [p.name for p in tmp_path.iterdir()] == ["v.npz"]
+    assert (tmp_path / "v.npz").read_bytes() == before
 
 
 def test_a_file_deflated_throughout_still_loads(tmp_path):

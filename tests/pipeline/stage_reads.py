@@ -117,7 +117,7 @@ def base_configs(scene: Path) -> dict[str, Config]:
     # set, no culling (with the fast sampler: VolSDF's takes minutes on the whole guide); and
     # the watertight mesh
     c = _tiny(preset("paper"), scene)
-    c.field.mlp_depth, c.field.mlp_width = 4, 48
+    c.field.mlp_depth, c.field.mlp_width = 5, 48
     c.train.sampler = "mvs"
     c.train.samples_uniform = c.train.samples_fine = 16  # the MLP renders the whole guide
     c.scene.image_size = [64, 48]

@@ -159,6 +159,70 @@ def test_a_run_folder_from_before_the_record_keeps_its_stages(mvs_run, tmp_path)
     assert {k: st[k] for k in old} == old and st["provenance"]["fusion"]["inputs"]  # adopted
 
 
+def _truncate(path: Path) -> None:
+    """Cut a file to half its bytes, as a full disk or a killed copy leaves it."""
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+@pytest.mark.parametrize("stage, rel", [("mvs1", "mvs/stage1/1.npz"), ("mvs23", "depth/1.npy")])
+def test_a_stage_whose_file_cannot_be_read_runs_again_and_says_so(mvs_run, tmp_path, stage,
+                                                                   rel):
+    """Issue 50: a truncated stage file is no bug: the stage (and the later ones) run again, and
+    OUT/log and the stage's entry in timing.json (copied into metrics.json and the report) say
+    that it ran again because that file could not be read."""
+    out = _copy(mvs_run, tmp_path / "run")
+    _truncate(out / rel)
+    _main(["reconstruct", "-o", out, "--config", out / "config.yaml", "--no-progress"])
+    why = json.loads((out / "timing.json").read_text())[stage]["rerun"]
+    assert why.startswith(f"{out / rel} could not be read ("), why
+    log = (out / "log").read_text()
+    assert f"{out / rel} could not be read (" in log and f"running the stage {stage} again" in log
+    if rel.endswith(".npz"):
+        from svolsdf.mvs.volume import ProbabilityVolume
+
+        ProbabilityVolume.load(out / rel)
+    else:
+        np.load(out / rel)  # whole again
+
+
+@pytest.mark.parametrize("bug", [TypeError, AttributeError, NameError])
+def test_a_bug_in_a_loader_propagates_and_keeps_the_stages(mvs_run, field_run, tmp_path,
+                                                           monkeypatch, bug):
+    """Issue 50: only what a truncated, corrupt or older file raises reruns a stage; a loader's
+    own bug (TypeError, AttributeError, NameError) reaches the caller, and no stage is forgotten."""
+    from svolsdf.config import load_config
+    from svolsdf.mvs.volume import ProbabilityVolume
+    from svolsdf.pipeline import Pipeline
+    from svolsdf.pipeline import stages as stages_module
+
+    def broken(*args, **kwargs):
+        raise bug("a loader's bug")
+
+    for src, target, name in ((mvs_run, ProbabilityVolume, "load"),
+                              (field_run, stages_module, "load_model")):
+        out = _copy(src, tmp_path / f"run_{name}")
+        state = (out / "stages.json").read_text()
+        with monkeypatch.context() as m:
+            m.setattr(target, name, broken)
+            with pytest.raises(bug, match="a loader's bug"):
+                Pipeline(load_config(out / "config.yaml"), out, progress=False).run()
+        assert (out / "stages.json").read_text() == state
+        assert "could not be read" not in (out / "log").read_text()
+
+
+def test_a_truncated_field_is_discarded_and_fitted_again(field_run, tmp_path):
+    """The field's model.pt (torch's zip) cut short: discarded, the field fitted again, and
+    timing.json's field entry says why."""
+    out = _copy(field_run, tmp_path / "run")
+    _truncate(out / "field" / "model.pt")
+    _main(["reconstruct", "-o", out, "--config", out / "config.yaml", "--no-progress"])
+    timing = json.loads((out / "timing.json").read_text())
+    assert timing["field"]["rerun"].startswith(f"{out / 'field' / 'model.pt'} could not be read")
+    assert "discarding it and running the stage field again" in (out / "log").read_text()
+    torch.load(out / "field" / "model.pt", weights_only=False)
+
+
 # --------------------------------------------------------------------------- 2: provenance
 def test_outputs_of_an_earlier_config_are_refused_by_evaluate_and_report(mvs_run, tmp_path,
                                                                          capsys, monkeypatch):
@@ -222,17 +286,61 @@ def test_every_writer_refuses_a_folder_another_command_writes(field_run, scene, 
         holder.wait()
 
 
+#: `svolsdf evaluate RUN --no-report` that, once it holds RUN's lock, says so and waits until the
+#: file GATE exists: a first evaluation that is certainly still running when the second starts
+_GATED_EVALUATE = """
+import sys, time
+from pathlib import Path
+from svolsdf.cli import main
+from svolsdf.evaluate import scoring
+
+run, gate, real = sys.argv[1], Path(sys.argv[2]), scoring._evaluate_run
+
+def gated(cfg):  # called by evaluate_run inside folder_lock
+    print("evaluating", flush=True)
+    t0 = time.monotonic()
+    while not gate.exists() and time.monotonic() - t0 < 120:
+        time.sleep(0.02)
+    return real(cfg)
+
+scoring._evaluate_run = gated
+main(["evaluate", run, "--no-report"])
+"""
+
+
 def test_two_evaluations_at_once_one_is_refused(mvs_run, tmp_path):
+    """Two evaluations of one folder at once: while the first holds the lock, the second is
+    refused (exit 2, the lock's line naming the first's pid; docs/run-folder.md "One lock for
+    every writer"), and the first then finishes and writes whole metrics. The first waits inside
+    the lock until the second has been refused, so the two overlap on every machine (issue 50:
+    two evaluations started together used to be allowed to run one after the other)."""
+    import os
+
+    import svolsdf
+
     out = _copy(mvs_run, tmp_path / "run")
-    cmd = [sys.executable, "-m", "svolsdf", "evaluate", str(out), "--no-report"]
-    procs = [subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    res = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
-    codes = sorted(c for c, _ in res)
-    # both finish (one after the other) or one is refused with the lock's line; never a tear
-    assert codes in ([0, 0], [0, 2]), res
-    if codes == [0, 2]:
-        assert any("another svolsdf run (svolsdf evaluate, pid" in e for _, e in res)
-    json.loads((out / "metrics.json").read_text())
+    assert not (out / "metrics.json").exists()
+    gate = tmp_path / "gate"
+    env = dict(os.environ, PYTHONPATH=str(Path(svolsdf.__file__).parents[1]))
+    first = subprocess.Popen([sys.executable, "-c", _GATED_EVALUATE, str(out), str(gate)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert first.stdout.readline().strip() == "evaluating", first.stderr.read()
+        second = subprocess.run([sys.executable, "-m", "svolsdf", "evaluate", str(out),
+                                 "--no-report"], capture_output=True, text=True, env=env,
+                                timeout=300)
+        assert second.returncode == 2, (second.returncode, second.stderr)
+        assert f"another svolsdf run (svolsdf evaluate, pid {first.pid})" in second.stderr, \
+            second.stderr
+        assert not (out / "metrics.json").exists()  # the refused one wrote nothing
+        gate.touch()
+        _, err = first.communicate(timeout=300)
+        assert first.returncode == 0, err
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert json.loads((out / "metrics.json").read_text())["chamfer"]
     assert not [p for p in out.iterdir() if ".tmp" in p.name]
 
 
@@ -282,6 +390,55 @@ def test_an_output_that_is_the_scene_or_another_commands_folder_is_refused(mvs_r
     code, res = _run(["mvs", sc, "-o", out, "--views", "0", "1"], capsys)
     assert code == 2 and "a run of svolsdf reconstruct" in res.err
     assert (out / "points.ply").read_bytes() == points
+
+
+def test_an_output_folder_holding_other_files_is_refused_and_runs_resume(mvs_run, field_run,
+                                                                         scene, tmp_path, capsys):
+    """Issue 50: reconstruct and mvs refuse a folder holding files that are not a svolsdf run
+    (the user's notes.txt), in one line before any work, and leave it as it was; an earlier
+    run's folder (resumed, even with the user's file beside it), one a run left before its
+    views.json, a new and an empty folder keep working."""
+    from svolsdf.io.runfolder import MVS_NAMES, RUN_NAMES
+    from svolsdf.scene.checks import check_output_folder
+
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "notes.txt").write_text("mine")
+    for argv in (["reconstruct", scene, "-o", notes, "--mode", "mvs-only", "--no-progress"],
+                 ["mvs", scene, "-o", notes, "--views", "0", "1"]):
+        code, res = _run(argv, capsys)
+        err = res.err.strip()
+        assert code == 2 and len(err.splitlines()) == 1, err
+        assert f"-o {notes}: that folder holds files that are not a svolsdf run (notes.txt)" \
+            in err, err
+    assert [p.name for p in notes.iterdir()] == ["notes.txt"]  # no lock, no log
+    # an earlier run: resumed (every stage reused), the user's file beside it kept
+    out = _copy(mvs_run, tmp_path / "run")
+    (out / "notes.txt").write_text("mine")
+    stages = (out / "stages.json").read_text()
+    _main(["reconstruct", "-o", out, "--config", out / "config.yaml", "--no-progress"])
+    assert (out / "stages.json").read_text() == stages and (out / "notes.txt").is_file()
+    # a run stopped before views.json (its bookkeeping, a killed write's temporary) goes on
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    for name in (".svolsdf.lock", "log", ".stages.json.123.0a1b2c3d.tmp"):
+        (stopped / name).write_text("")
+    check_output_folder(stopped, scene, "svolsdf reconstruct")
+    # a new folder and an empty one (a desktop's index file aside) take svolsdf mvs, and its own
+    # output again
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / ".DS_Store").write_bytes(b"")
+    for folder in (tmp_path / "new", empty, empty):
+        _main(["mvs", scene, "-o", folder, "--views", "0", "1"])
+        assert (folder / "mvs.json").is_file()
+    # the names a run writes: every name of a finished run (evaluated, reported) and of an mvs
+    # output is known, so that a folder the commands made is never taken for the user's
+    full = _copy(field_run, tmp_path / "full")
+    _main(["evaluate", full])
+    names = {p.name for p in full.iterdir()}
+    assert {"report.html", "metrics.json", "mesh.ply", "field"} <= names <= RUN_NAMES, names
+    assert {p.name for p in empty.iterdir()} - {".DS_Store"} <= MVS_NAMES
 
 
 # --------------------------------------------------------------------------- 4: degenerate input

@@ -39,6 +39,35 @@ def test_unreadable_state_counts_as_nothing_finished(tmp_path, caplog):
     assert rd.state() == {"mvs1": "k"}
 
 
+def test_unreadable_file_errors_are_those_of_damaged_files_not_of_bugs(tmp_path):
+    """Issue 50: what numpy and torch raise for a truncated or corrupt .npy, .npz and torch
+    file, and a key an older file lacks, counts as an unreadable file; a loader's bug does not."""
+    from svolsdf.pipeline.rundir import is_unreadable_file
+
+    np.save(tmp_path / "a.npy", np.zeros((40, 50), np.float32))
+    np.savez(tmp_path / "a.npz", x=np.arange(4000.0), y=np.zeros(3))
+    torch.save({"model_state_dict": {"w": torch.zeros(500)}}, tmp_path / "a.pt")
+    loaders = {".npy": np.load, ".npz": lambda p: dict(np.load(p)),
+               ".pt": lambda p: torch.load(p, weights_only=False)["model_state_dict"]}
+    seen = set()
+    for suffix, load in loaders.items():
+        data = (tmp_path / f"a{suffix}").read_bytes()
+        for n in (0, 1, 10, len(data) // 2, len(data) - 1):
+            (tmp_path / f"cut{suffix}").write_bytes(data[:n])
+            with pytest.raises(Exception) as e:
+                load(tmp_path / f"cut{suffix}")
+            assert is_unreadable_file(e.value), (suffix, n, repr(e.value))
+            seen.add(type(e.value).__name__)
+    torch.save({"older": 1}, tmp_path / "old.pt")  # a layout without the key
+    with pytest.raises(KeyError) as e:
+        loaders[".pt"](tmp_path / "old.pt")
+    assert is_unreadable_file(e.value)
+    assert len(seen) >= 3, seen  # ValueError, EOFError, BadZipFile, RuntimeError, ...
+    for bug in (TypeError("x"), AttributeError("x"), NameError("x"), NotImplementedError("x"),
+                RecursionError("x"), AssertionError("x")):
+        assert not is_unreadable_file(bug), bug
+
+
 def test_timing_merges_and_atomic_saves(tmp_path):
     rd = RunDir(tmp_path)
     rd.write_timing({"mvs1": {"seconds": 1.0}})

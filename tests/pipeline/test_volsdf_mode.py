@@ -101,22 +101,66 @@ def test_volsdf_points_pass_the_multi_view_check(volsdf_run, tmp_path):
 
 def test_volsdf_with_the_mlp_field_is_the_mlp_baseline(tiny_scene, tmp_path):
     """`--mode volsdf --set field.kind=mlp`: VolSDF's MLP from its sphere, nothing from MVS,
-    a mesh and points after a few steps (a small MLP and image here for speed), named
-    "VolSDF (MLP)" in tables."""
+    a mesh and points, named "VolSDF (MLP)" in tables; and what the baseline must get right
+    (issue 50): it starts as VolSDF's sphere (|x| - 0.6, unit gradient; an MLP whose skip
+    entered its last layer started with |grad| ~ 9), its optimization lowers the colour error
+    of the input views at fixed pixels, and its SDF stays finite with its zero level inside the
+    bounding sphere. A small MLP, image and 30 steps of 64 rays keep it cheap (~25 s)."""
     from svolsdf.commands.render import open_run
     from svolsdf.config import apply_overrides
     from svolsdf.evaluate.benchmark_tables import method_label
     from svolsdf.field.volsdf import VolSDFField
+    from svolsdf.pipeline.builders import build_sampler
+    from svolsdf.render.views import render_field_views
 
-    cfg = apply_overrides(tiny_cfg(tiny_scene, steps=3), {
-        "train.mode": "volsdf", "field.kind": "mlp", "field.mlp_depth": 4,
-        "field.mlp_width": 64, "train.checkpoint_every": 0, "scene.image_size": [64, 48],
-        "mesh.resolution": 32})
+    cfg = apply_overrides(tiny_cfg(tiny_scene, steps=30), {
+        "train.mode": "volsdf", "field.kind": "mlp", "field.mlp_depth": 5,
+        "field.mlp_width": 64, "train.checkpoint_every": 0, "scene.image_size": [48, 36],
+        "train.rays": 64, "train.samples_uniform": 16, "train.samples_fine": 16,
+        # the paper's learned beta: an anneal over 30 steps would change the loss it lowers
+        "train.beta_start": 0.0,
+        "guide.mask_dilation": 0, "mesh.resolution": 32,
+        # 30 steps leave depth that no second view confirms yet: every depth is fused, so that
+        # the run ends (the multi-view rule has its own test above)
+        "fusion.min_views": 0})
     out = tmp_path / "mlp"
-    summary = Pipeline(cfg, out, progress=False).run()
-    p = open_run(out)
-    assert isinstance(p.model(), VolSDFField) and not (out / "mvs").exists()
-    assert len(read_ply(out / "mesh.ply")["faces"]) > 0 and summary["mesh"] is not None
-    assert (out / "points.ply").is_file()
+    p = Pipeline(cfg, out, progress=False)
+    scene = p.load()
+    torch.manual_seed(cfg.train.seed)  # as the field stage builds its model
+    start = p.build_model()
+    summary = p.run()
+    # VolSDF's sphere: sdf ~ |x| - 0.6 with a unit gradient (docs/method.md 5.2; IDR's init is
+    # that only roughly at width 64: measured means -0.28 / 0.00 / 0.37 at r 0.3 / 0.6 / 1.0,
+    # |grad| 0.9-1.1)
+    for r, lo, hi in ((0.3, -0.45, -0.15), (0.6, -0.15, 0.15), (1.0, 0.2, 0.6)):
+        x = torch.randn(300, 3)
+        x = x / x.norm(dim=-1, keepdim=True) * r
+        sdf, grad, _ = start.sdf_and_grad(x, create_graph=False)
+        assert lo < sdf.mean().item() < hi, (r, sdf.mean().item())
+        assert 0.75 < grad.norm(dim=-1).mean().item() < 1.25, (r, grad.norm(dim=-1).mean())
+    # the fit: L1 colour error of the inputs at fixed pixels, rendered before and after
+    pixels = torch.zeros(len(p.views), 36, 48, dtype=torch.bool)
+    pixels[:, 1::3, 1::3] = True
+    sampler = build_sampler(cfg, None, training=False)
+    target = scene.images.permute(0, 2, 3, 1)[pixels]
+    err = [(render_field_views(m, sampler, scene.cameras_unit, p.unit_near_far(), keys=("rgb",),
+                               pixels=pixels)["rgb"][pixels] - target).abs().mean().item()
+           for m in (start, p.model())]
+    assert err[1] < 0.85 * err[0], err  # measured: 0.18 -> 0.12
+    # a finite SDF whose zero level lies inside the bounding sphere (radius 3)
+    g = torch.linspace(-2.9, 2.9, 24)
+    grid = torch.cartesian_prod(g, g, g)
+    grid = grid[grid.norm(dim=-1) < 2.9]
+    with torch.no_grad():
+        values = p.model().sdf(grid.to(p.device)).cpu()
+    assert torch.isfinite(values).all() and values.min() < 0 < values.max()
+    assert (values[grid.norm(dim=-1) > 2.0] > 0).all()  # the object is inside the unit sphere
+    mesh = read_ply(out / "mesh.ply")
+    inside = scene.normalization.to_unit(torch.from_numpy(mesh["points"]).double()).norm(dim=-1)
+    assert len(mesh["faces"]) > 0 and inside.max() < 2.0, inside.max()
+    # the run: the MLP, no MVS, a mesh and points, the label
+    run = open_run(out)
+    assert isinstance(run.model(), VolSDFField) and not (out / "mvs").exists()
+    assert summary["mesh"] is not None and (out / "points.ply").is_file()
     assert "rgb" in (out / "field" / "losses.csv").read_text().splitlines()[0]
-    assert method_label(p.cfg.train.mode, p.cfg.field.kind) == "VolSDF (MLP)"
+    assert method_label(run.cfg.train.mode, run.cfg.field.kind) == "VolSDF (MLP)"

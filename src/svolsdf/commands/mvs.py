@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 import torch
 
 from svolsdf.errors import InputError
+from svolsdf.io.runfolder import atomic_write
 from svolsdf.scene.scene import Scene
 from svolsdf.scene.size import working_size
 
@@ -166,9 +166,8 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
         timings["fusion"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     summary["seconds"] = {k: round(v, 3) for k, v in timings.items()}
-    tmp = out / "mvs.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=1) + "\n")
-    os.replace(tmp, out / "mvs.json")
+    text = json.dumps(summary, indent=1) + "\n"
+    atomic_write(out / "mvs.json", lambda tmp: tmp.write_text(text))
     log.info("mvs: wrote %s in %.1f s", out, timings["total"])
     return summary
 

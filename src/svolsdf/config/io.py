@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from svolsdf.config.presets import PRESETS, preset
+from svolsdf.config.presets import PRESETS, follow_backbone, preset
 from svolsdf.config.schema import Config
 from svolsdf.config.validate import _short, validate_config
 from svolsdf.errors import InputError
@@ -231,6 +231,10 @@ def apply_overrides(cfg: Config, overrides: dict[str, Any],
                     labels: Mapping[str, str] | None = None, skip_none: bool = True) -> Config:
     """Set dotted keys (``{"train.steps": 100}``), then validate.
 
+    A changed ``mvs.backbone`` without ``mvs.scale`` takes the preset's scale for it
+    (`svolsdf.config.presets.follow_backbone`: ``--preset draft --backbone casmvsnet`` runs
+    CasMVSNet at its own size, not at the plane sweep's 1.5).
+
     Args:
         labels: dotted key -> the option that gave it, for the messages of `validate_config`.
         skip_none: None values mean "not given" and are skipped (command-line flags); False sets
@@ -248,6 +252,7 @@ def apply_overrides(cfg: Config, overrides: dict[str, Any],
             if k in labels:
                 labels[RENAMED[k]] = labels.pop(k)
         _deprecated(", ".join(sorted({labels.get(RENAMED[k], "--set") for k in old})), old)
+    backbone = getattr(getattr(cfg, "mvs", None), "backbone", None)
     for key, value in overrides.items():
         if value is None and skip_none:
             continue
@@ -261,8 +266,10 @@ def apply_overrides(cfg: Config, overrides: dict[str, Any],
                 parts[-1] not in {f.name for f in fields(obj)}:
             raise _unknown_key(cfg, key, labels.get(key))
         setattr(obj, parts[-1], value)
-    given = {k: v for k, v in labels.items() if k in overrides
-             and (overrides[k] is not None or not skip_none)}
+    set_keys = {k for k, v in overrides.items() if v is not None or not skip_none}
+    if "mvs.backbone" in set_keys and "mvs.scale" not in set_keys:
+        follow_backbone(cfg, backbone)  # the preset's scale for the new backbone
+    given = {k: v for k, v in labels.items() if k in set_keys}
     return validate_config(cfg, labels=given)
 
 

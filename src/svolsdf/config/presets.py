@@ -3,10 +3,20 @@ was chosen, with the measurements: docs/presets.md."""
 
 from __future__ import annotations
 
+import logging
+
 from svolsdf.config.schema import Config, FieldConfig, MeshConfig, MVSConfig, TrainConfig
 from svolsdf.errors import InputError
 
-__all__ = ["PRESETS", "preset"]
+__all__ = ["MVS_SCALE_BY_BACKBONE", "PRESETS", "follow_backbone", "preset", "preset_mvs_scale"]
+
+log = logging.getLogger(__name__)
+
+MVS_SCALE_BY_BACKBONE: dict[str, dict[str, float]] = {"draft": {"planesweep": 1.5}}
+"""The ``mvs.scale`` a preset gives each backbone, for the presets that set one: the draft runs
+the plane sweep at 1.5x the working size. A backbone not listed keeps its own size (``mvs.scale``
+unset: CasMVSNet at 2x, the adapters at the working size), since 1.5 is no size CasMVSNet runs
+at (1 or 2) and only the plane sweep's was measured (docs/presets.md)."""
 
 
 def _paper() -> Config:
@@ -45,7 +55,9 @@ def _draft() -> Config:
     c = _fast()
     c.preset = "draft"
     c.train.steps = 500  # half the field steps
-    c.mvs.scale = 1.5  # the plane sweep at 1.5x the working size instead of 2x
+    # the plane sweep at 1.5x the working size instead of 2x; another backbone keeps its own
+    # size (MVS_SCALE_BY_BACKBONE, follow_backbone)
+    c.mvs.scale = preset_mvs_scale("draft", c.mvs.backbone)
     return c
 
 
@@ -59,3 +71,32 @@ def preset(name: str) -> Config:
     return PRESETS[name]()
 
 
+
+
+def preset_mvs_scale(name: str, backbone: str) -> float | None:
+    """The ``mvs.scale`` the preset ``name`` gives the backbone ``backbone``
+    (`MVS_SCALE_BY_BACKBONE`); None: the backbone's own size."""
+    return MVS_SCALE_BY_BACKBONE.get(name, {}).get(backbone)
+
+
+def follow_backbone(cfg: Config, before: str) -> None:
+    """``mvs.backbone`` changed from ``before`` and ``mvs.scale`` was not given with it: a scale
+    that is the preset's for ``before`` (unset included) becomes the preset's for the new backbone
+    (`preset_mvs_scale`), in place, with a line in the log. ``--preset draft --backbone
+    casmvsnet`` thus runs CasMVSNet at its own 2x instead of the plane sweep's 1.5, which it
+    cannot run at; a scale the user gave stays as given (and `validate_config` refuses one the
+    backbone cannot run at). Presets without a per-backbone scale are left as they are."""
+    now, scale = cfg.mvs.backbone, cfg.mvs.scale
+    if now == before or not isinstance(cfg.preset, str) or cfg.preset not in \
+            MVS_SCALE_BY_BACKBONE or isinstance(scale, bool) or \
+            not isinstance(scale, (int, float, type(None))):
+        return  # unchanged, no such preset, or a value validate_config refuses itself
+    mine = preset_mvs_scale(cfg.preset, before)
+    if (scale is None) != (mine is None) or (mine is not None and float(scale) != mine):
+        return  # not the preset's value: the user's
+    cfg.mvs.scale = preset_mvs_scale(cfg.preset, now)
+    if cfg.mvs.scale != scale:
+        own = "its own size (mvs.scale unset)"
+        log.info("mvs.scale: the %s preset runs %s at %s and %s at %s", cfg.preset, before,
+                 own if mine is None else f"{mine:g}x", now,
+                 own if cfg.mvs.scale is None else f"{cfg.mvs.scale:g}x")

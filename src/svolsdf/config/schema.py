@@ -393,7 +393,8 @@ class MeshConfig:
 class Config:
     preset: Literal["fast", "draft", "paper"] = "fast"
     """fast (default; minutes on a CPU) | draft (fast in about half the time: half the field
-    steps, the plane sweep at 1.5x; docs/presets.md) | paper (docs/method.md constants; a GPU)."""
+    steps, the plane sweep at 1.5x, other backbones at their own size; docs/presets.md) | paper
+    (docs/method.md constants; a GPU)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto | cpu | cuda."""
     threads: int = _limited(0, min=0)

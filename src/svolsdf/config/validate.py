@@ -237,9 +237,24 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
                "fusion.network", None, "the weights are of the fusion network; set "
                "fusion.network too or leave the weights out")
     if t.mode == "mvs-only" and cfg.mesh.method == "field":
+        # no mesh stage runs without a field (svolsdf.pipeline.options.has_field), so no
+        # mesh.method makes a mesh in mvs-only: the way out must not promise one
         refuse("train.mode", t.mode, "mesh.method", cfg.mesh.method,
-               "mvs-only fits no field, so there is no field to mesh (its output is "
-               "points.ply): use mesh.method=poisson or another train.mode")
+               "mvs-only fits no field and makes no mesh of any method, only points.ply: for "
+               "a mesh use train.mode svolsdf (or volsdf); for the points alone set "
+               "mesh.method to a method of the points (poisson), which mvs-only leaves unused")
+    # a scale the backbone cannot run at would stop the run at the backbone's construction
+    from svolsdf.config.presets import MVS_SCALE_BY_BACKBONE
+    from svolsdf.mvs.backbone import backbone_scale_problem
+
+    why = backbone_scale_problem(cfg.mvs.backbone, cfg.mvs.scale)
+    if why is not None:
+        whose = [b for b, v in MVS_SCALE_BY_BACKBONE.get(cfg.preset, {}).items()
+                 if v == cfg.mvs.scale and b != cfg.mvs.backbone]
+        refuse("mvs.scale", cfg.mvs.scale, "mvs.backbone", cfg.mvs.backbone,
+               why + (f" ({cfg.mvs.scale:g} is the {cfg.preset} preset's scale for "
+                      f"{whose[0]})" if whose and "mvs.scale" not in labels else "")
+               + ": leave mvs.scale unset (--set mvs.scale=null) for the backbone's own size")
     if cfg.mesh.watertight and cfg.mesh.method != "field":
         refuse("mesh.watertight", True, "mesh.method", cfg.mesh.method,
                "the watertight mesh is the field's closed zero level, and the meshes of the "

@@ -219,8 +219,9 @@ def check_grid(f, t, from_sphere: bool) -> Refusal | None:
 
 
 def check_mlp(f, t, from_sphere: bool) -> Refusal | None:
-    """VolSDF's MLP needs 4 layers and 40 channels for its skip connection, and starts from
-    VolSDF's sphere only.
+    """VolSDF's MLP needs 5 hidden layers and 40 channels for its skip connection (at layer 4, a
+    hidden layer: with 4 the skip would enter the last layer, where IDR's geometric init does not
+    give the sphere), and starts from VolSDF's sphere only.
 
     Args:
         f: the `FieldConfig` (``mlp_depth``, ``mlp_width``, ``init``).
@@ -230,12 +231,14 @@ def check_mlp(f, t, from_sphere: bool) -> Refusal | None:
     Returns:
         the first refused pair of options, or None.
     """
-    if f.mlp_depth < 4 or f.mlp_width <= 39:
-        # VolSDF's MLP (docs/method.md 5.2) feeds gamma(x) (39 values) in again at layer 4
-        bad = ("field.mlp_depth", f.mlp_depth) if f.mlp_depth < 4 else \
+    if f.mlp_depth < 5 or f.mlp_width <= 39:
+        # VolSDF's MLP (docs/method.md 5.2) feeds gamma(x) (39 values) in again at layer 4, a
+        # hidden layer
+        bad = ("field.mlp_depth", f.mlp_depth) if f.mlp_depth < 5 else \
             ("field.mlp_width", f.mlp_width)
         return ("field.kind", f.kind, *bad, "the MLP's skip connection enters gamma(x) (39 "
-                "values) again at layer 4: give field.mlp_depth >= 4 and field.mlp_width >= 40")
+                "values) again at layer 4, which must be a hidden layer for the sphere start: "
+                "give field.mlp_depth >= 5 and field.mlp_width >= 40")
     if f.init == "mvs" and t.mode == "svolsdf":
         return ("field.kind", f.kind, "field.init", f.init,
                 "only the grid field starts from the MVS surface; the MLP starts from VolSDF's "

@@ -98,10 +98,13 @@ class SDFNetwork(nn.Module):
         self.skip_in = tuple(skip_in)
         self.num_linear = len(dims) - 1
         for s in self.skip_in:
-            if not 1 <= s < self.num_linear or d_hidden <= d_emb:
+            # a hidden layer: the geometric init's last layer sums hidden units into ~|x|, and
+            # gamma(x) entering there would add its sin/cos (an MLP of 4 hidden layers with the
+            # skip at 4 started with |grad| ~ 9, not VolSDF's sphere)
+            if not 1 <= s < self.num_linear - 1 or d_hidden <= d_emb:
                 raise ValueError(
-                    f"SDFNetwork: skip layer {s} needs 1 <= skip < {self.num_linear} and "
-                    f"d_hidden ({d_hidden}) > embedding size ({d_emb})"
+                    f"SDFNetwork: skip layer {s} needs 1 <= skip < {self.num_linear - 1} (a "
+                    f"hidden layer) and d_hidden ({d_hidden}) > embedding size ({d_emb})"
                 )
         layers = []
         for i in range(self.num_linear):

@@ -28,13 +28,30 @@ from pathlib import Path
 
 from svolsdf.errors import InputError
 
-__all__ = ["LOCK_NAME", "OUTPUT_STAGES", "RunFolder", "RunViews", "atomic_write", "config_digest",
-           "folder_lock", "mesh_source", "output_provenance", "read_stage_state", "unique_temp"]
+__all__ = ["LOCK_NAME", "MVS_NAMES", "OUTPUT_STAGES", "RUN_NAMES", "RunFolder", "RunViews",
+           "atomic_write", "config_digest", "folder_lock", "foreign_names", "mesh_source",
+           "output_provenance", "read_stage_state", "unique_temp"]
 
 log = logging.getLogger(__name__)
 
 LOCK_NAME = ".svolsdf.lock"
 """The lock file of a run folder."""
+
+RUN_NAMES = frozenset({
+    "config.yaml", "views.json", "stages.json", "timing.json", "log", LOCK_NAME,
+    "mvs", "depth", "confidence", "field", "normals", "unguided", "network",
+    "points.ply", "mesh.ply", "mesh.obj", "renders", "renders_ibr", "metrics.json", "report.html",
+    "demo_metrics.json"})
+"""The names at the top of a run folder of ``svolsdf reconstruct`` (the layout of `RunFolder`,
+with what evaluate, report, render and demo add): a folder that holds others is no run."""
+
+MVS_NAMES = frozenset({"mvs", "depth", "confidence", "points.ply", "mvs.json", LOCK_NAME})
+"""The names at the top of an output folder of ``svolsdf mvs`` (`svolsdf.commands.mvs`)."""
+
+#: files a desktop leaves in any folder it shows: not the user's data
+_SYSTEM_FILES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
+#: a temporary of `unique_temp` (``.NAME.<pid>.<random>.tmp<suffix>``) that a killed write left
+_TEMPORARY = re.compile(r"\..+\.\d+\.[0-9a-f]{8}\.tmp.*")
 
 OUTPUT_STAGES = {"points.ply": "fusion", "mesh.ply": "mesh", "mesh.obj": "mesh",
                  "renders": "render"}
@@ -248,6 +265,19 @@ class RunFolder:
     def mesh_source(self) -> str | None:
         """Which surface OUT/mesh.ply is, from timing.json (`mesh_source`)."""
         return mesh_source(self.timing())
+
+
+def foreign_names(folder: str | Path, names: frozenset[str]) -> list[str]:
+    """The entries of ``folder`` that a command writing ``names`` (`RUN_NAMES`, `MVS_NAMES`) did
+    not write, sorted; a killed write's temporary and a desktop's index files do not count.
+
+    Args:
+        folder: an existing folder.
+        names: the names the command writes at the folder's top.
+    """
+    return sorted(p.name for p in Path(folder).iterdir()
+                  if p.name not in names and p.name not in _SYSTEM_FILES
+                  and not _TEMPORARY.fullmatch(p.name))
 
 
 def _json_object(path: Path, missing: dict | None = None) -> dict | None:

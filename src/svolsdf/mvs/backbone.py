@@ -44,6 +44,8 @@ __all__ = [
     "get_backbone",
     "takes_device",
     "backbone_signature",
+    "backbone_options",
+    "backbone_scale_problem",
     "backbone_config_class",
     "register_backbone",
     "unregister_backbone",
@@ -99,6 +101,21 @@ class MVSBackbone(ABC):
         return sig
 
     @classmethod
+    def scale_problem(cls, scale: float | None) -> str | None:
+        """Why this backbone cannot run at ``mvs.scale`` = ``scale`` (in words, for a message),
+        or None when it can. Unset (None, the backbone's own size) always can; the base class
+        takes 1 or 2 where the config class has ``x2_mvsres`` (CasMVSNet) and nothing else
+        otherwise (the adapters run at the working size). A backbone that reads ``mvs.scale``
+        itself (the plane sweep) overrides it with its own rule."""
+        if scale is None:
+            return None
+        if not hasattr(cls.config_class, "x2_mvsres"):
+            return f"the {cls.name} backbone runs at the working size only"
+        if float(scale) not in (1.0, 2.0):
+            return f"{cls.name} runs at 1 or 2 x the working size (x2_mvsres)"
+        return None
+
+    @classmethod
     def options(cls, mvs) -> dict:
         """This backbone's ``**cfg`` keywords from the run's MVS section ``mvs`` (a
         `svolsdf.config.MVSConfig`): the names the learned cascades share (``ndepths``,
@@ -112,13 +129,11 @@ class MVSBackbone(ABC):
         conf = cls.config_class
         kw = {"ndepths": tuple(int(x) for x in mvs.ndepths), "width_mode": mvs.width,
               "inverse_depth": mvs.inverse_depth, "max_sources": mvs.max_sources}
+        why = cls.scale_problem(mvs.scale)
+        if why is not None:
+            raise InputError(f"mvs.scale = {mvs.scale}: {why}; leave mvs.scale unset for the "
+                             "backbone's own size")
         if mvs.scale is not None:
-            if not hasattr(conf, "x2_mvsres"):
-                raise InputError(f"mvs.scale: the {cls.name} backbone runs at the working "
-                                 f"size; leave mvs.scale unset (got {mvs.scale})")
-            if float(mvs.scale) not in (1.0, 2.0):
-                raise InputError(f"mvs.scale: {cls.name} runs at 1 or 2 x the working size "
-                                 f"(x2_mvsres), got {mvs.scale}")
             kw["x2_mvsres"] = float(mvs.scale) == 2.0
         if hasattr(conf, "native_images"):
             kw["native_images"] = mvs.native_images
@@ -209,6 +224,13 @@ def backbone_options(name: str, mvs) -> dict:
         InputError: unknown name, or an ``mvs.scale`` the backbone cannot run at.
     """
     return _backbone_class(name).options(mvs)
+
+
+def backbone_scale_problem(name: str, scale: float | None) -> str | None:
+    """`MVSBackbone.scale_problem` of the backbone called ``name``: why it cannot run at
+    ``mvs.scale`` = ``scale``, None when it can (`svolsdf.config.validate_config` asks before any
+    work)."""
+    return _backbone_class(name).scale_problem(scale)
 
 
 def backbone_signature(name: str, weights=None, **cfg) -> dict:

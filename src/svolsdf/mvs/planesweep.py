@@ -358,6 +358,12 @@ class PlaneSweepBackbone(MVSBackbone):
     config_class = PlaneSweepConfig
 
     @classmethod
+    def scale_problem(cls, scale: float | None) -> str | None:
+        """None: the plane sweep runs at any ``mvs.scale`` > 0 (its ``scale``; the limit is the
+        option's own, `svolsdf.config.schema.MVSConfig.scale`)."""
+        return None
+
+    @classmethod
     def options(cls, mvs) -> dict:
         """`PlaneSweepConfig`'s keywords from the run's MVS section ``mvs``: its planes per stage
         (``num_depths``), ``width``, ``native_images``, ``scale`` when set, and the shared

@@ -81,11 +81,22 @@ class ProbabilityVolume:
         the probabilities, the depth and confidence maps and stage 3's per-pixel hypotheses
         (0.5-0.8 of their size) are stored. The values written are the same; `numpy.load` reads
         either, and files written deflated throughout (before) still load.
+
+        The file is written through the project's atomic writer
+        (`svolsdf.io.runfolder.atomic_write`): a temporary name unique to the writer beside
+        ``path``, renamed when complete, removed when the write fails.
+
+        Args:
+            path: the .npz file; its folder is created.
+
+        Raises:
+            InputError: the file cannot be written (a full disk, a read-only folder), naming it.
         """
-        import os
         import zipfile
 
         import numpy as np
+
+        from svolsdf.io.runfolder import atomic_write
 
         arrays = {
             "depths": self.depths.float().cpu().numpy(),
@@ -97,17 +108,19 @@ class ProbabilityVolume:
             "size": np.array([self.cameras.width, self.cameras.height]),
             "meta": np.array([self.view_id, self.stage, int(self.inverse_depth)]),
         }
-        tmp = f"{path}.tmp.npz"
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as zf:
-            for name, arr in arrays.items():
-                arr = np.ascontiguousarray(arr)
-                # ZipFile.open(name, "w") takes the archive's compression at the time it opens
-                zf.compression = (zipfile.ZIP_DEFLATED if _deflates_well(arr)
-                                  else zipfile.ZIP_STORED)
-                zf.compresslevel = 1
-                with zf.open(f"{name}.npy", "w", force_zip64=True) as f:
-                    np.lib.format.write_array(f, arr, allow_pickle=False)
-        os.replace(tmp, path)
+
+        def write(tmp) -> None:
+            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as zf:
+                for name, arr in arrays.items():
+                    arr = np.ascontiguousarray(arr)
+                    # ZipFile.open(name, "w") takes the archive's compression when it opens
+                    zf.compression = (zipfile.ZIP_DEFLATED if _deflates_well(arr)
+                                      else zipfile.ZIP_STORED)
+                    zf.compresslevel = 1
+                    with zf.open(f"{name}.npy", "w", force_zip64=True) as f:
+                        np.lib.format.write_array(f, arr, allow_pickle=False)
+
+        atomic_write(path, write, suffix=".npz")
 
     @classmethod
     def load(cls, path) -> ProbabilityVolume:

@@ -18,7 +18,7 @@ from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline.keys import stage_keys
 from svolsdf.pipeline.machine import resolve_device
 from svolsdf.pipeline.options import has_field, is_baseline, runs_mvs1
-from svolsdf.pipeline.rundir import RunDir, one_line
+from svolsdf.pipeline.rundir import RunDir, is_unreadable_file, one_line
 from svolsdf.pipeline.views import auto_views, default_views, test_views
 from svolsdf.scene.scene import Scene
 from svolsdf.scene.size import working_size
@@ -38,7 +38,9 @@ def load_model(model, path: Path) -> None:
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
         sd = state["model_state_dict"]
-    except Exception as e:  # zip, pickle, EOF or key errors of a corrupt file
+    except Exception as e:
+        if not is_unreadable_file(e):  # a bug, not a truncated or corrupt file
+            raise
         raise InputError(f"{path}: not a readable field file ({one_line(e)})") from None
     # a grid field takes the stored box and grid shapes (GridSDFField._load_from_state_dict)
     model.load_state_dict(sd)

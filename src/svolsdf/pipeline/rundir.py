@@ -12,7 +12,10 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import pickle
 import sys
+import zipfile
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -21,9 +24,29 @@ import torch
 
 from svolsdf.io.runfolder import RunFolder, atomic_write, folder_lock
 
-__all__ = ["RunDir", "save_json", "save_npy", "save_torch"]
+__all__ = ["UNREADABLE_FILE_ERRORS", "RunDir", "is_unreadable_file", "save_json", "save_npy",
+           "save_torch"]
 
 log = logging.getLogger(__name__)
+
+
+UNREADABLE_FILE_ERRORS: tuple[type[BaseException], ...] = (
+    OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error,
+    pickle.UnpicklingError, RuntimeError)
+"""What reading a truncated, corrupt or older run file raises: numpy (ValueError: a bad header or
+too few bytes; EOFError), an .npz's zip (BadZipFile, zlib.error), torch.load (RuntimeError: "failed
+finding central directory"; UnpicklingError, EOFError), a key an older file lacks (KeyError), a
+field of another shape (load_state_dict's RuntimeError) and the disk (OSError). A stage whose file
+raises one of these is run again; anything else (TypeError, AttributeError, NameError, ...) is a
+bug of the loader and propagates (`is_unreadable_file`)."""
+
+
+def is_unreadable_file(e: BaseException) -> bool:
+    """``e``, raised while reading a run file, says the file is unreadable (truncated, corrupt, of
+    an older layout: `UNREADABLE_FILE_ERRORS`) rather than that the loader has a bug. RuntimeError's
+    subclasses NotImplementedError and RecursionError are bugs."""
+    return isinstance(e, UNREADABLE_FILE_ERRORS) and not isinstance(
+        e, (NotImplementedError, RecursionError))
 
 
 def save_npy(path: Path, arr: np.ndarray) -> None:

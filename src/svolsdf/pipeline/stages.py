@@ -28,7 +28,9 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -42,17 +44,24 @@ from svolsdf.pipeline.context import GuideRender
 from svolsdf.pipeline.keys import STAGES, describe_changes, input_keys, input_manifest
 from svolsdf.pipeline.loaded_run import Run, load_model
 from svolsdf.pipeline.machine import peak_rss_gb, set_threads
-from svolsdf.pipeline.rundir import one_line, save_npy, save_torch
+from svolsdf.pipeline.rundir import is_unreadable_file, one_line, save_npy, save_torch
 
 __all__ = ["Pipeline"]
 
 # the run's messages in OUT/log keep the logger name they always had
 log = logging.getLogger("svolsdf.pipeline")
 
+T = TypeVar("T")
+
+
+def _load_map(path: Path) -> torch.Tensor:
+    """The (H, W) map of an .npy file."""
+    return torch.from_numpy(np.load(path))
+
 
 def _load_maps(files: dict[int, Path]) -> dict[int, torch.Tensor]:
     """{view: (H, W) map} from .npy files."""
-    return {v: torch.from_numpy(np.load(f)) for v, f in files.items()}
+    return {v: _load_map(f) for v, f in files.items()}
 
 
 class Pipeline(Run):
@@ -80,22 +89,42 @@ class Pipeline(Run):
         self._config_digest: str | None = None  # of OUT/config.yaml, set by run()
         self._input_changes: list[str] = []
         self._logged: set[str] = set()  # the stages whose reuse or rerun OUT/log explained
+        self._reruns: dict[str, str] = {}  # stage -> the file that could not be read, and why
 
     # ------------------------------------------------------------------ bookkeeping
-    def _reuse(self, stage: str, read, discard: Path | None = None):
-        """``read()`` the files of a finished (or, for the field, started) ``stage``; None when
-        one is unreadable: a warning says so, ``discard`` is deleted, and the stage and the later
-        ones run again."""
-        try:
-            return read()
-        except Exception as e:  # a truncated or corrupt file: numpy, zip or pickle errors
-            what = f"{discard} is" if discard is not None else "a file of the stage is"
-            log.warning("%s: %s unreadable (%s); discarding it and running the stage %s again",
-                        self.out, what, one_line(e), stage)
-            if discard is not None:
-                discard.unlink(missing_ok=True)
-            self.dir.unmark(STAGES[STAGES.index(stage):])
-            return None
+    def _reuse(self, stage: str, files: list[Path], read: Callable[[Path], T],
+               discard: bool = False) -> list[T] | None:
+        """``[read(f) for f in files]``, the files of a finished (or, for the field, started)
+        ``stage``; None when one cannot be read: a warning in OUT/log names it and why, the
+        stage and the later ones run again, the stage's entry in timing.json says so
+        (``rerun``), and with ``discard`` the file is deleted.
+
+        Only what a truncated, corrupt or older file raises counts as unreadable
+        (`svolsdf.pipeline.rundir.is_unreadable_file`; and `InputError`, which `load_model`
+        raises for such a file): any other exception is a bug of the loader and propagates.
+        """
+        out = []
+        for f in files:
+            try:
+                out.append(read(f))
+            except Exception as e:
+                if not (isinstance(e, InputError) or is_unreadable_file(e)):
+                    raise
+                why = f"{f} could not be read ({one_line(e)})"
+                self._reruns[stage] = why
+                log.warning("%s: %s; %srunning the stage %s again", self.out, why,
+                            "discarding it and " if discard else "", stage)
+                if discard:
+                    f.unlink(missing_ok=True)
+                self.dir.unmark(STAGES[STAGES.index(stage):])
+                return None
+        return out
+
+    def _reuse_maps(self, stage: str, files: dict[int, Path]) -> dict[int, torch.Tensor] | None:
+        """{view: (H, W) map} of a finished ``stage``'s .npy files, None when one cannot be read
+        (`_reuse`)."""
+        maps = self._reuse(stage, list(files.values()), _load_map)
+        return None if maps is None else dict(zip(files, maps, strict=True))
 
     def _mark(self, stage: str) -> None:
         self.dir.mark(stage, self.keys[stage], **self._provenance(stage))
@@ -144,8 +173,11 @@ class Pipeline(Run):
             self._mark(stage)
 
     def _time(self, stage: str, t0: float, **extra) -> None:
+        """Record ``stage``'s time, peak memory and ``extra`` in OUT/timing.json, with why it ran
+        again (``rerun``) when its earlier file could not be read (`_reuse`)."""
+        rerun = {"rerun": self._reruns.pop(stage)} if stage in self._reruns else {}
         self.timing[stage] = {"seconds": round(time.perf_counter() - t0, 3),
-                              "peak_memory_gb": round(peak_rss_gb(), 3), **extra}
+                              "peak_memory_gb": round(peak_rss_gb(), 3), **extra, **rerun}
         self.dir.write_timing(self.timing)
 
     def model(self):
@@ -288,7 +320,7 @@ class Pipeline(Run):
     def stage_mvs1(self) -> list[ProbabilityVolume]:
         files = [self.dir.stage1_file(v) for v in self.views]
         if self._done("mvs1") and all(f.is_file() for f in files):
-            vols = self._reuse("mvs1", lambda: [ProbabilityVolume.load(f) for f in files])
+            vols = self._reuse("mvs1", files, ProbabilityVolume.load)
             if vols is not None:
                 self._volumes1 = vols
                 return vols
@@ -324,7 +356,7 @@ class Pipeline(Run):
         torch.manual_seed(self.cfg.train.seed)  # the box (quantiles of a random subset) too
         model = self.build_model()
         if self._done("field") and final.is_file():
-            if self._reuse("field", lambda: load_model(model, final) or True, final):
+            if self._reuse("field", [final], lambda f: load_model(model, f), discard=True):
                 self._model = model.to(self.device)
                 return self._model
             torch.manual_seed(self.cfg.train.seed)  # a fresh model: the load may have filled
@@ -334,7 +366,7 @@ class Pipeline(Run):
         trainer = self._field_trainer(model)
         if self._inputs_unchanged("field", "field_partial"):
             ckpt = trainer.checkpoint_path()
-            if not self._reuse("field", lambda: trainer.load_checkpoint() or True, ckpt):
+            if not self._reuse("field", [ckpt], trainer.load_checkpoint, discard=True):
                 torch.manual_seed(tcfg.seed)  # start again, exactly as a fresh run
                 model = self.build_model()
                 trainer = self._field_trainer(model)
@@ -384,7 +416,7 @@ class Pipeline(Run):
             return None
         files = self.dir.view_files(self.dir.render_depth_dir(), self.views)
         if self._done("guide") and all(f.is_file() for f in files.values()):
-            maps = self._reuse("guide", lambda: _load_maps(files))
+            maps = self._reuse_maps("guide", files)
             if maps is not None:
                 return maps
         t0 = time.perf_counter()
@@ -457,7 +489,7 @@ class Pipeline(Run):
         ddir = self.dir.depth_dir
         files = self.dir.view_files(ddir, self.views)
         if self._done("mvs23") and all(f.is_file() for f in files.values()):
-            maps = self._reuse("mvs23", lambda: _load_maps(files))
+            maps = self._reuse_maps("mvs23", files)
             if maps is not None:
                 return maps
         t0 = time.perf_counter()
@@ -517,7 +549,7 @@ class Pipeline(Run):
         udir = self.dir.unguided_dir
         files = self.dir.view_files(udir / "depth", self.views)
         if self._done("unguided") and all(f.is_file() for f in files.values()):
-            maps = self._reuse("unguided", lambda: _load_maps(files))
+            maps = self._reuse_maps("unguided", files)
             if maps is not None:
                 return maps
         t0 = time.perf_counter()

@@ -7,7 +7,9 @@ after minutes of work.
   see the scene's bounding region (the unit sphere of its normalization), at least two of them
   the same part of it.
 - `check_output_folder`: the output is neither the scene folder, inside it, nor around it, nor a
-  folder that another command wrote (a scene, a run of ``reconstruct`` for ``mvs`` and back).
+  folder that another command wrote (a scene, a run of ``reconstruct`` for ``mvs`` and back), nor
+  a folder holding files that are not the command's (the user's notes, photos, ...): new, empty,
+  or the command's own earlier output (a rerun resumes it).
 """
 
 from __future__ import annotations
@@ -111,6 +113,8 @@ def check_output_folder(out: str | Path, scene: str | Path | None, command: str)
     Raises:
         SceneError: one line naming the folder and why.
     """
+    from svolsdf.io.runfolder import MVS_NAMES, RUN_NAMES, RunFolder, foreign_names
+
     out = Path(out)
     o = out.resolve()
     if scene is not None:
@@ -135,3 +139,21 @@ def check_output_folder(out: str | Path, scene: str | Path | None, command: str)
     if command == "svolsdf reconstruct" and (out / "mvs.json").is_file() and not run_files:
         raise SceneError(f"-o {out}: that folder holds the output of svolsdf mvs (mvs.json); "
                          "choose another output folder")
+    # a run of this command (resumed or replaced) is recognised by its bookkeeping file; a folder
+    # without one must hold nothing but what the command writes (a run stopped before writing
+    # it, or a new folder), never files of the user's that the run would mix with its own
+    if command == "svolsdf mvs":
+        own, mine, again = MVS_NAMES, (out / "mvs.json").is_file(), "replace that earlier output"
+    else:
+        own, mine, again = RUN_NAMES, RunFolder(out).is_run(), "resume that earlier run"
+    try:
+        foreign = [] if mine else foreign_names(out, own)
+    except OSError as e:
+        raise SceneError(f"-o {out}: cannot list that folder ({e.strerror or e}); choose a "
+                         "folder you can read") from None
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3
+                                          else "")
+        raise SceneError(f"-o {out}: that folder holds files that are not a svolsdf run "
+                         f"({shown}); write to a new or empty folder, or to the folder of an "
+                         f"earlier {command} to {again}")
