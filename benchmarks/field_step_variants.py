@@ -73,7 +73,12 @@ def measure(run: Path, variants: dict[str, dict], warm: int, block: int, repeats
             cpu[k].append((time.process_time() - c0) / block)
     ref = next(iter(trainers.values()))
     m = ref.model
-    return {"wall_s_per_step": wall, "cpu_s_per_step": cpu,
+    keys = sorted({k for v in variants.values() for k in v})
+    # each variant's value of every overridden option (the reference: the run's config as
+    # loaded, options newer than the run's config.yaml taking its preset's values)
+    effective = {name: {k: getattr(t.cfg, k.split(".", 1)[1]) if k.startswith("train.") else None
+                        for k in keys} for name, t in trainers.items()}
+    return {"wall_s_per_step": wall, "cpu_s_per_step": cpu, "effective": effective,
             "grid": list(getattr(m, "grid_shape", ())),
             "parameters_m": sum(p.numel() for p in m.parameters()) / 1e6,
             "rays": ref.cfg.rays, "volumes": len(ref.prior) if ref.prior is not None else 0,
@@ -99,13 +104,16 @@ def render(d: dict) -> str:
            "; a run of the warm-up steps, full grid"),
         f"- each variant: its own trainer, {d['warm']} warm-up steps, then {d['repeats']} "
         f"blocks of {d['block']} steps, round-robin; median per step",
+        f"- {ref}: the run's config.yaml as loaded (an option newer than the file takes the "
+        "value of the file's preset); the others: it with their options",
         "",
-        "| variant | overrides | wall ms / step | CPU ms / step | wall, "
+        "| variant | options | wall ms / step | CPU ms / step | wall, "
         f"{ref} = 1 | CPU, {ref} = 1 | fastest block's wall ms / step |",
         "|---|---|---:|---:|---:|---:|---:|",
     ]
     for k in names:
-        ov = ", ".join(f"`{a}={b}`" for a, b in d["variants"][k].items()) or "-"
+        eff = d.get("effective", {}).get(k) or d["variants"][k]
+        ov = ", ".join(f"`{a}={b}`" for a, b in eff.items()) or "-"
         lines.append(f"| {k} | {ov} | {med[k] * 1000:.0f} | {medc[k] * 1000:.0f} | "
                      f"{med[k] / med[ref]:.2f} | {medc[k] / medc[ref]:.2f} | "
                      f"{min(d['wall_s_per_step'][k]) * 1000:.0f} |")
