@@ -94,5 +94,5 @@ def test_chosen_pixels_get_the_full_checks_values():
     assert full[0][chosen].any() and (~full[0][chosen]).any()
     assert torch.equal(part[0][chosen], full[0][chosen]) and not part[0][~chosen].any()
     assert torch.equal(part[1][chosen], full[1][chosen]) and (part[1][~chosen] == 0).all()
-    for a, b in zip(part[2], full[2]):
+    for a, b in zip(part[2], full[2], strict=True):
         assert torch.equal(a[chosen], b[chosen]) and a[~chosen].isnan().all()

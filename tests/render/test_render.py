@@ -213,7 +213,7 @@ def _grid_sphere_field():
     Z, Y, X = model.grid_shape
     lo, hi = model.bounds
     zz, yy, xx = torch.meshgrid(*(torch.linspace(float(lo[i]), float(hi[i]), n)
-                                  for i, n in zip((2, 1, 0), (Z, Y, X))), indexing="ij")
+                                  for i, n in zip((2, 1, 0), (Z, Y, X), strict=True)), indexing="ij")
     with torch.no_grad():
         model.sdf_grid.copy_((torch.stack([xx, yy, zz], -1).norm(dim=-1) - 0.5)[None])
         for fg in model.feature_grids:

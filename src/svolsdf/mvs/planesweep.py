@@ -53,8 +53,8 @@ from svolsdf.mvs.backbone import (
 from svolsdf.mvs.hypotheses import stage_hypotheses
 from svolsdf.mvs.sgm import sgm_aggregate
 from svolsdf.mvs.volume import ProbabilityVolume
-from svolsdf.scene.cameras import Cameras
 from svolsdf.mvs.warping import homo_warp
+from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Scene
 
 __all__ = [
