@@ -212,8 +212,9 @@ def _grid_sphere_field():
     model = GridSDFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), GridFieldConfig(resolution=32))
     Z, Y, X = model.grid_shape
     lo, hi = model.bounds
-    zz, yy, xx = torch.meshgrid(*(torch.linspace(float(lo[i]), float(hi[i]), n)
-                                  for i, n in zip((2, 1, 0), (Z, Y, X), strict=True)), indexing="ij")
+    axes = [torch.linspace(float(lo[i]), float(hi[i]), n)
+            for i, n in zip((2, 1, 0), (Z, Y, X), strict=True)]
+    zz, yy, xx = torch.meshgrid(*axes, indexing="ij")
     with torch.no_grad():
         model.sdf_grid.copy_((torch.stack([xx, yy, zz], -1).norm(dim=-1) - 0.5)[None])
         for fg in model.feature_grids:
