@@ -25,8 +25,8 @@ def _fast() -> Config:
     c.train.anneal_rgb = 50  # the paper's 200 warm-up steps would be 20 % of this run
     c.field.init_unverified_weight = 0.05  # one-view stage-1 depth votes in the initial surface
     c.fusion.surface = 5e-4  # the optimized surface counts as one consistent view
-    c.fusion.guided_dilation = 4  # field-guided depth fused within 4 px of the masks
-    c.fusion.unguided_dilation = 4
+    c.fusion.guided_dilation = 4  # a field's depth fused within 4 px of the masks (every mode)
+    c.fusion.unguided_dilation = 4  # and the MVS cascade's alone (mvs-only, the unguided set)
     c.fusion.unguided = True  # the unguided stages 2-3 as a second depth hypothesis
     c.guide.mask_dilation = 32  # the guide rendered only near the object masks
     c.mesh.cull_unseen = True  # the mesh keeps the surface the input views see
