@@ -354,7 +354,10 @@ def _f(x, d=2) -> str:
 
 
 def _signed(x, d=2) -> str:
-    return "-" if x is None else f"{x:+.{d}f}"
+    if x is None:
+        return "-"
+    text = f"{x:+.{d}f}"
+    return text[1:] if float(text) == 0 else text  # no sign on a change that rounds to zero
 
 
 def _size(s) -> str:
@@ -486,8 +489,8 @@ def _effects(doc: dict) -> list[str]:
     scenes = list(eff[0]["scenes"])
     label = {m["mode"]: m["method"] for m in doc["means"]}
     lines = ["| mode | change | " + " | ".join(scenes) + " | mean as run | mean changed | "
-             "change (DTU rule) | accuracy | completeness |",
-             "|---|---|" + "---:|" * (len(scenes) + 5)]
+             "change (DTU rule) | scenes worse | accuracy | completeness |",
+             "|---|---|" + "---:|" * (len(scenes) + 6)]
     for v in eff:
         how = ([f"`--set {k}={'null' if x is None else x}`" for k, x in v["sets"].items()]
                + ([f"depth at {_size(next(iter(v['scenes'].values()))['depth_size'])}"]
@@ -500,12 +503,9 @@ def _effects(doc: dict) -> list[str]:
                                  for p in v["scenes"].values()],
                                _f(v["mean_base"]), _f(v["mean_changed"]),
                                f"{_signed(v['mean_diff'])} ({_signed(v['mean_diff_dtu'])})",
+                               f"{v['worse']} of {len(v['scenes'])}",
                                f"{_f(acc[0])} -> {_f(acc[1])}",
                                f"{_f(comp[0])} -> {_f(comp[1])}"]) + " |")
-    lines.append("")
-    for v in eff:
-        lines.append(f"- {v['name']}: {v['worse']} of {len(v['scenes'])} scenes worse, "
-                     f"{v['better']} better.")
     return lines
 
 
