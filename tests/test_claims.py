@@ -37,8 +37,8 @@ Numbers that are not measurements are exempt by these rules (EXEMPT), nothing el
 5. a threshold, target or setting: the numbers right after a comparison or an equals sign
    (<, >, <=, >=, =) and the numbers listed with them ("k = 4, 6, 8", "Chamfer <= 1.15").
 
-README's "What to expect" table (the rows citing benchmarks/results/table1.md) is excluded by
-name in README_TABLE1: the branch that regenerates table1.md rewrites that table with it.
+README's "What to expect" table is checked like any other unit: its rows cite
+benchmarks/results/table1.md through their caption.
 """
 
 from __future__ import annotations
@@ -66,10 +66,6 @@ DESIGN_DOCS = {
     "docs/dependencies.md": "version bounds of the dependencies",
     "docs/benchmark-on-ray.md": "how to run the benchmark on a cluster: commands and sizes",
 }
-
-# README's "What to expect" table and its caption cite benchmarks/results/table1.md, which
-# another branch regenerates together with that table; the two are merged and checked together.
-README_TABLE1 = "benchmarks/results/table1.md"
 
 NUMBER = re.compile(r"\d+(?:,\d{3})+(?:\.\d+)?|\d+(?:\.\d+)?")
 UNIT_AFTER = re.compile(r"\s*(?:%|s\b|min\b|minutes\b|mm\b|GB\b|MB\b|dB\b|x\b|px\b)")
@@ -297,8 +293,6 @@ def claim_problems(name: str, text: str, roots: tuple[Path, ...] = ()) -> list[s
         nums = measured_numbers(u.text)
         if not nums or u.says_not_reproducible():
             continue
-        if name == "README.md" and u.cites(README_TABLE1):
-            continue
         srcs = u.all_sources()
         if not srcs:
             if name not in DESIGN_DOCS:
@@ -391,8 +385,8 @@ def test_a_design_document_may_state_constants_but_its_citations_are_checked(res
     assert any("0.93 not in" in m for m in msgs), msgs
 
 
-def test_readme_table1_rows_are_left_to_the_table_branch(results_root):
+def test_readme_table1_rows_are_checked_against_table1(results_root):
     text = ("Means (benchmarks/results/table1.md):\n\n| method | Chamfer |\n|---|---|\n"
             "| S-VolSDF | 9.99 |")
-    assert _problems(text, results_root, "README.md") == []
+    assert _problems(text, results_root, "README.md") != []
     assert _problems(text, results_root) != []

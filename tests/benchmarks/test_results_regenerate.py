@@ -25,9 +25,12 @@ REGENERABLE = {
     "draft_preset_side_by_side.md": "benchmarks/fast_preset.py",
     "mesh_study.md": "benchmarks/mesh_study.py",
     "mesh_study_tune.md": "benchmarks/mesh_study.py",
+    "field_step_variants.md": "benchmarks/field_step_variants.py",
+    "table1.md": "benchmarks/table1.py",
+    "fast_preset_against_854eaed.md": "benchmarks/fast_preset.py",
+    "fast_preset_against_c184b53.md": "benchmarks/fast_preset.py",
 }
-# rewritten, with their script, on the branch that regenerates Table 1 (issue 50)
-TABLE_BRANCH = {"table1.md", "volsdf_baseline.md"}
+TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
 
 
 def _render(script: str, src: Path, out: Path) -> str:

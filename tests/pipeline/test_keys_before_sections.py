@@ -23,6 +23,10 @@ from svolsdf.pipeline.keys import stage_keys
 
 DATA = Path(__file__).with_name("data") / "before_sections"
 RECORD = json.loads((DATA / "stage_keys.json").read_text())
+# stages whose results a later change made differ on purpose, so their old keys must not match:
+# issue 50 fuses mvs-only's depth within the preset's fusion.unguided_dilation (4 px), not the
+# released 12 px it was fused within whatever the option said
+REMADE = {"mvs-only": {"fusion"}}
 
 
 @pytest.mark.parametrize("run", sorted(RECORD["runs"]))
@@ -39,7 +43,10 @@ def test_an_old_run_folder_keeps_its_stage_keys(run, monkeypatch, caplog):
     cfg.train.colour_min_weight = cfg.train.prior_floor = 0.0
     cfg.mvs.crop_to_masks = None
     keys = stage_keys(cfg, rec["views"])
-    assert {s: keys[s] for s in rec["keys"]} == rec["keys"]
+    remade = REMADE.get(run, set())
+    assert {s: keys[s] for s in rec["keys"] if s not in remade} == \
+        {s: k for s, k in rec["keys"].items() if s not in remade}
+    assert all(keys[s] != rec["keys"][s] for s in remade)
 
 
 def test_the_old_names_give_the_new_options():

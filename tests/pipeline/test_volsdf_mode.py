@@ -164,3 +164,30 @@ def test_volsdf_with_the_mlp_field_is_the_mlp_baseline(tiny_scene, tmp_path):
     assert summary["mesh"] is not None and (out / "points.ply").is_file()
     assert "rgb" in (out / "field" / "losses.csv").read_text().splitlines()[0]
     assert method_label(run.cfg.train.mode, run.cfg.field.kind) == "VolSDF (MLP)"
+
+
+def test_volsdf_depth_is_fused_within_svolsdfs_masks(volsdf_run, monkeypatch):
+    """Issue 50: VolSDF's rendered depth is fused within the masks dilated by
+    fusion.guided_dilation, as S-VolSDF's guided depth (before, the released 12 px whatever the
+    option said); a wider dilation keeps more of the surface it fattens into the background."""
+    import svolsdf.fusion.filter as fusion_filter
+    from svolsdf.pipeline.fusion_stage import fuse
+
+    out, _, p, _ = volsdf_run
+    assert p.cfg.fusion.guided_dilation == 4
+    seen = []
+    real = fusion_filter.fuse_depth_maps
+
+    def spy(*args, **kwargs):
+        seen.append(args[5].primary_mask_dilation)  # (depths, cams, images, confs, masks, cfg)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fusion_filter, "fuse_depth_maps", spy)
+    n4 = fuse(p, out / "points_4px.ply")[0]
+    p.cfg.fusion.guided_dilation = 12
+    try:
+        n12 = fuse(p, out / "points_12px.ply")[0]
+    finally:
+        p.cfg.fusion.guided_dilation = 4
+    assert seen == [4, 12]
+    assert n4 == len(read_ply(out / "points.ply")["points"]) and n4 <= n12

@@ -37,8 +37,8 @@ def _fast() -> Config:
     c.train.prior_floor = 1e-4  # the prior's sources only where P_ref counts
     c.field.init_unverified_weight = 0.05  # one-view stage-1 depth votes in the initial surface
     c.fusion.surface = 5e-4  # the optimized surface counts as one consistent view
-    c.fusion.guided_dilation = 4  # field-guided depth fused within 4 px of the masks
-    c.fusion.unguided_dilation = 4
+    c.fusion.guided_dilation = 4  # a field's depth fused within 4 px of the masks (every mode)
+    c.fusion.unguided_dilation = 4  # and the MVS cascade's alone (mvs-only, the unguided set)
     c.fusion.unguided = True  # the unguided stages 2-3 as a second depth hypothesis
     c.guide.mask_dilation = 32  # the guide rendered only near the object masks
     c.mvs.crop_to_masks = 16  # stages 2-3 only near the masks (fusion keeps 4 px of them)

@@ -290,15 +290,17 @@ class FusionConfig:
     guide) counts as one consistent source (`svolsdf.fusion.filter.FusionFilterConfig.surface`;
     0 = off, as released). Not used without a field (mvs-only)."""
     guided_dilation: int | None = _limited(None, min=0)
-    """Object-mask dilation, in pixels, for the field-guided depth maps (svolsdf mode); None =
-    the released 12 px for every depth map (docs/method.md 6.3). The unguided set
-    (``fusion.unguided``) takes ``fusion.unguided_dilation``. Near the silhouette the guided
-    stages 2-3 inherit the field's errors (a surface fattened into the background), and because
-    those errors form one 3D surface the multi-view check passes them
-    (`svolsdf.fusion.filter.FusionFilterConfig.primary_mask_dilation`)."""
+    """Object-mask dilation, in pixels, for the depth maps a field made: the field-guided stages
+    2-3 (svolsdf mode) and the field's rendered depth (volsdf mode); None = the released 12 px
+    (docs/method.md 6.3). The MVS cascade's own depth (mvs-only mode, the unguided set of
+    ``fusion.unguided``) takes ``fusion.unguided_dilation``. Near the silhouette a field's
+    depth carries its errors (a surface fattened into the background), and because those errors
+    form one 3D surface the multi-view check passes them
+    (`svolsdf.pipeline.options.mask_dilation`)."""
     unguided_dilation: int | None = _limited(None, min=0)
-    """Object-mask dilation, in pixels, for the unguided set of ``fusion.unguided``; None = the
-    released 12 px (`svolsdf.fusion.filter.FusionFilterConfig.alt_mask_dilation`)."""
+    """Object-mask dilation, in pixels, for the MVS cascade's own depth: mvs-only mode's and the
+    unguided set of ``fusion.unguided``; None = the released 12 px
+    (`svolsdf.fusion.filter.FusionFilterConfig.alt_mask_dilation`)."""
     unguided: bool = False
     """Also run MVS stages 2-3 centred on the stage-1 depth, as the backbone alone does, and
     give every view that unguided depth as a second hypothesis: each hypothesis is a reference

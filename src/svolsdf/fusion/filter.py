@@ -80,9 +80,10 @@ class FusionFilterConfig:
     primary_mask_dilation: int | None = None
     """Dilation radius for the references of ``depths`` (the first hypothesis) when it should
     differ from ``mask_dilation``; None = ``mask_dilation`` for every reference. The pipeline
-    gives its field-guided depth a narrower rim than the unguided ``alt_depths``
-    (``fusion.guided_dilation``): near the silhouette a guided depth inherits the
-    field's errors, which are one 3D surface and so pass the multi-view check."""
+    sets it for every mode (`svolsdf.pipeline.options.mask_dilation`): a field's depth, guided
+    or rendered, takes ``fusion.guided_dilation`` (near the silhouette a guided depth inherits
+    the field's errors, which are one 3D surface and so pass the multi-view check), the MVS
+    cascade's alone ``fusion.unguided_dilation``."""
 
     alt_mask_dilation: int | None = None
     """Dilation radius for the references of ``alt_depths`` (the second hypothesis); None =

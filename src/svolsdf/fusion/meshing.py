@@ -152,7 +152,7 @@ def poisson_mesh(
     masks = scene.masks if use_masks else None
     # every part: a Poisson surface trimmed by sample density has no floaters, and separate
     # parts of the object are separate components (the largest alone dropped 15 % of a
-    # synthetic object's surface; benchmarks/results/table1.md)
+    # synthetic object's surface; docs/table1.md, "History of the table")
     vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
                                rel_tol=rel_tol, largest=False)
     return vw, f, (None if c is None else c[idx])

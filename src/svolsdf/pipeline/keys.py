@@ -25,8 +25,10 @@ from svolsdf.pipeline.builders import backbone_kwargs
 from svolsdf.pipeline.options import (
     field_from_mvs,
     grid_from_sphere,
+    guided_mvs,
     has_field,
     is_baseline,
+    mask_dilation,
     mesh_from_points,
     wants_mesh_fit,
     wants_network,
@@ -127,7 +129,11 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                      *([net] if net is not None else []),
                      # issue 38: VolSDF's rendered depth is fused under the multi-view rule
                      # (before, its own surface passed every pixel): its old points are stale
-                     *(["multi-view"] if is_baseline(cfg) else []))
+                     *(["multi-view"] if is_baseline(cfg) else []),
+                     # issue 50: volsdf and mvs-only depth within the masks of svolsdf's
+                     # (before, the released 12 px whatever the option): enters when set
+                     *(["masks", mask_dilation(cfg)]
+                       if not guided_mvs(cfg) and mask_dilation(cfg) is not None else []))
     # mesh_fit_points enters only when set (with the fused points it fits): run folders
     # made before the option keep their mesh key
     fit = ([c["output"]["mesh_fit_points"], k_fusion] if wants_mesh_fit(cfg) else [])

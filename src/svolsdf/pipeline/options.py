@@ -10,8 +10,8 @@ from svolsdf.optimize import modes
 
 __all__ = ["field_from_mvs", "field_kind", "fits_to_mvs_depth", "grid_from_sphere",
            "guide_from_consistency", "guided_mvs", "has_field", "has_guide", "is_baseline",
-           "mesh_from_points", "runs_mvs1", "uses_prior", "wants_mesh_fit", "wants_network",
-           "wants_poisson", "wants_unguided"]
+           "mask_dilation", "mesh_from_points", "runs_mvs1", "uses_prior", "wants_mesh_fit",
+           "wants_network", "wants_poisson", "wants_unguided"]
 
 
 def is_baseline(cfg: Config) -> bool:
@@ -23,6 +23,17 @@ def is_baseline(cfg: Config) -> bool:
 def guided_mvs(cfg: Config) -> bool:
     """svolsdf mode: the final depth (OUT/depth) is MVS stages 2-3 centred on a guide."""
     return cfg.train.mode == "svolsdf"
+
+
+def mask_dilation(cfg: Config) -> int | None:
+    """The object-mask dilation, in pixels, of the final depth (OUT/depth) in fusion; one rule
+    for every mode (issue 50): depth a field made, the guided stages 2-3 (svolsdf mode) or the
+    field's own rendering (volsdf mode), takes ``fusion.guided_dilation``; the MVS cascade alone
+    (mvs-only mode, as the unguided set of ``fusion.unguided``) ``fusion.unguided_dilation``.
+    None = the released 12 px (docs/method.md 6.3)."""
+    if cfg.train.mode == "mvs-only":
+        return cfg.fusion.unguided_dilation
+    return cfg.fusion.guided_dilation
 
 
 def has_guide(cfg: Config) -> bool:
