@@ -20,7 +20,7 @@ from svolsdf.scene.scene import Scene
 
 __all__ = ["attach_background", "backbone_kwargs", "build_backbone", "build_model",
            "build_network_backbone", "build_sampler", "build_train_data", "grid_schedule",
-           "unit_near_far"]
+           "prior_sources", "unit_near_far"]
 
 
 def backbone_kwargs(cfg: Config) -> dict:
@@ -144,3 +144,16 @@ def build_train_data(cfg: Config, scene: Scene, mvs_depth: torch.Tensor | None =
         r = cfg.train.object_ray_dilation
         focus = torch.stack([dilate_mask(m[0], r) for m in scene.masks])
     return TrainData(scene.images, scene.cameras_unit, unit_near_far(scene), mvs_depth, focus)
+
+
+def prior_sources(cfg: Config, scene: Scene, volumes: list) -> list[list[int]] | None:
+    """``train.prior_sources = selected``: for each stage-1 volume of ``volumes``, the indices (in
+    their order) of its view's MVS sources in ``scene`` (`svolsdf.mvs.backbone.select_sources`);
+    None (every other view, docs/method.md 3) for ``all``."""
+    if cfg.train.prior_sources == "all":
+        return None
+    from svolsdf.mvs.backbone import select_sources
+
+    order = [v.view_id for v in volumes]
+    return [[order.index(s) for s in select_sources(scene, vid, cfg.mvs.max_sources)
+             if s in order] for vid in order]

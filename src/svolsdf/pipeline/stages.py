@@ -397,7 +397,8 @@ class Pipeline(Run):
         prior = None
         if options.uses_prior(self.cfg) and self._volumes1 is not None:
             prior = MVSPrior(self._volumes1, self.load().normalization, device=self.device,
-                             sources=self.prior_sources())
+                             sources=builders.prior_sources(self.cfg, self.load(),
+                                                            self._volumes1))
             if options.field_from_mvs(self.cfg):  # the kind's start from the MVS surface
                 scene = self.load()
                 options.field_kind(self.cfg).init_from_mvs(
@@ -447,19 +448,6 @@ class Pipeline(Run):
         if missing:
             raise RuntimeError(f"the guide stage has not run: {missing[0]} is missing")
         return _load_maps(files)
-
-    def prior_sources(self) -> list[list[int]] | None:
-        """``train.prior_sources = selected``: for each stage-1 volume, the indices (in the
-        volumes' order) of its view's MVS sources (`svolsdf.mvs.backbone.select_sources`);
-        None (every other view) for ``all``."""
-        if self.cfg.train.prior_sources == "all":
-            return None
-        from svolsdf.mvs.backbone import select_sources
-
-        scene = self.load()
-        order = [v.view_id for v in self._volumes1]
-        return [[order.index(s) for s in select_sources(scene, vid, self.cfg.mvs.max_sources)
-                 if s in order] for vid in order]
 
     def render_guide(self, previews: bool = False) -> GuideRender:
         """The field's rendered z-depth (world) of each input view, with docs/method.md 6.1's rule
