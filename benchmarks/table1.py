@@ -47,8 +47,8 @@ CHECKS = (
 )
 
 # Which choices of the pipeline were made on which scenes (docs/presets.md, docs/meshing.md,
-# benchmarks/results/history/volsdf_baseline.md): the table's scenes are held out from a choice unless
-# they are among its scenes
+# benchmarks/results/history/volsdf_baseline.md): the table's scenes are held out from a choice
+# unless they are among its scenes
 TUNING = (
     {"choice": "the fast preset's fusion (fusion.surface, fusion.guided_dilation, "
      "fusion.unguided_dilation, fusion.unguided) and field.init_unverified_weight",
