@@ -6,13 +6,12 @@ Stages (docs/architecture.md "Data flow"; docs/method.md 0 and 6):
 2. ``field``: the S-VolSDF optimization (OUT/field/model.pt; checkpoints in OUT/field/).
 3. ``guide``: rendered z-depth of the input views, which replaces the stage-1 depth
    (docs/method.md 6.1; OUT/field/render_depth/<id>.npy).
-4. ``mvs23``: stages 2 and 3 centred on that depth (OUT/depth/<id>.npy; their volumes
-   OUT/mvs/stage{2,3} with ``mvs.save_volumes``).
+4. ``mvs23``: stages 2 and 3 centred on that depth (OUT/depth/<id>.npy; ``mvs.save_volumes``).
 5. ``unguided`` (``fusion.unguided``, the fast preset's; not in the paper): stages 2 and 3
    centred on the stage-1 depth, as the backbone alone runs them (OUT/unguided/depth/<id>.npy);
    fusion takes them as every view's second depth hypothesis.
 6. ``fusion``: geometric-consistency filtering and fusion (OUT/points.ply, docs/method.md 6.3).
-7. ``mesh``: marching cubes of the SDF (OUT/mesh.ply).
+7. ``mesh``: the mesh the config asks for (`svolsdf.pipeline.mesh.build_mesh`; OUT/mesh.ply).
 
 A stage is skipped on a rerun when its marker in OUT/stages.json carries the same config hash
 (`svolsdf.pipeline.keys`) and its inputs (images, masks, cameras) are those it finished with; a
@@ -500,10 +499,8 @@ class Pipeline(Run):
             if guide is None and self._volumes1 is None:
                 stages = (1, 2, 3)
             earlier = {1: self._volumes1} if self._volumes1 is not None else None
-            # stage 1's volumes are saved by the mvs1 stage (or here when it runs here, for a
-            # resumed run); stages 2-3's only on request (mvs.save_volumes): nothing reads them
-            keep = (1, 2, 3) if self.cfg.mvs.save_volumes else \
-                ((1,) if 1 in stages else ())
+            # stages 2-3's volumes only on request (mvs.save_volumes): nothing reads them again
+            keep = (1, 2, 3) if self.cfg.mvs.save_volumes else (1,) if 1 in stages else ()
             if self.cfg.mvs.finer_stage_optimization and guide is not None:
                 from svolsdf.pipeline.finer import finer_stage_cascade
 
