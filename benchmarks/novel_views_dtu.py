@@ -300,11 +300,13 @@ def _picture(path: Path, gt, vr, ibr, m, cls, se) -> None:
 
 
 # --------------------------------------------------------------------------- main
-def run_mode(scene_dir: Path, work: Path, mode: str, test: list[int], log: Path) -> dict:
-    out = work / scene_dir.name / mode
+def run_mode(scene_dir: Path, work: Path, mode: str, test: list[int], log: Path,
+             variant: str = "", sets: tuple[str, ...] = ()) -> dict:
+    out = work / scene_dir.name / (f"{mode}-{variant}" if variant else mode)
     args, _ = MODES[mode]
+    extra = [a for s in sets for a in ("--set", s)]
     t_rec = _run("reconstruct", str(scene_dir), "-o", str(out),
-                 *args, "--no-progress", log=log)
+                 *args, *extra, "--no-progress", log=log)
     t_ren = _run("render", str(out), "--views", *map(str, test), "--ibr",
                  log=log)
     timing = json.loads((out / "timing.json").read_text())
@@ -324,6 +326,10 @@ def main() -> None:
     ap.add_argument("--pictures", action="store_true")
     ap.add_argument("--inpaint", action="store_true",
                     help="also score IBR with --ibr-unseen inpaint (docs/novel-views.md)")
+    ap.add_argument("--variant", default="",
+                    help="a name for the --set options below (run folders MODE-VARIANT)")
+    ap.add_argument("--set", dest="sets", action="append", default=[],
+                    help="section.option=value passed to every reconstruct (repeatable)")
     ap.add_argument("--skip-runs", action="store_true",
                     help="score existing run folders in WORK without rerunning anything")
     args = ap.parse_args()
@@ -352,11 +358,13 @@ def main() -> None:
         gts, masks = official_test_images(scene_dir, test, SIZE)
         ref = (reference_depths(scene_dir, args.work, test + INPUTS) if args.diagnose else None)
         for mode in modes:
-            log = args.work / f"{scene_dir.name}_{mode}.log"
-            key = f"{scene_dir.name}/{mode}"
-            out = args.work / scene_dir.name / mode
+            name = f"{mode}-{args.variant}" if args.variant else mode
+            log = args.work / f"{scene_dir.name}_{name}.log"
+            key = f"{scene_dir.name}/{name}"
+            out = args.work / scene_dir.name / name
             r = ({"out": str(out)} if args.skip_runs
-                 else run_mode(scene_dir, args.work, mode, test, log))
+                 else run_mode(scene_dir, args.work, mode, test, log, args.variant,
+                               tuple(args.sets)))
             from svolsdf.io.images import read_image
 
             for kind, folder in (("volume rendering", "renders"), ("IBR", "renders_ibr")):

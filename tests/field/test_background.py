@@ -13,7 +13,9 @@ from svolsdf.config import TrainConfig, preset
 from svolsdf.field.background import (
     BackgroundConfig,
     NeRFPlusPlusBackground,
+    SphereMapBackground,
     inverted_sphere_points,
+    sphere_exit,
 )
 from svolsdf.field.grid import GridFieldConfig, GridSDFField
 from svolsdf.optimize.trainer import TrainData, Trainer
@@ -179,3 +181,54 @@ def test_pipeline_runs_with_background(tmp_path):
     for (n, a), (_, b) in zip(model.state_dict().items(), p2.model().state_dict().items(),
                               strict=True):
         assert torch.equal(a.cpu(), b.cpu()), n
+
+
+# --------------------------------------------------------------------------- the sphere map
+def test_sphere_exit_lies_on_the_sphere_along_the_ray():
+    torch.manual_seed(0)
+    o = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1) * 2.5 * torch.rand(64, 1)
+    d = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    p, t = sphere_exit(o, d, R_SPHERE)
+    torch.testing.assert_close(p.norm(dim=-1), torch.full((64,), R_SPHERE), atol=1e-5, rtol=0)
+    torch.testing.assert_close(p, o + t[:, None] * d, atol=1e-6, rtol=0)
+    assert (t > 0).all()
+
+
+def test_sphere_map_learns_a_colour_per_direction_and_trains_at_the_grid_rate(tmp_path):
+    bg = SphereMapBackground(R_SPHERE, resolutions=(4, 16))
+    rays, _ = _rays()
+    target = torch.where(rays.dirs[:, :1] > 0, torch.tensor([0.9, 0.2, 0.1]),
+                         torch.tensor([0.1, 0.3, 0.8]))  # two colours by side
+    rgb0, t, w = bg(rays, True)
+    torch.testing.assert_close(rgb0, torch.full_like(rgb0, 0.5))  # starts grey
+    assert (w == 1).all() and (t > 0).all()
+    opt = torch.optim.Adam(bg.grid_parameters(), lr=0.1)
+    for _ in range(200):
+        opt.zero_grad()
+        ((bg(rays, True)[0] - target) ** 2).mean().backward()
+        opt.step()
+    assert float((bg(rays, False)[0] - target).abs().mean()) < 0.05
+    # beside the grid field, the optimizer puts the maps in the grid group (train.lr_grid)
+    model = GridSDFField(torch.tensor([[-0.8] * 3, [0.8] * 3]),
+                         GridFieldConfig(resolution=8, sphere_clamp_scale=None))
+    model.background = SphereMapBackground(R_SPHERE)
+    tr = Trainer(model, _data(), TrainConfig(mode="volsdf", steps=1, rays=16,
+                                             checkpoint_every=0),
+                 sampler=MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=8, n_uniform=4,
+                                                                    n_fine=4)),
+                 out_dir=tmp_path)
+    lr = {id(p): g["lr"] for g in tr.optimizer.param_groups for p in g["params"]}
+    assert all(lr[id(p)] == tr.cfg.lr_grid for p in model.background.parameters())
+    tr.fit(progress=False)
+    assert any(float(m.abs().sum()) > 0 for m in model.background.maps)
+
+
+def test_empty_foreground_shows_the_sphere_map():
+    bg = SphereMapBackground(R_SPHERE, resolutions=(4,))
+    with torch.no_grad():
+        bg.maps[0].fill_(1.0)
+    rays, z = _rays()
+    empty = SphereSDF(radius=0.01, center=(0.0, 2.0, 0.0), beta=0.01).eval()
+    out = render_rays(empty, rays, z, background=bg, create_graph=False)
+    torch.testing.assert_close(out.rgb, torch.full_like(out.rgb, float(torch.sigmoid(
+        torch.tensor(1.0)))), atol=1e-4, rtol=0)

@@ -142,6 +142,10 @@ class FieldConfig:
     """Add the NeRF++ inverted-sphere background model (unbounded scenes, docs/method.md 5.5): the
     field's sphere clamp is off and rays end at the bounding sphere, beyond which the
     background MLP (field/background.py) renders."""
+    background_model: Literal["nerf++", "sphere_map"] = "nerf++"
+    """With ``background``: nerf++ (NeRF++'s inverted-sphere MLP, docs/method.md 5.5) |
+    sphere_map (a colour painted on the bounding sphere where the ray leaves it, no network:
+    the fast field's cheap stand-in, docs/novel-views.md)."""
     grid_resolution: int = _limited(128, min=4)
     """grid: final resolution of the dense SDF grid."""
     grid_start_resolution: int = _limited(64, min=4)

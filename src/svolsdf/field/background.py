@@ -8,16 +8,18 @@ back onto the unit sphere (NeRF++, Zhang et al. 2020). Used with a foreground
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from svolsdf.field.embedding import PositionalEncoding
 from svolsdf.field.volsdf import SDFNetwork
 
 __all__ = ["BackgroundConfig", "inverted_sphere_points", "NeRFColourNetwork",
-           "NeRFPlusPlusBackground"]
+           "NeRFPlusPlusBackground", "SphereMapBackground", "sphere_exit"]
 
 
 @dataclass
@@ -142,3 +144,68 @@ class NeRFPlusPlusBackground(nn.Module):
         shifted = torch.cat([torch.zeros_like(fe[:, :1]), torch.cumsum(fe, -1)[:, :-1]], -1)
         w = (1.0 - torch.exp(-fe)) * torch.exp(-shifted)
         return (w[..., None] * rgb).sum(1), (w * dist).sum(-1), w.sum(-1)
+
+
+def sphere_exit(origins: Tensor, dirs: Tensor, radius: float) -> tuple[Tensor, Tensor]:
+    """Where rays leave the bounding sphere |x| = R (the far intersection).
+
+    Args:
+        origins, dirs: (R, 3) unit-frame origins and unit directions.
+        radius: R.
+
+    Returns:
+        points (R, 3) on the sphere (the ray's closest point to the sphere when it misses it),
+        ray distances (R,) to them (>= 0).
+    """
+    od = (origins * dirs).sum(-1)
+    disc = (od**2 - ((origins**2).sum(-1) - radius**2)).clamp_min(0.0)
+    t = (disc.sqrt() - od).clamp_min(0.0)
+    return origins + t[:, None] * dirs, t
+
+
+class SphereMapBackground(nn.Module):
+    """A colour painted on the bounding sphere: what a ray shows once the foreground is empty.
+
+    Not in the paper (which uses NeRF++, :class:`NeRFPlusPlusBackground`); the fast field's
+    cheap stand-in for it (docs/novel-views.md). The colour at the point where a ray leaves the
+    sphere |x| = R is the sigmoid of the sum of ``levels`` equirectangular maps (latitude x
+    longitude of that point, bilinear, coarse to fine) of three channels each: no network and no
+    samples along the ray, so a ray costs one lookup per level. The maps start at 0 (grey).
+
+    Call as ``background(rays, training) -> (rgb (R, 3), t_exit (R,), ones (R,))`` (the
+    interface of `svolsdf.render.volume.render_rays`: the background sits at the exit
+    distance with weight 1).
+
+    Args:
+        radius: R, the bounding sphere's radius (unit frame).
+        resolutions: latitude rows of each level (longitude has twice as many columns).
+    """
+
+    def __init__(self, radius: float = 3.0, resolutions: tuple[int, ...] = (8, 32, 128)):
+        super().__init__()
+        if not resolutions or min(resolutions) < 2:
+            raise ValueError(f"SphereMapBackground: resolutions must be >= 2, got {resolutions}")
+        self.radius = float(radius)
+        self.maps = nn.ParameterList(
+            [nn.Parameter(torch.zeros(1, 3, r, 2 * r)) for r in resolutions])
+
+    def grid_parameters(self) -> list[nn.Parameter]:
+        """The maps: trained at the feature grids' rate (``train.lr_grid``), not a network's."""
+        return list(self.maps)
+
+    def colour_at(self, p: Tensor) -> Tensor:
+        """p: (N, 3) points on the sphere -> (N, 3) rgb in [0, 1]."""
+        n = p / p.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        lon = torch.atan2(n[:, 1], n[:, 0]) / math.pi  # [-1, 1]
+        lat = torch.asin(n[:, 2].clamp(-1.0, 1.0)) / (math.pi / 2)  # [-1, 1]
+        g = torch.stack([lon, lat], -1)[None, :, None]  # (1, N, 1, 2)
+        acc = 0.0
+        for m in self.maps:
+            acc = acc + F.grid_sample(m, g, mode="bilinear", padding_mode="border",
+                                      align_corners=True)[0, :, :, 0].T
+        return torch.sigmoid(acc)
+
+    def forward(self, rays, training: bool | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """rays: a RayBundle of R rays -> rgb (R, 3), exit distance (R,), ones (R,)."""
+        p, t = sphere_exit(rays.origins, rays.dirs, self.radius)
+        return self.colour_at(p), t, torch.ones_like(t)

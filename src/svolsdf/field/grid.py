@@ -286,6 +286,9 @@ class GridSDFField(SurfaceModel):
         a "name" key ("grid" or "mlp").
         """
         grid = [self.sdf_grid, *self.feature_grids]
+        bg = getattr(self, "background", None)  # a background's maps train as grids
+        if bg is not None and hasattr(bg, "grid_parameters"):
+            grid += bg.grid_parameters()
         grid_ids = {id(p) for p in grid}
         rest = [p for p in self.parameters() if id(p) not in grid_ids]
         return [

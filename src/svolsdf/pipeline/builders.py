@@ -78,14 +78,16 @@ def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
     f = cfg.field
     model = field_kind(cfg).build(FieldInputs(f, not field_from_mvs(cfg), bounds))
     if f.background:
-        attach_background(model, f.kind)
+        attach_background(model, f.kind, f.background_model)
     if cfg.train.beta_min > 0 and hasattr(model, "laplace"):
         model.laplace.beta_min = float(cfg.train.beta_min)  # docs/method.md 5.4's floor
     return model
 
 
-def attach_background(model, kind: str) -> None:
-    """``model.background``: the NeRF++ inverted-sphere background (docs/method.md 5.5).
+def attach_background(model, kind: str, which: str = "nerf++") -> None:
+    """``model.background``: the NeRF++ inverted-sphere background (docs/method.md 5.5), or
+    with ``which`` = "sphere_map" the colour map on the bounding sphere
+    (`svolsdf.field.background.SphereMapBackground`, trained at the grid rate).
 
     A submodule of the field, so it moves with ``model.to(device)``, is saved in its
     state_dict (keys ``background.net.*``, ``background.colour_net.*``), trained by the
@@ -97,9 +99,16 @@ def attach_background(model, kind: str) -> None:
         model: the `SurfaceModel`, with a ``radius`` (its bounding sphere's).
         kind: its registered field kind (``field.kind``).
     """
-    from svolsdf.field.background import BackgroundConfig, NeRFPlusPlusBackground
+    from svolsdf.field.background import (
+        BackgroundConfig,
+        NeRFPlusPlusBackground,
+        SphereMapBackground,
+    )
     from svolsdf.field.kinds import get_field_kind
 
+    if which == "sphere_map":
+        model.background = SphereMapBackground(float(model.radius))
+        return
     bcfg = BackgroundConfig(radius=float(model.radius), **get_field_kind(kind).background)
     model.background = NeRFPlusPlusBackground(bcfg)
 

@@ -104,6 +104,10 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # ditto train.prior_sources: only "selected", with a field
     if not (c["train"].get("prior_sources") == "selected" and has_field(cfg)):
         c["train"].pop("prior_sources", None)
+    # field.background_model enters only with a background other than NeRF++'s: run folders
+    # from before the option keep their keys
+    if not (cfg.field.background and cfg.field.background_model != "nerf++"):
+        c["field"].pop("background_model", None)
     no_masks = [] if cfg.scene.use_masks else ["no masks"]
     reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0)
     k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],
