@@ -229,3 +229,35 @@ def test_a_mesh_is_scored_by_its_surface_with_a_flap_charged(tmp_path):
                    for x in (v[used], np.concatenate([v[used], tip[None]]))]
     assert abs(by_vertices[1] - by_vertices[0]) < 0.05  # one vertex among ~300
     assert metrics["settings"]["synthetic"]["input_views"] == views
+
+
+@pytest.mark.parametrize("kind", ["nan", "inf", "empty", "one_point"])
+def test_unusable_ground_truth_is_refused_naming_the_file_and_the_problem(tmp_path, capsys,
+                                                                         kind):
+    """NaN, infinite, empty or sizeless ground truth: one line naming the file and what is wrong
+    with it, not 'F-score threshold must be > 0, got nan' or an unnamed 'no points'."""
+    out, _, _ = _run(tmp_path)
+    g = np.random.default_rng(0).random((20, 3))
+    if kind == "nan":
+        g[3, 1] = np.nan
+    elif kind == "inf":
+        g[5, 0] = np.inf
+    elif kind == "empty":
+        g = g[:0]
+    else:
+        g = g[:1]
+    gt = tmp_path / f"gt_{kind}.npy"
+    np.save(gt, g)
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", str(out), "--gt-points", str(gt), "--no-report"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert f"gt_{kind}.npy" in err
+    want = {"nan": "NaN or infinite", "inf": "NaN or infinite", "empty": "no points",
+            "one_point": "one position"}[kind]
+    assert want in err and "threshold must be" not in err
+    assert not (out / "metrics.json").exists()
+    if kind != "one_point":  # the same check guards a PLY file
+        write_points_ply(tmp_path / "gt.ply", g)
+        with pytest.raises(InputError, match=f"gt.ply.*{want}"):
+            evaluate_run(EvaluateConfig(out=out, gt_points=tmp_path / "gt.ply", report=False))

@@ -46,7 +46,14 @@ def run_scene(run: RunFolder) -> tuple[Path | None, list[int] | None]:
 
 
 def load_gt_points(path: str | Path) -> np.ndarray:
-    """(N, 3) float64 ground-truth points from a .ply or .npy file."""
+    """(N, 3) float64 ground-truth points from a .ply or .npy file.
+
+    Raises:
+        InputError: naming the file: unreadable, not (N, 3), empty, or with NaN or infinite
+            coordinates (`svolsdf.evaluate.points.checked_ground_truth`).
+    """
+    from svolsdf.evaluate.points import checked_ground_truth
+
     path = input_file(path, "ground-truth points file")
     if path.suffix.lower() == ".npy":
         try:
@@ -55,10 +62,10 @@ def load_gt_points(path: str | Path) -> np.ndarray:
             raise InputError(f"{path}: cannot read as .npy ({e})") from None
         if a.ndim != 2 or a.shape[1] < 3:
             raise InputError(f"{path}: expected an (N, 3) array, got shape {a.shape}")
-        return a[:, :3].astype(np.float64)
+        return checked_ground_truth(a[:, :3], path)
     from svolsdf.io.ply import read_ply
 
-    return read_ply(path)["points"]
+    return checked_ground_truth(read_ply(path)["points"], path)
 
 
 def check_run_folder(run: RunFolder, scene: Path | None) -> list[str]:

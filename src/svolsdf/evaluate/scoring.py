@@ -59,6 +59,7 @@ import numpy as np
 from svolsdf.errors import InputError
 from svolsdf.evaluate import chamfer as ch
 from svolsdf.evaluate.images import masked_psnr, ssim
+from svolsdf.evaluate.points import checked_ground_truth
 from svolsdf.evaluate.report import ViewImages
 from svolsdf.evaluate.run_outputs import (
     chamfer_block,
@@ -129,9 +130,12 @@ def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict
         plane = ch.load_plane(files.plane)
         from svolsdf.io.ply import read_ply
 
-        stl = read_ply(files.stl)["points"]
+        stl = checked_ground_truth(read_ply(files.stl)["points"], files.stl)
         above = stl @ plane[:3] + plane[3] > 0
-        thr = cfg.threshold or _diag(stl[above]) * 0.01
+        if not above.any():
+            raise InputError(f"{files.stl}: no ground-truth point lies above the plane of "
+                             f"{files.plane}")
+        thr = cfg.threshold or _diag(stl[above], files.stl) * 0.01
         metrics["settings"]["dtu"] = {"scan": scan, "obs_mask": str(files.obs_mask),
                                       "plane": str(files.plane), "stl": str(files.stl)}
         if points is not None:
@@ -146,14 +150,14 @@ def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict
             metrics["chamfer_mesh"] = mesh_chamfer_block(r, "dtu-mesh", "mesh.ply", density)
     elif cfg.gt_points is not None:
         gt = load_gt_points(cfg.gt_points)
-        thr = cfg.threshold or _diag(gt) * 0.01
+        thr = cfg.threshold or _diag(gt, cfg.gt_points) * 0.01
         metrics["settings"]["gt_points"] = str(cfg.gt_points)
         if points is not None and len(points[0]):
             r = ch.chamfer_fscore(points[0], gt, thr, max_dist=cfg.max_dist)
             metrics["chamfer"] = chamfer_block(r, "generic", "points.ply")
             _put_fscore(metrics, r, thr)
         if mesh is not None:
-            density = ch.mesh_density(_diag(gt))
+            density = ch.mesh_density(_diag(gt, cfg.gt_points))
             surf = ch.mesh_surface_points(mesh[0], mesh[1], density, seed=cfg.seed)
             r = ch.chamfer_fscore(surf, gt, thr, max_dist=cfg.max_dist)
             metrics["chamfer_mesh"] = mesh_chamfer_block(r, "generic-mesh", "mesh.ply", density)
@@ -208,10 +212,14 @@ def _put_fscore(metrics: dict, r: dict, thr: float) -> None:
     metrics["recall"] = finite_or_none(r.get("recall"))
 
 
-def _diag(p: np.ndarray) -> float:
-    if len(p) == 0:
-        raise InputError("ground truth has no points")
-    return float(np.linalg.norm(p.max(0) - p.min(0)))
+def _diag(p: np.ndarray, source: Path) -> float:
+    """The bounding-box diagonal of ground-truth points (checked by `checked_ground_truth`),
+    the scale of the default F-score threshold and mesh sampling density."""
+    d = float(np.linalg.norm(p.max(0) - p.min(0)))
+    if not d > 0:
+        raise InputError(f"{source}: the ground truth's {len(p)} point(s) all lie at one "
+                         "position; it has no size to scale the F-score threshold by")
+    return d
 
 
 def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str]
