@@ -126,18 +126,98 @@ def test_a_folder_that_is_not_a_run_is_refused_and_left_alone(tmp_path, capsys):
     assert sorted(p.name for p in scene.rglob("*")) == before
 
 
-def test_missing_lpips_weights_still_scores_geometry_and_other_image_metrics(tmp_path, capsys):
+def test_missing_default_lpips_weights_still_score_geometry_and_other_image_metrics(
+        tmp_path, capsys, monkeypatch):
+    import svolsdf.evaluate.lpips as lpips_module
+    from svolsdf.errors import InputError as _InputError
+
+    def nowhere():
+        raise _InputError("LPIPS weights not found; looked in nowhere")
+
+    monkeypatch.setattr(lpips_module, "default_lpips_dir", nowhere)
     out, gt, _ = _run(tmp_path)
-    main(["evaluate", str(out), "--gt-points", str(gt), "--lpips-weights",  # returns: exit 0
-          str(tmp_path / "no_weights"), "--no-report"])
+    main(["evaluate", str(out), "--gt-points", str(gt), "--no-report"])  # returns: exit 0
     printed = capsys.readouterr().out
     m = json.loads((out / "metrics.json").read_text())
     assert m["chamfer"]["overall"] is not None and m["fscore"] is not None
     assert m["images"]["psnr"]["mean"] > 10 and m["images"]["ssim"]["mean"] > 0
     lp = m["images"]["lpips"]
-    assert lp["mean"] is None and "no_weights" in lp["missing"] and "LPIPS" in lp["missing"]
+    assert lp["mean"] is None and "looked in nowhere" in lp["missing"]
+    assert "LPIPS" in lp["missing"]
     assert m["images"]["psnr"]["missing"] is None
-    assert "LPIPS not computed" in printed
+    assert m["missing"]["images.lpips"] == lp["missing"] and "images.psnr" not in m["missing"]
+    assert "not computed: images.lpips, images_ibr.lpips: LPIPS not computed" in printed
+
+
+@pytest.mark.parametrize("kind", ["absent", "garbage", "folder_without_file"])
+def test_unreadable_lpips_weights_given_are_an_error_naming_the_file(tmp_path, capsys, kind):
+    """--lpips-weights that cannot be read: exit 2 naming the file, before any output, not a
+    warning and a null LPIPS."""
+    out, gt, _ = _run(tmp_path)
+    weights = tmp_path / "w.pth"
+    if kind == "garbage":
+        weights.write_bytes(b"not a torch file")
+    elif kind == "folder_without_file":
+        weights = tmp_path / "weights_dir"
+        weights.mkdir()
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", str(out), "--gt-points", str(gt), "--lpips-weights", str(weights),
+              "--no-report"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert str(weights) in err
+    assert not (out / "metrics.json").exists()
+
+
+def test_a_scene_folder_that_moved_says_which_metrics_are_missing_and_why(tmp_path, capsys):
+    """A run whose scene folder is gone: every metric that needs it is null with the reason
+    (the folder and the way out), in metrics.json and on the terminal; what does not need it
+    is still scored."""
+    out, gt, scene = _run(tmp_path)
+    scene.rename(tmp_path / "scene_moved")
+    main(["evaluate", str(out), "--no-report"])  # returns: exit 0
+    printed = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["overall"] is None and m["images"]["psnr"]["mean"] is None
+    for key in ("chamfer", "fscore", "chamfer_mesh", "images.psnr", "images_ibr.lpips"):
+        assert str(scene) in m["missing"][key] and "does not exist" in m["missing"][key], key
+    assert m["chamfer"]["missing"] == m["missing"]["chamfer"]
+    assert "--gt-points" in m["missing"]["chamfer"] and "--scene" in m["missing"]["images.ssim"]
+    assert "not computed: chamfer, fscore, chamfer_mesh: " in printed and str(scene) in printed
+    # with the ground truth given, geometry is scored and only the images stay missing
+    main(["evaluate", str(out), "--gt-points", str(gt), "--no-report"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["overall"] is not None and m["chamfer"]["missing"] is None
+    assert "chamfer" not in m["missing"] and "fscore" not in m["missing"]
+    assert str(scene) in m["missing"]["images.psnr"]
+
+
+def test_an_mvs_output_folder_is_scored_against_its_synthetic_scene(tmp_path, capsys):
+    """The output folder of `svolsdf mvs` names its scene and views in mvs.json only: evaluate
+    scores it against that synthetic scene's ground truth, not all nulls."""
+    from svolsdf.commands.mvs import MVSJobConfig, run_mvs
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    scene = tmp_path / "syn"
+    make_synthetic_scene(scene, SynthConfig(views=3, width=48, height=36, seed=2,
+                                            object="sphere", supersample=1, gt_points=5000))
+    out = tmp_path / "mvs_out"
+    run_mvs(MVSJobConfig(scene=scene, out=out, views=[0, 1, 2]))
+    assert not (out / "config.yaml").exists() and not (out / "views.json").exists()
+    main(["evaluate", str(out), "--no-report"])
+    capsys.readouterr()
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["protocol"] == "synthetic" and m["chamfer"]["overall"] is not None
+    assert m["settings"]["synthetic"]["input_views"] == [0, 1, 2]
+    assert "chamfer" not in m["missing"] and m["fscore"] is not None
+    # a scene that has no ground truth of its own: said so, with the way out
+    other = tmp_path / "no_gt"
+    _scene(other)
+    (out / "mvs.json").write_text(json.dumps({"scene": str(other), "views": [0, 1]}))
+    main(["evaluate", str(out), "--no-report"])
+    assert "not a svolsdf synth scene" in capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert str(other) in m["missing"]["chamfer"] and "--gt-points" in m["missing"]["chamfer"]
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):

@@ -9,7 +9,7 @@ import typer
 
 from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
 from svolsdf.errors import RunInterrupted
-from svolsdf.io.paths import input_dir, input_file, output_dir, user_path
+from svolsdf.io.paths import input_dir, input_file, input_path, output_dir
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -55,8 +55,9 @@ def evaluate(
         dtu_gt = input_dir(dtu_gt, "DTU ground-truth folder", "--dtu-gt")
     if scene is not None:
         scene = scene_folder(scene, "--scene")
-    if lpips_weights is not None:  # weights that cannot be read: LPIPS is left out, with why
-        lpips_weights = user_path(lpips_weights)
+    if lpips_weights is not None:  # asked for: weights that cannot be read are an error
+        lpips_weights = input_path(lpips_weights, "LPIPS weights file or folder",
+                                   "--lpips-weights")
     check_views_rendered(out, _parse_views(views))
     cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
                          views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
@@ -67,8 +68,12 @@ def evaluate(
     lp = im["lpips"]
     typer.echo(f"chamfer acc {c['accuracy']} comp {c['completeness']} overall {c['overall']}; "
                f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
-               f"lpips {lp['mean']}" + (f" ({lp['missing']})" if lp.get("missing") and
-                                        im["psnr"]["mean"] is not None else ""))
+               f"lpips {lp['mean']}")
+    by_reason: dict[str, list[str]] = {}  # each null metric and why, one line per reason
+    for name, why in (m.get("missing") or {}).items():
+        by_reason.setdefault(why, []).append(name)
+    for why, names in by_reason.items():
+        typer.echo(f"not computed: {', '.join(names)}: {why}")
     cm = m["chamfer_mesh"]
     if cm.get("overall") is not None:
         typer.echo(f"mesh chamfer acc {cm['accuracy']} comp {cm['completeness']} overall "
