@@ -341,3 +341,50 @@ def test_unusable_ground_truth_is_refused_naming_the_file_and_the_problem(tmp_pa
         write_points_ply(tmp_path / "gt.ply", g)
         with pytest.raises(InputError, match=f"gt.ply.*{want}"):
             evaluate_run(EvaluateConfig(out=out, gt_points=tmp_path / "gt.ply", report=False))
+
+
+def test_evaluate_during_a_running_reconstruct_names_the_lock_not_a_stopped_run(tmp_path,
+                                                                                capsys):
+    """While a reconstruction writes the folder (a rerun with new options: config.yaml is new,
+    points.ply the last config's; or a first run with no outputs yet), evaluate and report say
+    the run is in progress and who holds the lock, not that it stopped or is not a run; render
+    too."""
+    import subprocess
+    import sys
+
+    out, gt, _ = _run(tmp_path)
+    (out / "stages.json").write_text(json.dumps(
+        {"provenance": {"fusion": {"config": "an earlier config"},
+                        "mesh": {"config": "an earlier config"}}}))
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / "config.yaml").write_text((out / "config.yaml").read_text())
+    holders = []
+    try:
+        for folder in (out, fresh):
+            p = subprocess.Popen([sys.executable, "-c", (
+                "import fcntl, os, sys, time\n"
+                f"f = open({str(folder / '.svolsdf.lock')!r}, 'a+')\n"
+                "fcntl.flock(f.fileno(), fcntl.LOCK_EX)\n"
+                "f.write(f'svolsdf reconstruct, pid {os.getpid()}'); f.flush()\n"
+                "print('held', flush=True); time.sleep(120)\n")],
+                stdout=subprocess.PIPE, text=True)
+            holders.append(p)
+            assert p.stdout.readline().strip() == "held"
+            for argv in (["evaluate", str(folder), "--gt-points", str(gt)],
+                         ["report", str(folder)], ["render", str(folder)]):
+                with pytest.raises(SystemExit) as e:
+                    main(argv)
+                err = capsys.readouterr().err
+                assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+                assert "in progress" in err and f"svolsdf reconstruct, pid {p.pid}" in err
+                assert str(folder / ".svolsdf.lock") in err
+                assert "stopped" not in err and "not a run folder" not in err
+            assert not (folder / "metrics.json").exists()
+    finally:
+        for p in holders:
+            p.kill()
+            p.wait()
+    # once the run has ended the lock is free: the earlier-config refusal is what remains
+    with pytest.raises(InputError, match="earlier config"):
+        evaluate_run(EvaluateConfig(out=out, gt_points=gt, report=False))

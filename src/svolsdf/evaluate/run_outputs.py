@@ -110,7 +110,11 @@ def load_gt_points(path: str | Path) -> np.ndarray:
 def check_run_folder(run: RunFolder, scene: Path | None) -> list[str]:
     """The outputs evaluate and report read in OUT (`RunFolder.outputs`); refuses a folder
     without any (a scene, an empty or half-finished run: nothing is written into it) and a
-    ``scene`` that is none."""
+    ``scene`` that is none. A folder another command is writing (a reconstruction in progress)
+    is refused first, naming it: its files are not yet the run's."""
+    from svolsdf.io.runfolder import refuse_in_progress
+
+    refuse_in_progress(run.root)
     found = run.outputs()
     if not found:
         raise InputError(f"{run.root}: not a run folder (no points.ply, mesh.ply or "
