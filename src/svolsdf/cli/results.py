@@ -160,6 +160,7 @@ def benchmark(
     with --dtu-gt. Image metrics on the held-out views, rendered by each run with a field.
     Each job runs into OUT/<scene>/<mode>/; a rerun skips
     finished jobs and resumes interrupted ones. Writes OUT/benchmark.md, .csv, .json and .png.
+    Exit status 1 when a job failed (each named on the last line), 2 for bad input.
     """
     from svolsdf.commands.benchmark import BenchmarkConfig, run_benchmark
     from svolsdf.commands.executors import ExecutorConfig
@@ -187,11 +188,16 @@ def benchmark(
         rows = run_benchmark(cfg)
     except RunInterrupted as e:  # the stage that stopped, not a bare status 130
         raise _Stopped(str(e)) from None
-    failed = sum(r["status"] != "ok" for r in rows)
+    failed = [r for r in rows if r["status"] != "ok"]
     typer.echo((out / "benchmark.md").read_text())
     typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'}, "
                f"{out / 'benchmark.png'} and {out / 'benchmark.json'} ({len(rows)} runs" +
-               (f", {failed} failed)" if failed else ")"))
+               (f", {len(failed)} failed)" if failed else ")"))
+    if failed:  # the tables keep the other jobs' rows; the status says the benchmark is not whole
+        jobs = "; ".join(f"{r['scene']} / {r['mode']} ({r['status']})" for r in failed)
+        typer.echo(f"error: {len(failed)} of {len(rows)} job(s) failed: {jobs}; a rerun runs "
+                   "only those again", err=True)
+        raise typer.Exit(1)
 
 
 

@@ -174,6 +174,14 @@ def _stage_seconds(run_dir: Path) -> float | None:
     return sum(secs) if secs else None
 
 
+def _has_ground_truth(cfg: BenchmarkConfig, scene: Path) -> bool:
+    """Whether a scene's runs get geometry scores: DTU's (`_ground_truth`), its gt_points.ply,
+    or a synthetic scene's own."""
+    from svolsdf.evaluate.synthetic import is_synthetic_scene
+
+    return bool(_ground_truth(cfg, scene)) or is_synthetic_scene(scene)
+
+
 def _ground_truth(cfg: BenchmarkConfig, scene: Path) -> dict:
     """EvaluateConfig geometry options for one scene."""
     if cfg.dtu_gt is not None:
@@ -402,6 +410,8 @@ def _validate(cfg: BenchmarkConfig) -> None:
         if not vs:
             raise InputError("benchmark: an empty input view set (give view ids, e.g. "
                              "--views '25 22 28; 23 24 33')")
+    if cfg.scan is not None and cfg.dtu_gt is None:
+        raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
     cfg.scenes = [input_dir(s, "scene folder", "--scenes") for s in cfg.scenes]
     if cfg.dtu_gt is not None:
         cfg.dtu_gt = input_dir(cfg.dtu_gt, "DTU ground-truth folder", "--dtu-gt")
@@ -411,9 +421,43 @@ def _validate(cfg: BenchmarkConfig) -> None:
             if missing:
                 raise InputError(f"--dtu-gt: no DTU scan number in the name of {missing[0]} "
                                  "(name it like scan65 or pass --scan N)")
+        _check_dtu_files(cfg)
     cfg.out = output_dir(cfg.out, "output folder", "-o", create=False)
-    for job in benchmark_jobs(cfg)[:len(cfg.modes)]:  # the run configs are valid
+    for job in benchmark_jobs(cfg):  # every run config is valid
         job_config(job)
+    _check_view_sets(cfg)
+
+
+def _check_dtu_files(cfg: BenchmarkConfig) -> None:
+    """Each DTU scene's evaluation files exist under --dtu-gt (ObsMask, Plane, STL of its scan):
+    a wrong --scan fails here, not after every job's reconstruction."""
+    from svolsdf.evaluate.chamfer import find_dtu_files
+
+    for scene in cfg.scenes:
+        gt = _ground_truth(cfg, scene)
+        if "dtu_gt" in gt:
+            scan = scan_number(scene)
+            how = f"scan {scan} from its name" if scan is not None else f"--scan {cfg.scan}"
+            try:
+                find_dtu_files(gt["dtu_gt"], gt["scan"])
+            except InputError as e:
+                raise InputError(f"--dtu-gt for {scene} ({how}): {e}") from None
+
+
+def _check_view_sets(cfg: BenchmarkConfig) -> None:
+    """Every input view set exists in every scene (the scene's view ids, read without its
+    images), before any job starts; how many a set holds is the config's check."""
+    from svolsdf.scene.loaders import load_scene
+
+    for views in _view_sets(cfg):
+        if views is None:
+            continue
+        label = "--views " + " ".join(map(str, views))
+        for scene in cfg.scenes:
+            try:
+                load_scene(scene, views=views, load_images=False)
+            except InputError as e:
+                raise InputError(f"{label}: {e}") from None
 
 
 def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
@@ -436,7 +480,8 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
 
     Raises:
         InputError: a missing scene or ground-truth folder, an unknown mode or executor, a DTU
-            scene without a scan number, or Ray options without Ray; raised before any job
+            scene without a scan number or its scan's files, --scan without --dtu-gt, a view
+            set that a scene does not have, or Ray options without Ray; raised before any job
             starts.
     """
     from svolsdf.commands.executors import check_executor, run_jobs
@@ -451,9 +496,9 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
                          "Ray gives each job only the GPUs it reserves")
     output_dir(cfg.out)
     for scene in cfg.scenes:
-        if not _ground_truth(cfg, scene):
-            log.warning("%s: no ground-truth geometry (gt_points.ply or --dtu-gt with a scan "
-                        "number): Chamfer columns stay empty", scene)
+        if not _has_ground_truth(cfg, scene):
+            log.warning("%s: no ground-truth geometry (a synthetic scene's, gt_points.ply, or "
+                        "--dtu-gt with a scan number): Chamfer columns stay empty", scene)
     jobs = benchmark_jobs(cfg)
     rows: list[dict | None] = [finished_row(j) for j in jobs]
     todo = [i for i, r in enumerate(rows) if r is None]
