@@ -152,6 +152,10 @@ def benchmark(
     gpus_per_job: Annotated[float, typer.Option(
         "--gpus-per-job", help="GPUs Ray reserves per job (use with --device cuda). "
                                "--executor ray only.")] = 0.0,
+    threads: Annotated[int | None, typer.Option(
+        "--threads", help="torch threads of every job (default: this machine's cores locally, "
+                          "--cpus-per-job on Ray); the same count gives the same numbers under "
+                          "both executors.")] = None,
 ) -> None:
     """Run the pipeline on scenes x modes (x view sets), evaluate, and tabulate like the paper's
     Table 1.
@@ -183,7 +187,7 @@ def benchmark(
         render=render, render_size=None if render_size is None else parse_size(render_size,
                                                                                "--render-size"),
         executor=ExecutorConfig(name=executor, address=address, cpus_per_job=cpus_per_job,
-                                gpus_per_job=gpus_per_job))
+                                gpus_per_job=gpus_per_job), threads=threads)
     try:
         rows = run_benchmark(cfg)
     except RunInterrupted as e:  # the stage that stopped, not a bare status 130

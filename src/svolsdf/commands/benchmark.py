@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from svolsdf.commands.executors import ExecutorConfig
+from svolsdf.commands.executors import ExecutorConfig, job_threads
 from svolsdf.config import choices
 from svolsdf.errors import InputError
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
@@ -114,6 +114,10 @@ class BenchmarkConfig:
     """(W, H) of those renders; None: the working size. Ground-truth images are resized to it."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     """Where the jobs run: in this process (local) or as Ray tasks (`ExecutorConfig`)."""
+    threads: int | None = None
+    """torch intra-op threads of every job, under either executor; None: the executor's
+    (`svolsdf.commands.executors.job_threads`). A job's floating-point sums, hence the last
+    digits of its numbers, depend on it: the same count gives the same rows locally and on Ray."""
 
 
 def scan_number(scene: str | Path) -> int | None:
@@ -138,7 +142,8 @@ def _labels(scenes: list[Path]) -> list[str]:
 def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
                 status: str = "ok") -> dict:
     """One benchmark row from an evaluate_run metrics dict (METRIC_KEYS, scene, mode, status,
-    protocol); `run_job` adds ``views`` and ``field`` (the field kind, for `method_label`)."""
+    protocol); `run_job` adds ``views``, ``field`` (the field kind, for `method_label`) and
+    ``threads`` (torch's threads the job ran with)."""
     c = metrics.get("chamfer") or {}
     cm = metrics.get("chamfer_mesh") or {}
 
@@ -227,9 +232,9 @@ class BenchmarkJob:
     rendering and IBR of the run's test views); None: none."""
 
     def key(self) -> str:
-        """What decides the job's row (not where or on what device it runs): a finished run
-        with the same key is not run again."""
-        over = {k: v for k, v in self.overrides.items() if k != "device"}
+        """What decides the job's row (not where, on what device or with how many threads it
+        runs): a finished run with the same key is not run again."""
+        over = {k: v for k, v in self.overrides.items() if k not in ("device", "threads")}
         text = json.dumps({"scene": str(Path(self.scene).resolve()), "mode": self.mode,
                            "views": self.views, "preset": self.preset, "overrides": over,
                            "evaluate": self.evaluate, "label": self.label,
@@ -261,6 +266,7 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
     ``OUT/<scene>/views-<a>-<b>-<c>/<mode>/`` (row label ``<scene> [a,b,c]``).
     """
     sets = _view_sets(cfg)
+    threads = cfg.threads if cfg.threads is not None else job_threads(cfg.executor)
     jobs = []
     # absolute paths: a Ray worker on another node does not share this process's directory
     out = Path(cfg.out).absolute()
@@ -282,13 +288,13 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
                     if cfg.render and mode != "mvs-only" else None,
                     overrides={"train.steps": cfg.steps, "scene.views": views,
                                "scene.image_size": list(cfg.size) if cfg.size else None,
-                               "device": cfg.device}))
+                               "device": cfg.device, "threads": threads}))
     return jobs
 
 
 #: the command-line option behind each override, for the messages of `validate_config`
 _OPTION_LABELS = {"train.steps": "--steps", "scene.views": "--views",
-                  "scene.image_size": "--size", "device": "--device"}
+                  "scene.image_size": "--size", "device": "--device", "threads": "--threads"}
 
 
 def job_config(job: BenchmarkJob):
@@ -318,7 +324,7 @@ def failed_row(job: BenchmarkJob, error: BaseException) -> dict:
     """The row of a job that raised ``error``: no metrics, status "failed: <type>: <message>"."""
     msg = f"failed: {type(error).__name__}: {error}".strip().splitlines()[0]
     return {**run_metrics({}, job.label, job.mode, None, status=msg), "views": job.views,
-            "field": _field_kind(job)}
+            "field": _field_kind(job), "threads": None}
 
 
 def finished_row(job: BenchmarkJob) -> dict | None:
@@ -361,8 +367,11 @@ def run_job(job: BenchmarkJob) -> dict:
             out=out, scene=Path(job.scene), views=test,
             extra={"benchmark": {"scene": job.label, "mode": job.mode}}, **job.evaluate))
         t = _stage_seconds(out)
+        import torch
+
         row = {**run_metrics(metrics, job.label, job.mode, t if t is not None else elapsed),
-               "views": job.views, "field": _field_kind(job)}
+               "views": job.views, "field": _field_kind(job),
+               "threads": torch.get_num_threads()}  # what the job's sums ran on
     except Exception as e:  # one failed run must not lose the others
         log.error("%s / %s failed: %s", job.label, job.mode, e,
                   exc_info=not isinstance(e, InputError))
