@@ -552,3 +552,24 @@ def test_config_prints_every_option_with_its_doc(tmp_path, capsys):
             assert docs[key].split(".")[0][:40] in " ".join(above.split()), (key, above)
     main(["config", "--set", "train.steps=12"])
     assert "  steps: 12" in capsys.readouterr().out
+
+
+def test_config_with_a_file_and_a_preset_behaves_as_reconstruct(tmp_path, capsys):
+    """`svolsdf config --config FILE --preset P` once printed FILE and dropped P in silence:
+    as reconstruct, a P that contradicts the file's preset is refused in one line, and the
+    file's own preset named again shows the file."""
+    main(["config", "--preset", "fast", "--set", "train.steps=12"])
+    f = tmp_path / "mine.yaml"
+    f.write_text(capsys.readouterr().out)
+    main(["config", "--config", str(f), "--preset", "fast"])
+    assert "  steps: 12" in capsys.readouterr().out
+    errors = []
+    for cmd in (["config"], ["reconstruct", str(tmp_path), "-o", str(tmp_path / "o")]):
+        with pytest.raises(SystemExit) as e:
+            main([*cmd, "--config", str(f), "--preset", "paper"])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"--preset paper contradicts {f} (preset fast)" in err
+        errors.append(err)
+    assert errors[0] == errors[1]
+    assert not (tmp_path / "o").exists()

@@ -67,8 +67,6 @@ class Case:
         works: a valid path makes the command work; False: the command may still refuse it
             for what is in it (junk weights, a DTU folder without the scan's files), in one
             line that names it.
-        refuses: a path that cannot be used is refused; False: the command works without
-            what it names (LPIPS weights: the image metrics but LPIPS, with a note why).
     """
 
     name: str
@@ -78,7 +76,6 @@ class Case:
     suffix: str = ""
     not_scene: str = "no known scene layout found (looked for "
     works: bool = True
-    refuses: bool = True
 
 
 _IN = ("valid", "link_valid", "missing", "missing_parent", "dangling", "dangling_far",
@@ -138,7 +135,7 @@ CASES = [
          lambda p, f: ["evaluate", str(f["run_copy"]), "--no-report", "--scene", p]),
     Case("evaluate --lpips-weights", "in_path",
          lambda p, f: ["evaluate", str(f["run_copy"]), "--no-report", "--lpips-weights", p],
-         refuses=False),
+         works=False),
     Case("report OUT", "run", lambda p, f: ["report", p], states=_IN + ("read_only",)),
     Case("report --scene", "scene", lambda p, f: ["report", str(f["run_copy"]), "--scene", p]),
     Case("render OUT", "run", lambda p, f: ["render", p, "--views", "0"]),
@@ -173,7 +170,7 @@ def made(tmp_path_factory):
     return {"base": base, "scene": scene, "run": run}
 
 
-def _stand_ins(mp: pytest.MonkeyPatch, made: dict, demo: bool) -> None:
+def _stand_ins(mp: pytest.MonkeyPatch, made: dict, empty_scores: bool) -> None:
     """Replace the work behind the commands (module docstring)."""
     import svolsdf.calibrate as calibrate
     import svolsdf.commands.mvs as mvs
@@ -215,7 +212,7 @@ def _stand_ins(mp: pytest.MonkeyPatch, made: dict, demo: bool) -> None:
         return out
 
     mp.setattr(synthetic, "make_synthetic_scene", synthesized)
-    if demo:  # the demo scores a run that the stand-in pipeline left empty
+    if empty_scores:  # demo and benchmark score a run that the stand-in pipeline left empty
         mp.setattr(scoring, "evaluate_run", lambda cfg: {})
 
 
@@ -335,14 +332,14 @@ def test_every_path_argument_works_or_is_refused_with_its_cause(case, made, caps
         with pytest.MonkeyPatch.context() as mp:
             mp.setenv("HOME", str(root))
             mp.chdir(root)
-            _stand_ins(mp, made, demo=case.name.startswith("demo"))
+            _stand_ins(mp, made, empty_scores=case.name.startswith(("demo", "benchmark")))
             if ro is not None:
                 _read_only(mp, ro)
             code, out, err = _run(argv, capsys)
             # the path as typed, with ~ expanded, or where it leads
             names = (typed, str(user_path(typed)), os.path.realpath(user_path(typed)))
         where = f"{case.name}, {state}, {spelling}: {argv}: exit {code}\n{err}"
-        if (not words or not case.refuses) and (case.works or code == 0):
+        if not words and (case.works or code == 0):
             assert code == 0, where  # it works
             return
         # refused: exit 2, one line naming the path and the cause
@@ -364,14 +361,14 @@ def test_benchmark_takes_a_quoted_scene_path_with_spaces_as_one_scene(made, tmp_
     scene = scans / "scan 1"
     shutil.copytree(made["scene"], scene)
     with pytest.MonkeyPatch.context() as mp:
-        _stand_ins(mp, made, demo=False)
+        _stand_ins(mp, made, empty_scores=True)
         code, out, err = _run(["benchmark", "--scenes", str(scene), "--modes", "mvs-only",
                                "-o", str(tmp_path / "b"), "--no-render"], capsys)
     assert code == 0, err
     assert "| scan 1 |" in out and (tmp_path / "b" / "scan 1" / "mvs-only").is_dir()
     # two scenes, each one argument, and the option repeated: the same
     with pytest.MonkeyPatch.context() as mp:
-        _stand_ins(mp, made, demo=False)
+        _stand_ins(mp, made, empty_scores=True)
         code, out, err = _run(["benchmark", "--scenes", str(scene), "--scenes",
                                str(made["scene"]), "--modes", "mvs-only", "-o",
                                str(tmp_path / "b2"), "--no-render"], capsys)
@@ -391,7 +388,7 @@ def test_reconstruct_into_a_link_to_a_folder_not_made_yet(made, tmp_path, capsys
     link.symlink_to(tmp_path / "runs" / "run 1")
     (tmp_path / "runs").mkdir()
     with pytest.MonkeyPatch.context() as mp:
-        _stand_ins(mp, made, demo=False)
+        _stand_ins(mp, made, empty_scores=False)
         code, out, err = _run(["reconstruct", str(made["scene"]), "-o", str(link),
                                "--no-progress"], capsys)
     assert code == 0, err

@@ -309,7 +309,9 @@ def test_view_sets_and_rerun_skip_with_stand_in_pipeline(tmp_path, monkeypatch, 
     out = tmp_path / "vs"
     argv = ["benchmark", "--scenes", str(synth_scene), "--modes", "mvs-only volsdf", "-o",
             str(out), "--views", "0 1 2; 0,1,3", "--lpips-net", "alex"]
-    main(argv)
+    with pytest.raises(SystemExit) as e:  # the volsdf jobs fail
+        main(argv)
+    assert e.value.code == 1
     assert len(FakePipeline.calls) == 4
     md = (out / "benchmark.md").read_text()
     assert "| synth_a [0,1,2] |" in md and "| synth_a [0,1,3] |" in md
@@ -319,7 +321,8 @@ def test_view_sets_and_rerun_skip_with_stand_in_pipeline(tmp_path, monkeypatch, 
     assert [r["views"] for r in rows] == [[0, 1, 2], [0, 1, 2], [0, 1, 3], [0, 1, 3]]
     # a rerun runs only the failed (volsdf) jobs again and writes the same table
     FakePipeline.calls = []
-    main(argv)
+    with pytest.raises(SystemExit):
+        main(argv)
     assert [c[1] for c in FakePipeline.calls] == ["volsdf", "volsdf"]
     assert (out / "benchmark.md").read_text() == md
     capsys.readouterr()
@@ -368,3 +371,76 @@ def test_tables_say_how_the_mesh_columns_were_scored():
     assert "The mesh columns mix scorings" in md and "- s2 / svolsdf" in md
     assert "- s1 / svolsdf" not in md
     assert "by its surface" not in benchmark_markdown([_row("s1", "svolsdf", 1.0, 2.0)])
+
+
+def test_failed_jobs_make_the_benchmark_exit_non_zero_naming_them(tmp_path, monkeypatch,
+                                                                   capsys, synth_scene):
+    """A job that fails is a row with its status and the benchmark goes on, but the command
+    does not end with status 0: the last line names each failed job."""
+    import svolsdf.pipeline
+
+    monkeypatch.setattr(svolsdf.pipeline, "Pipeline", FakePipeline)
+    out = tmp_path / "b"
+    with pytest.raises(SystemExit) as e:
+        main(["benchmark", "--scenes", str(synth_scene), "--modes", "mvs-only", "volsdf", "-o",
+              str(out), "--size", "96x72", "--lpips-net", "alex", "--no-render"])
+    res = capsys.readouterr()
+    assert e.value.code == 1
+    assert "| synth_a |" in res.out and (out / "benchmark.csv").is_file()  # tables written
+    (last,) = res.err.strip().splitlines()[-1:]
+    assert "1 of 2 job(s) failed" in last and "synth_a / volsdf" in last
+    assert "field diverged" in last and "synth_a / mvs-only" not in last
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--views", "0 1 9"], "--views 0 1 9: "),
+    (["--views", "0 1 2; 0 1 7"], "view id 7 does not exist"),
+    (["--views", "0 1 2; 2"], "expected a list of at least 2"),
+    (["--scan", "65"], "--scan 65: only the DTU protocol uses it"),
+    (["--dtu-gt", "DTU", "--scan", "65"], "ObsMask65_10.mat"),
+])
+def test_view_sets_and_scan_are_checked_before_any_job_starts(tmp_path, monkeypatch, capsys,
+                                                              synth_scene, argv, msg):
+    import svolsdf.pipeline
+
+    def never(*a, **k):
+        raise AssertionError("a job started")
+
+    monkeypatch.setattr(svolsdf.pipeline, "Pipeline", never)
+    (tmp_path / "DTU").mkdir()
+    argv = [str(tmp_path / "DTU") if a == "DTU" else a for a in argv]
+    out = tmp_path / "b"
+    with pytest.raises(SystemExit) as e:
+        main(["benchmark", "--scenes", str(synth_scene), "--modes", "mvs-only", "-o", str(out),
+              *argv])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert msg in err
+    assert not out.exists()
+
+
+def test_no_ground_truth_warning_only_for_scenes_without_any(tmp_path, monkeypatch, caplog,
+                                                             synth_scene):
+    """A synthetic scene is scored against its own ground truth: no 'no ground-truth' warning
+    for it; a scene without any still gets one."""
+    import logging
+
+    import svolsdf.pipeline
+
+    monkeypatch.setattr(svolsdf.pipeline, "Pipeline", FakePipeline)
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for f in ("cameras.npz", "image"):
+        src = synth_scene / f
+        if src.is_dir():
+            import shutil
+
+            shutil.copytree(src, plain / f)
+        else:
+            (plain / f).write_bytes(src.read_bytes())
+    with caplog.at_level(logging.WARNING, logger="svolsdf"):
+        run_benchmark(BenchmarkConfig(scenes=[synth_scene, plain], modes=["mvs-only"],
+                                      out=tmp_path / "b", lpips_net="alex", render=False))
+    warned = [r.getMessage() for r in caplog.records if "no ground-truth geometry" in
+              r.getMessage()]
+    assert len(warned) == 1 and str(plain) in warned[0], warned

@@ -26,17 +26,45 @@ from svolsdf.commands.executors import (
 )
 from svolsdf.errors import InputError
 
-# view 9 does not exist: that job fails in the pipeline, the other runs
-VIEW_SETS = [[0, 1, 2], [0, 1, 9]]
+# view 3's object mask is empty (the scene fixture): that job fails in the pipeline's scene
+# checks, the other runs (view ids a scene lacks are refused before any job starts)
+VIEW_SETS = [[0, 1, 2], [0, 1, 3]]
+#: torch threads of every job under both executors: the same count, the same sums
+THREADS = 1
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
+    import numpy as np
+    from PIL import Image
+
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
     root = tmp_path_factory.mktemp("exec") / "synth_r"
-    return make_synthetic_scene(root, SynthConfig(views=4, width=96, height=72, gt_points=3000,
+    made = make_synthetic_scene(root, SynthConfig(views=4, width=96, height=72, gt_points=3000,
                                                   supersample=1, mesh_resolution=6.0))
+    mask = made / "mask" / "003.png"
+    Image.fromarray(np.zeros_like(np.asarray(Image.open(mask)))).save(mask)
+    return made
+
+
+@pytest.fixture(scope="module", autouse=True)
+def workers_import_this_code():
+    """Ray's workers are new processes: PYTHONPATH, which they inherit, points them at the
+    svolsdf under test (not at another installed copy, whose rows would be compared)."""
+    import os
+    from pathlib import Path
+
+    import svolsdf
+
+    before = os.environ.get("PYTHONPATH")
+    here = str(Path(svolsdf.__file__).parents[1])
+    os.environ["PYTHONPATH"] = os.pathsep.join([here] + ([before] if before else []))
+    yield
+    if before is None:
+        del os.environ["PYTHONPATH"]
+    else:
+        os.environ["PYTHONPATH"] = before
 
 
 @pytest.fixture(scope="module")
@@ -53,14 +81,29 @@ def local_ray():
 
 def _cfg(scene, out, executor="local", **kw):
     return BenchmarkConfig(scenes=[scene], modes=["mvs-only"], out=out, view_sets=VIEW_SETS,
-                           size=(96, 72), device="cpu",
+                           size=(96, 72), device="cpu", threads=THREADS,
                            executor=ExecutorConfig(name=executor, **kw))
 
 
-def _table_without_time(path):
+#: how far two executors' floats may differ: the last digits of a float32 pipeline's sums can
+#: still differ between processes (library builds, vector paths), never the numbers
+REL = 1e-6
+
+
+def _table_without_time(path, approx=False):
+    """The CSV's cells without the time columns, numbers as floats (``approx``: as
+    `pytest.approx` within `REL`, to compare another table with)."""
     rows = list(csv.reader(io.StringIO(path.read_text())))
     keep = [i for i, h in enumerate(rows[0]) if not h.endswith("_time_s")]
-    return [[r[i] for i in keep] for r in rows]
+
+    def cell(text):
+        try:
+            x = float(text)
+        except ValueError:
+            return text
+        return pytest.approx(x, rel=REL, abs=1e-12) if approx else x
+
+    return [[cell(r[i]) for i in keep] for r in rows]
 
 
 # --------------------------------------------------------------------------- no Ray needed
@@ -120,6 +163,26 @@ def test_cuda_on_ray_needs_gpus_per_job(scene, tmp_path):
     assert not ray.is_initialized()
 
 
+def test_every_job_carries_its_torch_thread_count(scene, tmp_path):
+    """The job sets torch's threads itself (config ``threads``): on Ray the CPUs it reserves,
+    not whatever OMP_NUM_THREADS the worker inherited; --threads the same under both executors.
+    How many threads does not decide the row's key (as the device does not)."""
+    from svolsdf.commands.benchmark import benchmark_jobs, job_config
+
+    def threads(cfg):
+        return {job_config(j).threads for j in benchmark_jobs(cfg)}
+
+    ray_cfg = _cfg(scene, tmp_path, "ray", cpus_per_job=3.5)
+    ray_cfg.threads = None
+    local_cfg = _cfg(scene, tmp_path)
+    local_cfg.threads = None
+    assert threads(ray_cfg) == {3} and threads(local_cfg) == {0}  # 0: this process's cores
+    ray_cfg.threads = local_cfg.threads = 2
+    assert threads(ray_cfg) == threads(local_cfg) == {2}
+    assert [j.key() for j in benchmark_jobs(ray_cfg)] == [
+        j.key() for j in benchmark_jobs(_cfg(scene, tmp_path, "ray", cpus_per_job=3.5))]
+
+
 def test_local_executor_runs_in_order():
     got = []
     run_local(lambda j: {"job": j * 10}, [1, 2, 3], lambda i, r: got.append((i, r)),
@@ -155,25 +218,27 @@ def test_ray_and_local_executors_write_the_same_table(scene, tmp_path, local_ray
     assert "with the ray executor" in caplog.text
     rows_l = run_benchmark(_cfg(scene, tmp_path / "local"), progress=False)
     assert [(r["scene"], r["mode"], r["views"]) for r in rows_r] == [
-        ("synth_r [0,1,2]", "mvs-only", [0, 1, 2]), ("synth_r [0,1,9]", "mvs-only", [0, 1, 9])]
+        ("synth_r [0,1,2]", "mvs-only", [0, 1, 2]), ("synth_r [0,1,3]", "mvs-only", [0, 1, 3])]
     ok, bad = rows_r
     # the failed job is a row with its error; the other finished
     assert ok["status"] == "ok" and ok["overall"] > 0
-    assert bad["status"].startswith("failed: ") and "9" in bad["status"]
+    assert bad["status"].startswith("failed: ") and "mask of view 3 is empty" in bad["status"]
     assert bad["overall"] is None
+    # the job set torch's threads itself, in the Ray worker as here
+    assert ok["threads"] == rows_l[0]["threads"] == THREADS
     for r, l in zip(rows_r, rows_l, strict=True):
         assert r["status"] == l["status"]
         for k in ("accuracy", "completeness", "overall", "fscore"):
             if l[k] is None:  # a failed job scores nothing, under either executor
                 assert r[k] is None, k
             else:
-                assert r[k] == pytest.approx(l[k], rel=1e-6, abs=1e-9), k
+                assert r[k] == pytest.approx(l[k], rel=REL, abs=1e-12), k
     assert _table_without_time(tmp_path / "ray" / "benchmark.csv") == \
-        _table_without_time(tmp_path / "local" / "benchmark.csv")
+        _table_without_time(tmp_path / "local" / "benchmark.csv", approx=True)
     md = (tmp_path / "ray" / "benchmark.md").read_text()
-    assert "| synth_r [0,1,2] |" in md and "- synth_r [0,1,9] / mvs-only: failed: " in md
+    assert "| synth_r [0,1,2] |" in md and "- synth_r [0,1,3] / mvs-only: failed: " in md
     assert (tmp_path / "ray" / "benchmark.png").stat().st_size > 1000
-    for sub in ("views-0-1-2", "views-0-1-9"):
+    for sub in ("views-0-1-2", "views-0-1-3"):
         assert (tmp_path / "ray" / "synth_r" / sub / "mvs-only" / ROW_FILE).is_file()
 
 
@@ -183,7 +248,7 @@ def test_rerun_skips_finished_jobs_and_resumes_interrupted_ones(scene, tmp_path,
     out = tmp_path / "b"
     first = run_benchmark(_cfg(scene, out, "ray"), progress=False)
     ok_dir = out / "synth_r" / "views-0-1-2" / "mvs-only"
-    bad_dir = out / "synth_r" / "views-0-1-9" / "mvs-only"
+    bad_dir = out / "synth_r" / "views-0-1-3" / "mvs-only"
     row_time = (ok_dir / ROW_FILE).stat().st_mtime_ns
     bad_time = (bad_dir / ROW_FILE).stat().st_mtime_ns
     with caplog.at_level(logging.INFO, logger="svolsdf"):
@@ -201,7 +266,7 @@ def test_rerun_skips_finished_jobs_and_resumes_interrupted_ones(scene, tmp_path,
     # other settings are another job: it runs
     other = _cfg(scene, out, "ray")
     other.steps = 5
-    other.view_sets = [[0, 1, 2], [0, 1, 9]]
+    other.view_sets = [[0, 1, 2], [0, 1, 3]]
     assert run_benchmark(other, progress=False)[0]["status"] == "ok"
     assert (ok_dir / ROW_FILE).stat().st_mtime_ns != row_time
 

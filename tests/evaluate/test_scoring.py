@@ -126,18 +126,98 @@ def test_a_folder_that_is_not_a_run_is_refused_and_left_alone(tmp_path, capsys):
     assert sorted(p.name for p in scene.rglob("*")) == before
 
 
-def test_missing_lpips_weights_still_scores_geometry_and_other_image_metrics(tmp_path, capsys):
+def test_missing_default_lpips_weights_still_score_geometry_and_other_image_metrics(
+        tmp_path, capsys, monkeypatch):
+    import svolsdf.evaluate.lpips as lpips_module
+    from svolsdf.errors import InputError as _InputError
+
+    def nowhere():
+        raise _InputError("LPIPS weights not found; looked in nowhere")
+
+    monkeypatch.setattr(lpips_module, "default_lpips_dir", nowhere)
     out, gt, _ = _run(tmp_path)
-    main(["evaluate", str(out), "--gt-points", str(gt), "--lpips-weights",  # returns: exit 0
-          str(tmp_path / "no_weights"), "--no-report"])
+    main(["evaluate", str(out), "--gt-points", str(gt), "--no-report"])  # returns: exit 0
     printed = capsys.readouterr().out
     m = json.loads((out / "metrics.json").read_text())
     assert m["chamfer"]["overall"] is not None and m["fscore"] is not None
     assert m["images"]["psnr"]["mean"] > 10 and m["images"]["ssim"]["mean"] > 0
     lp = m["images"]["lpips"]
-    assert lp["mean"] is None and "no_weights" in lp["missing"] and "LPIPS" in lp["missing"]
+    assert lp["mean"] is None and "looked in nowhere" in lp["missing"]
+    assert "LPIPS" in lp["missing"]
     assert m["images"]["psnr"]["missing"] is None
-    assert "LPIPS not computed" in printed
+    assert m["missing"]["images.lpips"] == lp["missing"] and "images.psnr" not in m["missing"]
+    assert "not computed: images.lpips, images_ibr.lpips: LPIPS not computed" in printed
+
+
+@pytest.mark.parametrize("kind", ["absent", "garbage", "folder_without_file"])
+def test_unreadable_lpips_weights_given_are_an_error_naming_the_file(tmp_path, capsys, kind):
+    """--lpips-weights that cannot be read: exit 2 naming the file, before any output, not a
+    warning and a null LPIPS."""
+    out, gt, _ = _run(tmp_path)
+    weights = tmp_path / "w.pth"
+    if kind == "garbage":
+        weights.write_bytes(b"not a torch file")
+    elif kind == "folder_without_file":
+        weights = tmp_path / "weights_dir"
+        weights.mkdir()
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", str(out), "--gt-points", str(gt), "--lpips-weights", str(weights),
+              "--no-report"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert str(weights) in err
+    assert not (out / "metrics.json").exists()
+
+
+def test_a_scene_folder_that_moved_says_which_metrics_are_missing_and_why(tmp_path, capsys):
+    """A run whose scene folder is gone: every metric that needs it is null with the reason
+    (the folder and the way out), in metrics.json and on the terminal; what does not need it
+    is still scored."""
+    out, gt, scene = _run(tmp_path)
+    scene.rename(tmp_path / "scene_moved")
+    main(["evaluate", str(out), "--no-report"])  # returns: exit 0
+    printed = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["overall"] is None and m["images"]["psnr"]["mean"] is None
+    for key in ("chamfer", "fscore", "chamfer_mesh", "images.psnr", "images_ibr.lpips"):
+        assert str(scene) in m["missing"][key] and "does not exist" in m["missing"][key], key
+    assert m["chamfer"]["missing"] == m["missing"]["chamfer"]
+    assert "--gt-points" in m["missing"]["chamfer"] and "--scene" in m["missing"]["images.ssim"]
+    assert "not computed: chamfer, fscore, chamfer_mesh: " in printed and str(scene) in printed
+    # with the ground truth given, geometry is scored and only the images stay missing
+    main(["evaluate", str(out), "--gt-points", str(gt), "--no-report"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["overall"] is not None and m["chamfer"]["missing"] is None
+    assert "chamfer" not in m["missing"] and "fscore" not in m["missing"]
+    assert str(scene) in m["missing"]["images.psnr"]
+
+
+def test_an_mvs_output_folder_is_scored_against_its_synthetic_scene(tmp_path, capsys):
+    """The output folder of `svolsdf mvs` names its scene and views in mvs.json only: evaluate
+    scores it against that synthetic scene's ground truth, not all nulls."""
+    from svolsdf.commands.mvs import MVSJobConfig, run_mvs
+    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+
+    scene = tmp_path / "syn"
+    make_synthetic_scene(scene, SynthConfig(views=3, width=48, height=36, seed=2,
+                                            object="sphere", supersample=1, gt_points=5000))
+    out = tmp_path / "mvs_out"
+    run_mvs(MVSJobConfig(scene=scene, out=out, views=[0, 1, 2]))
+    assert not (out / "config.yaml").exists() and not (out / "views.json").exists()
+    main(["evaluate", str(out), "--no-report"])
+    capsys.readouterr()
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["chamfer"]["protocol"] == "synthetic" and m["chamfer"]["overall"] is not None
+    assert m["settings"]["synthetic"]["input_views"] == [0, 1, 2]
+    assert "chamfer" not in m["missing"] and m["fscore"] is not None
+    # a scene that has no ground truth of its own: said so, with the way out
+    other = tmp_path / "no_gt"
+    _scene(other)
+    (out / "mvs.json").write_text(json.dumps({"scene": str(other), "views": [0, 1]}))
+    main(["evaluate", str(out), "--no-report"])
+    assert "not a svolsdf synth scene" in capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert str(other) in m["missing"]["chamfer"] and "--gt-points" in m["missing"]["chamfer"]
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
@@ -229,3 +309,82 @@ def test_a_mesh_is_scored_by_its_surface_with_a_flap_charged(tmp_path):
                    for x in (v[used], np.concatenate([v[used], tip[None]]))]
     assert abs(by_vertices[1] - by_vertices[0]) < 0.05  # one vertex among ~300
     assert metrics["settings"]["synthetic"]["input_views"] == views
+
+
+@pytest.mark.parametrize("kind", ["nan", "inf", "empty", "one_point"])
+def test_unusable_ground_truth_is_refused_naming_the_file_and_the_problem(tmp_path, capsys,
+                                                                         kind):
+    """NaN, infinite, empty or sizeless ground truth: one line naming the file and what is wrong
+    with it, not 'F-score threshold must be > 0, got nan' or an unnamed 'no points'."""
+    out, _, _ = _run(tmp_path)
+    g = np.random.default_rng(0).random((20, 3))
+    if kind == "nan":
+        g[3, 1] = np.nan
+    elif kind == "inf":
+        g[5, 0] = np.inf
+    elif kind == "empty":
+        g = g[:0]
+    else:
+        g = g[:1]
+    gt = tmp_path / f"gt_{kind}.npy"
+    np.save(gt, g)
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", str(out), "--gt-points", str(gt), "--no-report"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert f"gt_{kind}.npy" in err
+    want = {"nan": "NaN or infinite", "inf": "NaN or infinite", "empty": "no points",
+            "one_point": "one position"}[kind]
+    assert want in err and "threshold must be" not in err
+    assert not (out / "metrics.json").exists()
+    if kind != "one_point":  # the same check guards a PLY file
+        write_points_ply(tmp_path / "gt.ply", g)
+        with pytest.raises(InputError, match=f"gt.ply.*{want}"):
+            evaluate_run(EvaluateConfig(out=out, gt_points=tmp_path / "gt.ply", report=False))
+
+
+def test_evaluate_during_a_running_reconstruct_names_the_lock_not_a_stopped_run(tmp_path,
+                                                                                capsys):
+    """While a reconstruction writes the folder (a rerun with new options: config.yaml is new,
+    points.ply the last config's; or a first run with no outputs yet), evaluate and report say
+    the run is in progress and who holds the lock, not that it stopped or is not a run; render
+    too."""
+    import subprocess
+    import sys
+
+    out, gt, _ = _run(tmp_path)
+    (out / "stages.json").write_text(json.dumps(
+        {"provenance": {"fusion": {"config": "an earlier config"},
+                        "mesh": {"config": "an earlier config"}}}))
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / "config.yaml").write_text((out / "config.yaml").read_text())
+    holders = []
+    try:
+        for folder in (out, fresh):
+            p = subprocess.Popen([sys.executable, "-c", (
+                "import fcntl, os, sys, time\n"
+                f"f = open({str(folder / '.svolsdf.lock')!r}, 'a+')\n"
+                "fcntl.flock(f.fileno(), fcntl.LOCK_EX)\n"
+                "f.write(f'svolsdf reconstruct, pid {os.getpid()}'); f.flush()\n"
+                "print('held', flush=True); time.sleep(120)\n")],
+                stdout=subprocess.PIPE, text=True)
+            holders.append(p)
+            assert p.stdout.readline().strip() == "held"
+            for argv in (["evaluate", str(folder), "--gt-points", str(gt)],
+                         ["report", str(folder)], ["render", str(folder)]):
+                with pytest.raises(SystemExit) as e:
+                    main(argv)
+                err = capsys.readouterr().err
+                assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+                assert "in progress" in err and f"svolsdf reconstruct, pid {p.pid}" in err
+                assert str(folder / ".svolsdf.lock") in err
+                assert "stopped" not in err and "not a run folder" not in err
+            assert not (folder / "metrics.json").exists()
+    finally:
+        for p in holders:
+            p.kill()
+            p.wait()
+    # once the run has ended the lock is free: the earlier-config refusal is what remains
+    with pytest.raises(InputError, match="earlier config"):
+        evaluate_run(EvaluateConfig(out=out, gt_points=gt, report=False))

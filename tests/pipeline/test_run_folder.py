@@ -296,12 +296,12 @@ from svolsdf.evaluate import scoring
 
 run, gate, real = sys.argv[1], Path(sys.argv[2]), scoring._evaluate_run
 
-def gated(cfg):  # called by evaluate_run inside folder_lock
+def gated(*args):  # called by evaluate_run inside folder_lock
     print("evaluating", flush=True)
     t0 = time.monotonic()
     while not gate.exists() and time.monotonic() - t0 < 120:
         time.sleep(0.02)
-    return real(cfg)
+    return real(*args)
 
 scoring._evaluate_run = gated
 main(["evaluate", run, "--no-report"])

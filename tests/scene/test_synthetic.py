@@ -134,6 +134,16 @@ def test_cli_synth(tmp_path, capsys):
     assert "WIDTHxHEIGHT" in capsys.readouterr().err
 
 
+def test_cli_synth_refuses_a_negative_seed_in_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli_main(["synth", str(tmp_path / "neg"), "--seed", "-1", "--views", "2",
+                  "--size", "32x24"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert "--seed" in err and "-1" in err
+    assert not (tmp_path / "neg").exists()
+
+
 def test_cameras_from_a_real_scene(tmp_path):
     dtu = shared_path("data", "dtu_scan65")
     out = make_synthetic_scene(tmp_path / "b", SynthConfig(

@@ -65,9 +65,10 @@ def expand_list_options(argv: list[str]) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     """Console entry point (``svolsdf``).
 
-    Exit status: 0 done; 2 bad input, a bad option, or a file or folder that cannot be read or
-    written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one line; a
-    stopped reconstruction names its stage, and a rerun resumes it).
+    Exit status: 0 done; 1 a benchmark job failed (the other jobs' rows are written, the last
+    line names the failed ones); 2 bad input, a bad option, or a file or folder that cannot be
+    read or written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one
+    line; a stopped reconstruction names its stage, and a rerun resumes it).
     """
     try:
         _main(argv)

@@ -93,6 +93,26 @@ def _parse_size(text: str | None) -> list[int] | None:
     return None if text is None else list(parse_size(text))
 
 
+def base_config(config: Path | None, preset_name: str | None) -> object:
+    """The config that `reconstruct` and `config` start from: ``--config FILE`` (its values
+    over the preset it names) or the preset ``--preset`` names (default fast). Both given: the
+    file's preset must be the one ``--preset`` names, else neither is silently dropped.
+
+    Raises:
+        InputError: an unreadable or invalid file (`svolsdf.config.load_config`), or a
+            ``--preset`` that contradicts the file's.
+    """
+    from svolsdf.config import load_config, preset
+
+    if config is not None:
+        cfg = load_config(config)
+        if preset_name is not None and preset_name != cfg.preset:
+            raise InputError(f"--preset {preset_name} contradicts {config} (preset "
+                             f"{cfg.preset}); drop one of them")
+        return cfg
+    return preset(preset_name or "fast")
+
+
 def build_config(scene: Path | None, config: Path | None, preset_name: str | None,
                  overrides: dict, labels: dict[str, str] | None = None,
                  sets: list[str] | None = None) -> object:
@@ -104,15 +124,9 @@ def build_config(scene: Path | None, config: Path | None, preset_name: str | Non
         labels: dotted config key -> its option, for error messages.
         sets: ``--set section.option=value`` items (`svolsdf.config.parse_set`).
     """
-    from svolsdf.config import apply_overrides, load_config, parse_set, preset
+    from svolsdf.config import apply_overrides, parse_set
 
-    if config is not None:
-        cfg = load_config(config)
-        if preset_name is not None and preset_name != cfg.preset:
-            raise InputError(f"--preset {preset_name} contradicts {config} (preset "
-                             f"{cfg.preset}); drop one of them")
-    else:
-        cfg = preset(preset_name or "fast")
+    cfg = base_config(config, preset_name)
     apply_overrides(cfg, {"scene.path": None if scene is None else str(scene), **overrides},
                     labels={"scene.path": "SCENE", **(labels or {})})
     given = parse_set(sets)

@@ -9,7 +9,7 @@ import typer
 
 from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
 from svolsdf.errors import RunInterrupted
-from svolsdf.io.paths import input_dir, input_file, output_dir, user_path
+from svolsdf.io.paths import input_dir, input_file, input_path, output_dir
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -55,8 +55,9 @@ def evaluate(
         dtu_gt = input_dir(dtu_gt, "DTU ground-truth folder", "--dtu-gt")
     if scene is not None:
         scene = scene_folder(scene, "--scene")
-    if lpips_weights is not None:  # weights that cannot be read: LPIPS is left out, with why
-        lpips_weights = user_path(lpips_weights)
+    if lpips_weights is not None:  # asked for: weights that cannot be read are an error
+        lpips_weights = input_path(lpips_weights, "LPIPS weights file or folder",
+                                   "--lpips-weights")
     check_views_rendered(out, _parse_views(views))
     cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
                          views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
@@ -67,8 +68,12 @@ def evaluate(
     lp = im["lpips"]
     typer.echo(f"chamfer acc {c['accuracy']} comp {c['completeness']} overall {c['overall']}; "
                f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
-               f"lpips {lp['mean']}" + (f" ({lp['missing']})" if lp.get("missing") and
-                                        im["psnr"]["mean"] is not None else ""))
+               f"lpips {lp['mean']}")
+    by_reason: dict[str, list[str]] = {}  # each null metric and why, one line per reason
+    for name, why in (m.get("missing") or {}).items():
+        by_reason.setdefault(why, []).append(name)
+    for why, names in by_reason.items():
+        typer.echo(f"not computed: {', '.join(names)}: {why}")
     cm = m["chamfer_mesh"]
     if cm.get("overall") is not None:
         typer.echo(f"mesh chamfer acc {cm['accuracy']} comp {cm['completeness']} overall "
@@ -147,6 +152,10 @@ def benchmark(
     gpus_per_job: Annotated[float, typer.Option(
         "--gpus-per-job", help="GPUs Ray reserves per job (use with --device cuda). "
                                "--executor ray only.")] = 0.0,
+    threads: Annotated[int | None, typer.Option(
+        "--threads", help="torch threads of every job (default: this machine's cores locally, "
+                          "--cpus-per-job on Ray); the same count gives the same numbers under "
+                          "both executors.")] = None,
 ) -> None:
     """Run the pipeline on scenes x modes (x view sets), evaluate, and tabulate like the paper's
     Table 1.
@@ -155,6 +164,7 @@ def benchmark(
     with --dtu-gt. Image metrics on the held-out views, rendered by each run with a field.
     Each job runs into OUT/<scene>/<mode>/; a rerun skips
     finished jobs and resumes interrupted ones. Writes OUT/benchmark.md, .csv, .json and .png.
+    Exit status 1 when a job failed (each named on the last line), 2 for bad input.
     """
     from svolsdf.commands.benchmark import BenchmarkConfig, run_benchmark
     from svolsdf.commands.executors import ExecutorConfig
@@ -177,16 +187,21 @@ def benchmark(
         render=render, render_size=None if render_size is None else parse_size(render_size,
                                                                                "--render-size"),
         executor=ExecutorConfig(name=executor, address=address, cpus_per_job=cpus_per_job,
-                                gpus_per_job=gpus_per_job))
+                                gpus_per_job=gpus_per_job), threads=threads)
     try:
         rows = run_benchmark(cfg)
     except RunInterrupted as e:  # the stage that stopped, not a bare status 130
         raise _Stopped(str(e)) from None
-    failed = sum(r["status"] != "ok" for r in rows)
+    failed = [r for r in rows if r["status"] != "ok"]
     typer.echo((out / "benchmark.md").read_text())
     typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'}, "
                f"{out / 'benchmark.png'} and {out / 'benchmark.json'} ({len(rows)} runs" +
-               (f", {failed} failed)" if failed else ")"))
+               (f", {len(failed)} failed)" if failed else ")"))
+    if failed:  # the tables keep the other jobs' rows; the status says the benchmark is not whole
+        jobs = "; ".join(f"{r['scene']} / {r['mode']} ({r['status']})" for r in failed)
+        typer.echo(f"error: {len(failed)} of {len(rows)} job(s) failed: {jobs}; a rerun runs "
+                   "only those again", err=True)
+        raise typer.Exit(1)
 
 
 

@@ -54,8 +54,9 @@ def info(
 
 @app.command("config")
 def config_cmd(
-    preset_name: Annotated[str, typer.Option(
-        "--preset", help="fast (default) or paper.")] = "fast",
+    preset_name: Annotated[str | None, typer.Option(
+        "--preset", help="fast (default) or paper; with --config, the preset the file must "
+                         "name (as reconstruct).")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="Show this config.yaml (e.g. OUT/config.yaml) instead of a preset.")
     ] = None,
@@ -67,10 +68,11 @@ def config_cmd(
     Save it, edit it and pass it back with ``svolsdf reconstruct SCENE --config FILE``, or set
     single options with ``--set section.option=value``.
     """
-    from svolsdf.config import apply_overrides, config_yaml, load_config, parse_set, preset
+    from svolsdf.cli.app import base_config
+    from svolsdf.config import apply_overrides, config_yaml, parse_set
 
-    cfg = (load_config(input_file(config, "config file", "--config")) if config is not None
-           else preset(preset_name))
+    cfg = base_config(None if config is None else input_file(config, "config file", "--config"),
+                      preset_name)
     given = parse_set(set_)
     if given:
         apply_overrides(cfg, given, labels={k: f"--set {k}" for k in given}, skip_none=False)

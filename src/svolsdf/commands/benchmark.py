@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from svolsdf.commands.executors import ExecutorConfig
+from svolsdf.commands.executors import ExecutorConfig, job_threads
 from svolsdf.config import choices
 from svolsdf.errors import InputError
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
@@ -114,6 +114,10 @@ class BenchmarkConfig:
     """(W, H) of those renders; None: the working size. Ground-truth images are resized to it."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     """Where the jobs run: in this process (local) or as Ray tasks (`ExecutorConfig`)."""
+    threads: int | None = None
+    """torch intra-op threads of every job, under either executor; None: the executor's
+    (`svolsdf.commands.executors.job_threads`). A job's floating-point sums, hence the last
+    digits of its numbers, depend on it: the same count gives the same rows locally and on Ray."""
 
 
 def scan_number(scene: str | Path) -> int | None:
@@ -138,7 +142,8 @@ def _labels(scenes: list[Path]) -> list[str]:
 def run_metrics(metrics: dict, scene: str, mode: str, time_s: float | None,
                 status: str = "ok") -> dict:
     """One benchmark row from an evaluate_run metrics dict (METRIC_KEYS, scene, mode, status,
-    protocol); `run_job` adds ``views`` and ``field`` (the field kind, for `method_label`)."""
+    protocol); `run_job` adds ``views``, ``field`` (the field kind, for `method_label`) and
+    ``threads`` (torch's threads the job ran with)."""
     c = metrics.get("chamfer") or {}
     cm = metrics.get("chamfer_mesh") or {}
 
@@ -172,6 +177,14 @@ def _stage_seconds(run_dir: Path) -> float | None:
     secs = [v.get("seconds") for k, v in t.items() if k != "total" and isinstance(v, dict)]
     secs = [float(s) for s in secs if isinstance(s, (int, float))]
     return sum(secs) if secs else None
+
+
+def _has_ground_truth(cfg: BenchmarkConfig, scene: Path) -> bool:
+    """Whether a scene's runs get geometry scores: DTU's (`_ground_truth`), its gt_points.ply,
+    or a synthetic scene's own."""
+    from svolsdf.evaluate.synthetic import is_synthetic_scene
+
+    return bool(_ground_truth(cfg, scene)) or is_synthetic_scene(scene)
 
 
 def _ground_truth(cfg: BenchmarkConfig, scene: Path) -> dict:
@@ -219,9 +232,9 @@ class BenchmarkJob:
     rendering and IBR of the run's test views); None: none."""
 
     def key(self) -> str:
-        """What decides the job's row (not where or on what device it runs): a finished run
-        with the same key is not run again."""
-        over = {k: v for k, v in self.overrides.items() if k != "device"}
+        """What decides the job's row (not where, on what device or with how many threads it
+        runs): a finished run with the same key is not run again."""
+        over = {k: v for k, v in self.overrides.items() if k not in ("device", "threads")}
         text = json.dumps({"scene": str(Path(self.scene).resolve()), "mode": self.mode,
                            "views": self.views, "preset": self.preset, "overrides": over,
                            "evaluate": self.evaluate, "label": self.label,
@@ -253,6 +266,7 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
     ``OUT/<scene>/views-<a>-<b>-<c>/<mode>/`` (row label ``<scene> [a,b,c]``).
     """
     sets = _view_sets(cfg)
+    threads = cfg.threads if cfg.threads is not None else job_threads(cfg.executor)
     jobs = []
     # absolute paths: a Ray worker on another node does not share this process's directory
     out = Path(cfg.out).absolute()
@@ -274,13 +288,13 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
                     if cfg.render and mode != "mvs-only" else None,
                     overrides={"train.steps": cfg.steps, "scene.views": views,
                                "scene.image_size": list(cfg.size) if cfg.size else None,
-                               "device": cfg.device}))
+                               "device": cfg.device, "threads": threads}))
     return jobs
 
 
 #: the command-line option behind each override, for the messages of `validate_config`
 _OPTION_LABELS = {"train.steps": "--steps", "scene.views": "--views",
-                  "scene.image_size": "--size", "device": "--device"}
+                  "scene.image_size": "--size", "device": "--device", "threads": "--threads"}
 
 
 def job_config(job: BenchmarkJob):
@@ -310,7 +324,7 @@ def failed_row(job: BenchmarkJob, error: BaseException) -> dict:
     """The row of a job that raised ``error``: no metrics, status "failed: <type>: <message>"."""
     msg = f"failed: {type(error).__name__}: {error}".strip().splitlines()[0]
     return {**run_metrics({}, job.label, job.mode, None, status=msg), "views": job.views,
-            "field": _field_kind(job)}
+            "field": _field_kind(job), "threads": None}
 
 
 def finished_row(job: BenchmarkJob) -> dict | None:
@@ -353,8 +367,11 @@ def run_job(job: BenchmarkJob) -> dict:
             out=out, scene=Path(job.scene), views=test,
             extra={"benchmark": {"scene": job.label, "mode": job.mode}}, **job.evaluate))
         t = _stage_seconds(out)
+        import torch
+
         row = {**run_metrics(metrics, job.label, job.mode, t if t is not None else elapsed),
-               "views": job.views, "field": _field_kind(job)}
+               "views": job.views, "field": _field_kind(job),
+               "threads": torch.get_num_threads()}  # what the job's sums ran on
     except Exception as e:  # one failed run must not lose the others
         log.error("%s / %s failed: %s", job.label, job.mode, e,
                   exc_info=not isinstance(e, InputError))
@@ -402,6 +419,8 @@ def _validate(cfg: BenchmarkConfig) -> None:
         if not vs:
             raise InputError("benchmark: an empty input view set (give view ids, e.g. "
                              "--views '25 22 28; 23 24 33')")
+    if cfg.scan is not None and cfg.dtu_gt is None:
+        raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
     cfg.scenes = [input_dir(s, "scene folder", "--scenes") for s in cfg.scenes]
     if cfg.dtu_gt is not None:
         cfg.dtu_gt = input_dir(cfg.dtu_gt, "DTU ground-truth folder", "--dtu-gt")
@@ -411,9 +430,43 @@ def _validate(cfg: BenchmarkConfig) -> None:
             if missing:
                 raise InputError(f"--dtu-gt: no DTU scan number in the name of {missing[0]} "
                                  "(name it like scan65 or pass --scan N)")
+        _check_dtu_files(cfg)
     cfg.out = output_dir(cfg.out, "output folder", "-o", create=False)
-    for job in benchmark_jobs(cfg)[:len(cfg.modes)]:  # the run configs are valid
+    for job in benchmark_jobs(cfg):  # every run config is valid
         job_config(job)
+    _check_view_sets(cfg)
+
+
+def _check_dtu_files(cfg: BenchmarkConfig) -> None:
+    """Each DTU scene's evaluation files exist under --dtu-gt (ObsMask, Plane, STL of its scan):
+    a wrong --scan fails here, not after every job's reconstruction."""
+    from svolsdf.evaluate.chamfer import find_dtu_files
+
+    for scene in cfg.scenes:
+        gt = _ground_truth(cfg, scene)
+        if "dtu_gt" in gt:
+            scan = scan_number(scene)
+            how = f"scan {scan} from its name" if scan is not None else f"--scan {cfg.scan}"
+            try:
+                find_dtu_files(gt["dtu_gt"], gt["scan"])
+            except InputError as e:
+                raise InputError(f"--dtu-gt for {scene} ({how}): {e}") from None
+
+
+def _check_view_sets(cfg: BenchmarkConfig) -> None:
+    """Every input view set exists in every scene (the scene's view ids, read without its
+    images), before any job starts; how many a set holds is the config's check."""
+    from svolsdf.scene.loaders import load_scene
+
+    for views in _view_sets(cfg):
+        if views is None:
+            continue
+        label = "--views " + " ".join(map(str, views))
+        for scene in cfg.scenes:
+            try:
+                load_scene(scene, views=views, load_images=False)
+            except InputError as e:
+                raise InputError(f"{label}: {e}") from None
 
 
 def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
@@ -436,7 +489,8 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
 
     Raises:
         InputError: a missing scene or ground-truth folder, an unknown mode or executor, a DTU
-            scene without a scan number, or Ray options without Ray; raised before any job
+            scene without a scan number or its scan's files, --scan without --dtu-gt, a view
+            set that a scene does not have, or Ray options without Ray; raised before any job
             starts.
     """
     from svolsdf.commands.executors import check_executor, run_jobs
@@ -451,9 +505,9 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
                          "Ray gives each job only the GPUs it reserves")
     output_dir(cfg.out)
     for scene in cfg.scenes:
-        if not _ground_truth(cfg, scene):
-            log.warning("%s: no ground-truth geometry (gt_points.ply or --dtu-gt with a scan "
-                        "number): Chamfer columns stay empty", scene)
+        if not _has_ground_truth(cfg, scene):
+            log.warning("%s: no ground-truth geometry (a synthetic scene's, gt_points.ply, or "
+                        "--dtu-gt with a scan number): Chamfer columns stay empty", scene)
     jobs = benchmark_jobs(cfg)
     rows: list[dict | None] = [finished_row(j) for j in jobs]
     todo = [i for i, r in enumerate(rows) if r is None]

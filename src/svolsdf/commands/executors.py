@@ -19,8 +19,8 @@ from typing import Any
 
 from svolsdf.errors import InputError
 
-__all__ = ["EXECUTORS", "ExecutorConfig", "check_executor", "check_ray_address", "run_jobs",
-           "run_local", "run_ray"]
+__all__ = ["EXECUTORS", "ExecutorConfig", "check_executor", "check_ray_address", "job_threads",
+           "run_jobs", "run_local", "run_ray"]
 
 log = logging.getLogger(__name__)
 
@@ -38,13 +38,26 @@ class ExecutorConfig:
     """Ray cluster to join (``ray://head:10001``, ``head:6379`` or ``auto``); None starts a
     local Ray with this machine's CPUs (and shuts it down at the end). Ray only."""
     cpus_per_job: float = 1.0
-    """CPUs Ray reserves for each job; the job's torch uses that many threads (Ray sets
-    OMP_NUM_THREADS). Ray only."""
+    """CPUs Ray reserves for each job; the job's torch uses that many threads (rounded down, at
+    least 1: `job_threads`) unless the benchmark gives its own count. Ray only."""
     gpus_per_job: float = 0.0
     """GPUs Ray reserves for each job (Ray sets CUDA_VISIBLE_DEVICES to them, so ``--device
     cuda`` uses the job's own GPU). Ray only."""
     local_cpus: int | None = None
     """CPUs of the local Ray started without ``address`` (None: all of this machine's)."""
+
+
+def job_threads(cfg: ExecutorConfig) -> int:
+    """The torch threads a job uses on this executor when the benchmark names none: on Ray the
+    CPUs each task reserves (``cpus_per_job`` rounded down, at least 1), set in the worker by
+    the job itself rather than left to the OMP_NUM_THREADS the worker inherits; locally 0, the
+    pipeline's rule (this process's cores: `svolsdf.pipeline.set_threads`).
+
+    A job's numbers depend on the count in their last digits (torch splits its sums over the
+    threads), so the same count under both executors gives the same rows."""
+    if cfg.name == "ray":
+        return max(1, int(cfg.cpus_per_job))
+    return 0
 
 
 def check_executor(cfg: ExecutorConfig) -> None:

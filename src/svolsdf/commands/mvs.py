@@ -147,7 +147,8 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     timings["save"] = time.perf_counter() - t0
 
     summary: dict = {
-        "scene": str(cfg.scene),
+        # absolute: `svolsdf evaluate` finds the scene's ground truth from any folder
+        "scene": str(Path(cfg.scene).absolute()),
         "format": scene.format,
         "units": scene.units,
         "views": scene.view_ids,

@@ -223,9 +223,12 @@ def render_outputs(
         raise InputError(f"--frames {frames}: an orbit needs at least 2 frames")
     if chunk < 1:
         raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
-    p = open_run(out, progress=False)
     from svolsdf.io.paths import output_dir
-    from svolsdf.io.runfolder import config_digest, folder_lock
+    from svolsdf.io.runfolder import config_digest, folder_lock, refuse_in_progress
+
+    if out.is_dir():
+        refuse_in_progress(out)  # not "stopped before it trained the field" while it trains
+    p = open_run(out, progress=False)
 
     if p.dir.output_provenance(["field"])["field"] == "another config":
         raise InputError(f"{out}: field/model.pt came from an earlier config than "

@@ -24,6 +24,7 @@ from scipy.io import loadmat
 from svolsdf.errors import InputError
 from svolsdf.evaluate.points import (  # the building blocks; re-exported for existing callers
     _check_points,
+    checked_ground_truth,
     greedy_radius_downsample,
     nn_distances,
     shuffle_rows,
@@ -435,7 +436,7 @@ def dtu_chamfer(points: np.ndarray, dtu_dir: str | Path, scan: int, mode: str = 
     files = find_dtu_files(dtu_dir, scan)
     obs = load_obs_mask(files.obs_mask)
     plane = load_plane(files.plane)
-    stl = _read_ply_points(files.stl)
+    stl = checked_ground_truth(_read_ply_points(files.stl), files.stl)
     return dtu_chamfer_arrays(points, stl, obs, plane, mode=mode, faces=faces, **kwargs)
 
 

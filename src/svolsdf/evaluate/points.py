@@ -13,13 +13,14 @@ without its per-row Python-level swaps.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from svolsdf.errors import InputError
 
-__all__ = ["greedy_radius_downsample", "nn_distances", "shuffle_rows"]
+__all__ = ["checked_ground_truth", "greedy_radius_downsample", "nn_distances", "shuffle_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +30,31 @@ def _check_points(name: str, points: np.ndarray) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"{name}: expected an (N, 3) array of points, got shape {points.shape}")
     return points.astype(np.float64, copy=False)
+
+
+def checked_ground_truth(points: np.ndarray, source: str | Path) -> np.ndarray:
+    """Ground-truth points as read from ``source``, refused when no score could be computed
+    from them: an empty set, or coordinates that are NaN or infinite (a threshold or a
+    distance from them would be NaN, and the error would name neither the file nor why).
+
+    Args:
+        points: (N, 3) positions read from ``source``.
+        source: the file (or its description) the message names.
+
+    Returns:
+        (N, 3) float64 points.
+
+    Raises:
+        InputError: naming ``source`` and the problem.
+    """
+    points = _check_points(str(source), points)
+    if len(points) == 0:
+        raise InputError(f"{source}: the ground truth has no points")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise InputError(f"{source}: {int(bad.sum())} of {len(points)} ground-truth points have "
+                         f"NaN or infinite coordinates (first: row {int(np.argmax(bad))})")
+    return points
 
 
 def _kdtree(points: np.ndarray) -> cKDTree:

@@ -20,12 +20,13 @@ from svolsdf.io.runfolder import RunFolder
 
 __all__ = ["chamfer_block", "check_provenance", "check_run_folder", "check_views_rendered",
            "empty_images", "empty_metrics", "finite_or_none", "load_gt_points", "load_renders",
-           "run_scene", "write_json"]
+           "run_scene", "scene_problem", "write_json"]
 
 
 def run_scene(run: RunFolder) -> tuple[Path | None, list[int] | None]:
     """The scene folder and the input view ids of a run: those of its config.yaml (read by
-    `svolsdf.config.load_config`), else those views.json records; None for what neither names.
+    `svolsdf.config.load_config`), else those views.json records, else those of mvs.json (an
+    output folder of ``svolsdf mvs``); None for what none of them names.
 
     Raises:
         InputError: config.yaml is not a config (`load_config` names the key or value).
@@ -42,11 +43,56 @@ def run_scene(run: RunFolder) -> tuple[Path | None, list[int] | None]:
         if rv is not None:
             path = path or rv.scene
             views = views or rv.inputs or None
+    if path is None or views is None:
+        mvs_path, mvs_views = _mvs_summary_scene(run.root / "mvs.json")
+        path = path or mvs_path
+        views = views or mvs_views
     return (Path(path) if path else None), views
 
 
+def _mvs_summary_scene(path: Path) -> tuple[str | None, list[int] | None]:
+    """The ``scene`` and ``views`` that ``svolsdf mvs`` wrote to its mvs.json (Nones when the
+    file is missing, unreadable or lacks them: the run then names no scene)."""
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None, None
+    if not isinstance(d, dict):
+        return None, None
+    scene = d.get("scene") if isinstance(d.get("scene"), str) and d.get("scene") else None
+    views = d.get("views")
+    ok = isinstance(views, list) and views and all(isinstance(v, int) for v in views)
+    return scene, (list(views) if ok else None)
+
+
+def scene_problem(scene_path: Path | None, given: bool) -> str | None:
+    """Why the scene a run names cannot give ground truth (None when it is a folder): none
+    named, or a folder that is not there any more.
+
+    Args:
+        scene_path: the run's scene folder (`run_scene`) or ``--scene``'s.
+        given: whether ``--scene`` gave it (else the run's files named it).
+    """
+    if scene_path is None:
+        return ("the run names no scene folder (no config.yaml, views.json or mvs.json with "
+                "one); pass --scene FOLDER")
+    if not Path(scene_path).is_dir():
+        named = "--scene" if given else "the run folder's config.yaml / views.json / mvs.json"
+        rel = "" if Path(scene_path).is_absolute() else ", read from the current folder"
+        return (f"scene folder {scene_path} (named by {named}{rel}) does not exist (moved? "
+                "pass --scene FOLDER)")
+    return None
+
+
 def load_gt_points(path: str | Path) -> np.ndarray:
-    """(N, 3) float64 ground-truth points from a .ply or .npy file."""
+    """(N, 3) float64 ground-truth points from a .ply or .npy file.
+
+    Raises:
+        InputError: naming the file: unreadable, not (N, 3), empty, or with NaN or infinite
+            coordinates (`svolsdf.evaluate.points.checked_ground_truth`).
+    """
+    from svolsdf.evaluate.points import checked_ground_truth
+
     path = input_file(path, "ground-truth points file")
     if path.suffix.lower() == ".npy":
         try:
@@ -55,16 +101,20 @@ def load_gt_points(path: str | Path) -> np.ndarray:
             raise InputError(f"{path}: cannot read as .npy ({e})") from None
         if a.ndim != 2 or a.shape[1] < 3:
             raise InputError(f"{path}: expected an (N, 3) array, got shape {a.shape}")
-        return a[:, :3].astype(np.float64)
+        return checked_ground_truth(a[:, :3], path)
     from svolsdf.io.ply import read_ply
 
-    return read_ply(path)["points"]
+    return checked_ground_truth(read_ply(path)["points"], path)
 
 
 def check_run_folder(run: RunFolder, scene: Path | None) -> list[str]:
     """The outputs evaluate and report read in OUT (`RunFolder.outputs`); refuses a folder
     without any (a scene, an empty or half-finished run: nothing is written into it) and a
-    ``scene`` that is none."""
+    ``scene`` that is none. A folder another command is writing (a reconstruction in progress)
+    is refused first, naming it: its files are not yet the run's."""
+    from svolsdf.io.runfolder import refuse_in_progress
+
+    refuse_in_progress(run.root)
     found = run.outputs()
     if not found:
         raise InputError(f"{run.root}: not a run folder (no points.ply, mesh.ply or "
@@ -133,11 +183,12 @@ def load_renders(run: RunFolder, scene_path: Path | None, views: list[int] | Non
     if not any(sets.values()):
         notes.append("No renders (renders/<view id>.png): image metrics are null.")
         return {}, None
-    if scene_path is None:
-        notes.append("No scene (config.yaml or --scene): image metrics are null.")
+    no_scene = scene_problem(scene_path, given=False)
+    if no_scene is not None:
+        notes.append(f"Image metrics are null: {no_scene}.")
         for key, files in sets.items():
             if files:
-                missing[key] = "no scene (config.yaml or --scene)"
+                missing[key] = no_scene
         return {}, None
     from svolsdf.scene.loaders import load_scene
 
@@ -177,7 +228,7 @@ def empty_metrics() -> dict:
             "images": empty_images(), "images_ibr": empty_images(),
             "mesh_source": None,
             "mesh_over_points": {"accuracy": None, "completeness": None, "overall": None},
-            "timing": {}, "settings": {}}
+            "missing": {}, "timing": {}, "settings": {}}
 
 
 def empty_images(missing: str | None = None) -> dict:
@@ -190,7 +241,7 @@ def chamfer_block(res: dict | None, protocol: str | None, source: str | None) ->
     return {"accuracy": finite_or_none(res.get("accuracy")),
             "completeness": finite_or_none(res.get("completeness")),
             "overall": finite_or_none(res.get("overall")),
-            "protocol": protocol, "source": source}
+            "protocol": protocol, "source": source, "missing": None}
 
 
 def mesh_chamfer_block(res: dict | None, protocol: str | None, source: str | None,

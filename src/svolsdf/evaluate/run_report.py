@@ -21,6 +21,7 @@ from svolsdf.evaluate.run_outputs import (
     load_gt_points,
     load_renders,
     run_scene,
+    scene_problem,
 )
 from svolsdf.evaluate.synthetic import is_synthetic_scene
 from svolsdf.io.runfolder import RunFolder
@@ -99,7 +100,11 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
             mesh = (d["points"], d["faces"], d["colors"])
     if views is None and scene_path is not None:
         try:
-            loaded, _ = load_renders(run, scene_path, None, True, [])
+            missing: dict[str, str] = {}
+            loaded, _ = load_renders(run, scene_path, None, True, [], missing)
+            problem = scene_problem(scene_path, given=False)
+            if problem is not None and missing:  # renders, but no scene to compare with
+                notes.append(f"Novel views not shown: {problem}")
         except InputError as e:
             notes.append(f"Novel views not shown: {e}")
             loaded = {}

@@ -26,6 +26,9 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
     images:     {psnr: {mean, per_view, missing}, ssim: {...}, lpips: {...}}
                 (missing: why the metric is null, e.g. no renders or no LPIPS weights)
     images_ibr: the same for renders_ibr/
+    missing:    {metric: why it is null} for every null metric (chamfer, chamfer_mesh, fscore,
+                images.psnr, ...: no points.ply, no ground truth, a scene folder that moved,
+                ...); the Chamfer blocks keep their own reason under ``missing`` too
     timing: {..timing.json.., evaluate_seconds}
     settings: what was evaluated against what
 
@@ -59,6 +62,7 @@ import numpy as np
 from svolsdf.errors import InputError
 from svolsdf.evaluate import chamfer as ch
 from svolsdf.evaluate.images import masked_psnr, ssim
+from svolsdf.evaluate.points import checked_ground_truth
 from svolsdf.evaluate.report import ViewImages
 from svolsdf.evaluate.run_outputs import (
     chamfer_block,
@@ -120,7 +124,9 @@ class EvaluateConfig:
 
 def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict,
               notes: list[str], scene_path: Path | None = None,
-              input_views: list[int] | None = None) -> None:
+              input_views: list[int] | None = None) -> str | None:
+    """Chamfer / F-score into ``metrics``; returns why there is no ground-truth geometry (None
+    when there is)."""
     if cfg.dtu_gt is not None:
         if scan is None:
             raise InputError("--dtu-gt needs --scan N (the scene does not name its DTU scan)")
@@ -129,9 +135,12 @@ def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict
         plane = ch.load_plane(files.plane)
         from svolsdf.io.ply import read_ply
 
-        stl = read_ply(files.stl)["points"]
+        stl = checked_ground_truth(read_ply(files.stl)["points"], files.stl)
         above = stl @ plane[:3] + plane[3] > 0
-        thr = cfg.threshold or _diag(stl[above]) * 0.01
+        if not above.any():
+            raise InputError(f"{files.stl}: no ground-truth point lies above the plane of "
+                             f"{files.plane}")
+        thr = cfg.threshold or _diag(stl[above], files.stl) * 0.01
         metrics["settings"]["dtu"] = {"scan": scan, "obs_mask": str(files.obs_mask),
                                       "plane": str(files.plane), "stl": str(files.stl)}
         if points is not None:
@@ -146,22 +155,70 @@ def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict
             metrics["chamfer_mesh"] = mesh_chamfer_block(r, "dtu-mesh", "mesh.ply", density)
     elif cfg.gt_points is not None:
         gt = load_gt_points(cfg.gt_points)
-        thr = cfg.threshold or _diag(gt) * 0.01
+        thr = cfg.threshold or _diag(gt, cfg.gt_points) * 0.01
         metrics["settings"]["gt_points"] = str(cfg.gt_points)
         if points is not None and len(points[0]):
             r = ch.chamfer_fscore(points[0], gt, thr, max_dist=cfg.max_dist)
             metrics["chamfer"] = chamfer_block(r, "generic", "points.ply")
             _put_fscore(metrics, r, thr)
         if mesh is not None:
-            density = ch.mesh_density(_diag(gt))
+            density = ch.mesh_density(_diag(gt, cfg.gt_points))
             surf = ch.mesh_surface_points(mesh[0], mesh[1], density, seed=cfg.seed)
             r = ch.chamfer_fscore(surf, gt, thr, max_dist=cfg.max_dist)
             metrics["chamfer_mesh"] = mesh_chamfer_block(r, "generic-mesh", "mesh.ply", density)
     elif scene_path is not None and input_views and is_synthetic_scene(scene_path):
         _synthetic_geometry(cfg, scene_path, input_views, points, mesh, metrics, notes)
     else:
-        notes.append("No ground-truth geometry given (--gt-points or --dtu-gt): Chamfer and "
-                     "F-score are null.")
+        why = _no_ground_truth(scene_path, cfg.scene is not None, input_views)
+        notes.append(f"Chamfer and F-score are null: {why}.")
+        return why
+    return None
+
+
+def _no_ground_truth(scene_path: Path | None, given: bool, input_views: list[int] | None
+                     ) -> str:
+    """Why a run without --gt-points or --dtu-gt has no ground-truth geometry."""
+    from svolsdf.evaluate.run_outputs import scene_problem
+
+    way = "pass --gt-points FILE or --dtu-gt ROOT"
+    problem = scene_problem(scene_path, given)
+    if problem is not None:
+        return f"no ground-truth geometry: {problem}, or {way}"
+    if not is_synthetic_scene(scene_path):
+        return (f"no ground-truth geometry: scene {scene_path} has none of its own (not a "
+                f"svolsdf synth scene: no gt_points.ply and gt_depth/); {way}")
+    return (f"no ground-truth geometry: the run does not record its input views (views.json), "
+            f"which pick the part of scene {scene_path}'s ground truth to score against; {way}")
+
+
+def _missing(metrics: dict, points, mesh, no_gt: str | None) -> None:
+    """``missing`` of the Chamfer blocks and the top-level ``missing`` map: for every null
+    metric, why it could not be computed."""
+    for key, have, name in (("chamfer", points, "points.ply"), ("chamfer_mesh", mesh, "mesh.ply")):
+        blk = metrics[key]
+        if blk["overall"] is not None:
+            continue
+        if have is None:
+            blk["missing"] = (f"no {name} in the run folder" if key == "chamfer" else
+                              "no mesh.ply with faces in the run folder")
+        elif no_gt is not None:
+            blk["missing"] = no_gt
+        elif blk["protocol"] is None:
+            blk["missing"] = f"{name} has no points"
+        else:
+            blk["missing"] = "its distances are not finite numbers"
+    out = {}
+    if metrics["chamfer"]["missing"] is not None:
+        out["chamfer"] = out["fscore"] = metrics["chamfer"]["missing"]
+    elif metrics["fscore"] is None:
+        out["fscore"] = "the F-score is not a finite number"
+    if metrics["chamfer_mesh"]["missing"] is not None:
+        out["chamfer_mesh"] = metrics["chamfer_mesh"]["missing"]
+    for key in ("images", "images_ibr"):
+        for m, blk in metrics[key].items():
+            if blk["mean"] is None:
+                out[f"{key}.{m}"] = blk.get("missing") or "no view gave a finite value"
+    metrics["missing"] = out
 
 
 def _synthetic_geometry(cfg: EvaluateConfig, scene_path: Path, views: list[int], points, mesh,
@@ -208,17 +265,22 @@ def _put_fscore(metrics: dict, r: dict, thr: float) -> None:
     metrics["recall"] = finite_or_none(r.get("recall"))
 
 
-def _diag(p: np.ndarray) -> float:
-    if len(p) == 0:
-        raise InputError("ground truth has no points")
-    return float(np.linalg.norm(p.max(0) - p.min(0)))
+def _diag(p: np.ndarray, source: Path) -> float:
+    """The bounding-box diagonal of ground-truth points (checked by `checked_ground_truth`),
+    the scale of the default F-score threshold and mesh sampling density."""
+    d = float(np.linalg.norm(p.max(0) - p.min(0)))
+    if not d > 0:
+        raise InputError(f"{source}: the ground truth's {len(p)} point(s) all lie at one "
+                         "position; it has no size to scale the F-score threshold by")
+    return d
 
 
-def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str]
-            ) -> tuple[list[ViewImages], object]:
+def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str],
+            lp=None) -> tuple[list[ViewImages], object]:
     """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene.
-    A set without images, or a metric that cannot be computed (LPIPS without its weights),
-    keeps null values and says why in ``missing``."""
+    ``lp``: the LPIPS model of ``--lpips-weights`` (loaded before the work); None: the default
+    weights, whose absence leaves LPIPS null. A set without images, or a metric that cannot be
+    computed, keeps null values and says why in ``missing``."""
     missing: dict[str, str] = {}
     loaded, scene = load_renders(RunFolder(cfg.out), scene_path, cfg.views, cfg.masks, notes,
                                   missing)
@@ -242,13 +304,14 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
                          "volume-rendered colour.")
     from svolsdf.evaluate.lpips import LPIPS, lpips_distance
 
-    lp = lp_missing = None
-    try:
-        lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
-    except InputError as e:  # PSNR, SSIM and the geometry do not need it
-        lp_missing = f"LPIPS not computed: {e}"
-        log.warning("%s (pass --lpips-weights)", lp_missing)
-        notes.append(lp_missing + ".")
+    lp_missing = None
+    if lp is None:
+        try:
+            lp = LPIPS(cfg.lpips_net)
+        except InputError as e:  # the default weights: PSNR, SSIM and the geometry go on
+            lp_missing = f"LPIPS not computed: {e}"
+            log.warning("%s (pass --lpips-weights)", lp_missing)
+            notes.append(lp_missing + ".")
     metrics["settings"]["lpips_net"] = cfg.lpips_net
     metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
     views: list[ViewImages] = []
@@ -295,9 +358,14 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     found = check_run_folder(run, cfg.scene)
     _check_evaluate_options(cfg, out)
     prov = check_provenance(run, found)
+    lp = None
+    if cfg.lpips_weights is not None:  # weights asked for and unreadable: an error, not a null
+        from svolsdf.evaluate.lpips import LPIPS
+
+        lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
     output_dir(out, "run folder")  # metrics.json goes there: fail before the work
     with folder_lock(out, "svolsdf evaluate"):
-        return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}))
+        return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}), lp)
 
 
 def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
@@ -306,18 +374,18 @@ def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
         raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
     if cfg.dtu_gt is not None and cfg.gt_points is not None:
         raise InputError("--dtu-gt and --gt-points: give one ground truth")
-
-
-def _evaluate_run(cfg: EvaluateConfig) -> dict:
-    """`evaluate_run` once its checks passed and the lock is held."""
-    t0 = time.perf_counter()
-    out = Path(cfg.out)
     if cfg.lpips_net not in ("vgg", "alex"):
         raise InputError(f"--lpips-net {cfg.lpips_net!r}: expected 'vgg' or 'alex'")
     for name, v in (("--threshold", cfg.threshold), ("--ssim-data-range", cfg.ssim_data_range),
                     ("max_dist", cfg.max_dist)):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise InputError(f"{name} {v}: expected a number > 0")
+
+
+def _evaluate_run(cfg: EvaluateConfig, lp=None) -> dict:
+    """`evaluate_run` once its checks passed and the lock is held (``lp``: `_images`)."""
+    t0 = time.perf_counter()
+    out = Path(cfg.out)
     from svolsdf.io.ply import read_ply
 
     run = RunFolder(out)
@@ -339,7 +407,7 @@ def _evaluate_run(cfg: EvaluateConfig) -> dict:
         if d["faces"] is not None and len(d["faces"]):
             mesh = (d["points"], d["faces"])
 
-    views, scene = _images(cfg, scene_path, metrics, notes)
+    views, scene = _images(cfg, scene_path, metrics, notes, lp)
     scan = cfg.scan
     if scan is None and scene is not None and scene.extras.get("scan") is not None:
         scan = int(scene.extras["scan"])
@@ -347,8 +415,9 @@ def _evaluate_run(cfg: EvaluateConfig) -> dict:
         m = re.search(r"scan(\d+)", str(scene_path))
         scan = int(m.group(1)) if m else None
     t_geo = time.perf_counter()
-    _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views)
+    no_gt = _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views)
     log.info("geometry metrics in %.1fs", time.perf_counter() - t_geo)
+    _missing(metrics, points, mesh, no_gt)
 
     timing = run.timing()
     if timing is None:  # the stage timings only: the scores do not need them

@@ -49,7 +49,9 @@ def observed_gt_points(scene_dir: str | Path, views: list[int], tol_px: float = 
     d = Path(scene_dir)
     if not is_synthetic_scene(d):
         raise InputError(f"{d}: not a synthetic scene (needs gt_points.ply and gt_depth/)")
-    pts = read_ply(d / "gt_points.ply")["points"].astype(np.float64)
+    from svolsdf.evaluate.points import checked_ground_truth
+
+    pts = checked_ground_truth(read_ply(d / "gt_points.ply")["points"], d / "gt_points.ply")
     scene = load_scene(d, views=views, load_images=False)
     cams = scene.cameras.to(dtype=torch.float64)
     uv, z = cams.project(torch.from_numpy(pts))  # (V, N, 2), (V, N)

@@ -29,8 +29,9 @@ from pathlib import Path
 from svolsdf.errors import InputError
 
 __all__ = ["LOCK_NAME", "MVS_NAMES", "OUTPUT_STAGES", "RUN_NAMES", "RunFolder", "RunViews",
-           "atomic_write", "config_digest", "folder_lock", "foreign_names", "mesh_source",
-           "output_provenance", "read_stage_state", "unique_temp"]
+           "atomic_write", "config_digest", "folder_lock", "foreign_names", "lock_holder",
+           "mesh_source",
+           "output_provenance", "read_stage_state", "refuse_in_progress", "unique_temp"]
 
 log = logging.getLogger(__name__)
 
@@ -313,6 +314,51 @@ def mesh_source(timing: dict | None) -> str | None:
 
 
 # --------------------------------------------------------------------------- lock
+def lock_holder(folder: str | Path) -> str | None:
+    """Who holds FOLDER's lock (`folder_lock`) now, as it wrote itself there
+    (``"svolsdf reconstruct, pid 123"``); None when no process holds it (or there is no lock
+    file, or no ``fcntl``). A reader asks before it judges the folder's files: a run in progress
+    has written its new config.yaml but not yet the outputs that go with it.
+
+    Args:
+        folder: a folder.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    try:
+        f = open(Path(folder) / LOCK_NAME)  # noqa: SIM115 - closed below
+    except OSError:
+        return None
+    with f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return " ".join(f.read().split()) or "pid ?"
+        fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    return None
+
+
+def refuse_in_progress(folder: str | Path) -> None:
+    """Refuse a run folder that another command is writing now (`lock_holder`), before its files
+    are judged: what it holds is not yet the run's.
+
+    Raises:
+        InputError: naming the holder (command and pid) and the lock file.
+    """
+    holder = lock_holder(folder)
+    if holder is not None:
+        raise InputError(_held(Path(folder), holder, "wait for it to finish, then run this "
+                                                     "again"))
+
+
+def _held(folder: Path, holder: str, way: str) -> str:
+    """The one line of a folder whose lock ``holder`` holds."""
+    return (f"{folder}: another svolsdf run ({holder}) is writing this folder, in progress "
+            f"(it holds {folder / LOCK_NAME}); {way}")
+
+
 @contextlib.contextmanager
 def folder_lock(folder: str | Path, command: str) -> Iterator[None]:
     """Hold an exclusive lock on FOLDER/.svolsdf.lock while ``command`` writes the folder.
@@ -343,8 +389,8 @@ def folder_lock(folder: str | Path, command: str) -> Iterator[None]:
         except OSError:
             f.seek(0)
             holder = " ".join(f.read().split()) or "pid ?"
-            raise InputError(f"{folder}: another svolsdf run ({holder}) is writing this "
-                             "folder; wait for it or choose another output folder") from None
+            raise InputError(_held(folder, holder, "wait for it or choose another output "
+                                                   "folder")) from None
         f.seek(0)
         f.truncate()
         f.write(f"{command}, pid {os.getpid()}")

@@ -148,6 +148,8 @@ class SynthConfig:
             )
         if self.views < 1:
             raise InputError(f"--views must be at least 1, got {self.views}")
+        if self.seed < 0:  # numpy's generators take non-negative seeds only
+            raise InputError(f"--seed must be a non-negative integer, got {self.seed}")
         from svolsdf.scene.checks import MIN_SIDE
 
         if self.width < MIN_SIDE or self.height < MIN_SIDE:  # below, no run can use the scene
