@@ -310,8 +310,10 @@ def run_mode(scene_dir: Path, work: Path, mode: str, test: list[int], log: Path,
     t_ren = _run("render", str(out), "--views", *map(str, test), "--ibr",
                  log=log)
     timing = json.loads((out / "timing.json").read_text())
+    fp = timing.get("guide", {}).get("field_psnr")
     return {"out": str(out), "reconstruct_s": t_rec, "render_s": t_ren,
-            "pipeline_s": sum(v["seconds"] for k, v in timing.items() if k != "total")}
+            "pipeline_s": sum(v["seconds"] for k, v in timing.items() if k != "total"),
+            "field_psnr": fp.get("mean_db") if isinstance(fp, dict) else None}
 
 
 def main() -> None:
@@ -319,7 +321,10 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", type=Path, default=[SHARED / "data" / "dtu_scan65"])
     ap.add_argument("--modes", default="svolsdf,volsdf")
     ap.add_argument("--work", type=Path, default=Path("/tmp/novel_views_dtu"))
-    ap.add_argument("--results", type=Path, default=REPO / "benchmarks/results/novel_views_dtu.md")
+    ap.add_argument("--results", type=Path, default=REPO / "benchmarks/results/novel_views_dtu.md",
+                    help="the Markdown; the JSON it is rendered from goes beside it")
+    ap.add_argument("--from-json", type=Path,
+                    help="only render the Markdown of this results JSON into --results")
     ap.add_argument("--tuned-on", nargs="*", default=["dtu_scan65"],
                     help="scan folder names a choice of the project was made on (not held out)")
     ap.add_argument("--diagnose", action="store_true")
@@ -333,6 +338,9 @@ def main() -> None:
     ap.add_argument("--skip-runs", action="store_true",
                     help="score existing run folders in WORK without rerunning anything")
     args = ap.parse_args()
+    if args.from_json:
+        write_results(args.results, render_markdown(json.loads(args.from_json.read_text())))
+        return
     modes = args.modes.split(",")
     for m in modes:
         if m not in MODES:
@@ -397,30 +405,60 @@ def main() -> None:
 
 
 def _write(args, results: dict, seconds: float) -> None:
+    """Write RESULTS (.json, the data) and its Markdown (rendered from the JSON alone)."""
+    from _machine import public_argv
+
+    rows = {}
+    for key, r in results.items():
+        r = dict(r)
+        r.pop("out", None)  # a machine's folder
+        r["chosen_on"] = sorted(args.tuned_on)
+        rows[key] = r
+    data = {"commit": _commit(), "date": time.strftime("%Y-%m-%d"),
+            "machine": f"nproc = {os.cpu_count()}, CPU: {cpu_name()}",
+            "software": f"Python {platform.python_version()}, torch {torch.__version__}",
+            "command": public_argv(["python", "benchmarks/novel_views_dtu.py", *sys.argv[1:]]),
+            "seconds": round(seconds), "tuned_on": sorted(args.tuned_on), "paper": PAPER,
+            "rows": rows}
+    js = args.results.with_suffix(".json")
+    js.parent.mkdir(parents=True, exist_ok=True)
+    js.write_text(json.dumps(data, indent=1, default=float) + "\n")
+    text = render_markdown(data)
+    write_results(args.results.with_suffix(".md"), text)
+    print(text)
+
+
+def render_markdown(data: dict) -> str:
+    """The Markdown of a results JSON written by `_write` (``--from-json`` remakes it)."""
+    results = data["rows"]
+    paper_of = data["paper"]
     lines = ["# Novel views on real DTU scans, official protocol, and where the dB go", "",
-             f"- machine: nproc = {os.cpu_count()}, CPU: {cpu_name()}",
-             f"- commit {_commit()}, Python {platform.python_version()}, "
-             f"torch {torch.__version__}",
-             "- command: `" + " ".join(["python benchmarks/novel_views_dtu.py", *sys.argv[1:]])
-             + "`",
+             f"- machine: {data['machine']}",
+             f"- commit {data['commit']}, {data['date']}, {data['software']}",
+             f"- command: `{data['command']}`",
              "- protocol: inputs 25 22 28 at 768x576; the 25 test views; PSNR inside the test "
              "view's mask against the photo resized by bicubic without antialiasing (OpenCV "
              "INTER_CUBIC), mask bilinear > 0.5; SSIM and LPIPS-VGG on white "
              "(docs/method.md 8.3, svolsdf.evaluate.protocol)",
-             f"- whole benchmark: {seconds:.0f} s", "",
-             "| scan | held out | mode | renderer | PSNR | SSIM | LPIPS | pipeline s "
-             "| paper (PSNR / SSIM / LPIPS) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "- scans the project's choices were made on (not held out): "
+             + (", ".join(data["tuned_on"]) or "none"),
+             f"- whole benchmark: {data['seconds']:.0f} s", "",
+             "| scan | held out | run | renderer | PSNR | SSIM | LPIPS | field PSNR on its inputs "
+             "| pipeline s | paper (PSNR / SSIM / LPIPS) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for key, r in results.items():
         scan, mode = key.split("/")
         for kind in ("volume rendering", "IBR", "IBR, unseen inpainted"):
             if kind not in r:
                 continue
             m = r[kind]["mean"]
-            pp = PAPER["VolSDF"] if mode.startswith("volsdf") else PAPER[kind.split(",")[0]]
+            pp = paper_of["VolSDF"] if mode.startswith("volsdf") else \
+                paper_of[kind.split(",")[0]]
             paper = " / ".join("-" if x is None else f"{x:g}" for x in pp)
+            fp = r.get("field_psnr")
             lines.append(f"| {scan} | {'yes' if r['held_out'] else 'no'} | {mode} | {kind} "
                          f"| {m['psnr']:.2f} | {m['ssim']:.3f} | {m['lpips']:.3f} "
+                         f"| {'-' if fp is None else f'{fp:.2f}'} "
                          f"| {r.get('pipeline_s', float('nan')):.0f} | {paper} |")
     diag = {k: r["diagnosis"] for k, r in results.items() if "diagnosis" in r}
     if diag:
@@ -455,9 +493,9 @@ def _write(args, results: dict, seconds: float) -> None:
                 b = r["IBR"]["per_view"].get(v, {}).get("psnr")
                 cells.append("-" if a is None or b is None else f"{a:.2f} / {b:.2f}")
             lines.append(f"| {v} | " + " | ".join(cells) + " |")
-    text = "\n".join(lines) + "\n"
-    write_results(args.results, text)
-    print(text)
+    return "\n".join(lines) + "\n"
+
+
 
 
 if __name__ == "__main__":
