@@ -140,7 +140,8 @@ def check_replace(out: str | Path, spec: OutputSpec, inputs: Iterable[str | Path
         if o in s.parents:
             top = s.relative_to(o).parts[0]
             if top in spec.names:
-                raise InputError(f"{label}: the input {i} is inside {out / top}, which "
+                where = "" if s == o / top else "inside "
+                raise InputError(f"{label}: the input {i} is {where}{out / top}, which "
                                  f"{spec.command} replaces; move the input to another folder "
                                  f"(e.g. {out / 'photos'}) or write to another folder")
             holders.add(top)
