@@ -77,8 +77,8 @@ __all__ = [
     "SCENE_OUTPUT",
     "make_synthetic_scene",
     "parse_size",
+    "made_with",
     "render_view",
-    "scene_config",
 ]
 
 log = logging.getLogger(__name__)
@@ -383,15 +383,16 @@ SCENE_OUTPUT = OutputSpec(command="svolsdf synth", names=frozenset(_SCENE_FILES 
 """What `make_synthetic_scene` writes (`svolsdf.io.replace`): a rerun replaces only that."""
 
 
-def scene_config(folder: str | Path) -> dict | None:
-    """The `SynthConfig` (as JSON) that made the synthetic scene in ``folder``, or None when it
-    holds none."""
+def made_with(folder: str | Path, cfg: SynthConfig) -> bool:
+    """True when ``folder`` holds the synthetic scene that ``cfg`` makes (its scene.json says
+    so), False for another one (a size, seed, ... of its own) or none."""
     try:
         meta = json.loads((Path(folder) / "scene.json").read_text())
     except (OSError, ValueError):
-        return None
-    return meta.get("config") if isinstance(meta, dict) and meta.get(
-        "generator") == GENERATOR else None
+        return False
+    want = json.loads(json.dumps(_json_ready(asdict(cfg))))
+    return isinstance(meta, dict) and meta.get("generator") == GENERATOR and meta.get(
+        "config") == want
 
 
 def _json_ready(x):
