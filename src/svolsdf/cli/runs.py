@@ -192,9 +192,10 @@ def demo(
                           labels={"train.steps": "--steps"})
     check_outside_scenes(out, what="the demo", enclosing=True)
     remake = not made_with(scene_dir, synth_cfg)
-    if remake:
-        check_replace(scene_dir, SCENE_OUTPUT)
-    check_output_folder(run, scene_dir, "svolsdf reconstruct")
+    if out.is_dir():  # a new OUT (or a link to a folder not made yet) holds nothing to lose
+        if remake:
+            check_replace(scene_dir, SCENE_OUTPUT)
+        check_output_folder(run, scene_dir, "svolsdf reconstruct")
     output_dir(out, "output folder", "-o")  # made now: also through a link to a new folder
     if remake:
         if (scene_dir / "scene.json").is_file():
