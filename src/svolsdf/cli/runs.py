@@ -251,7 +251,8 @@ def calibrate(
 
     Writes OUT as a COLMAP scene that `svolsdf reconstruct OUT --views auto` reads: the registered
     photos (undistorted) in OUT/images/, cameras and sparse points in OUT/sparse/0/, and a summary
-    in OUT/calibration.json.
+    in OUT/calibration.json. OUT may hold the folder of the photos (OUT/photos, not OUT/images);
+    a rerun replaces only what an earlier calibrate wrote, once the new calibration is complete.
     """
     from svolsdf.calibrate import CalibrateConfig
     from svolsdf.calibrate import calibrate as run_calibrate
