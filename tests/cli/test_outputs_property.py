@@ -10,8 +10,8 @@ nothing the command did not write is ever gone (`svolsdf.io.replace`).
   when they live inside it.
 
 Structure from motion runs for real on 8 small views (about 2 s); the synthetic renderer's
-result is rendered once per setting and copied after that, and the demo's reconstruction and
-scoring are stand-ins (its scene, folders and checks are real).
+result is rendered once per setting (with a coarse ground truth) and copied after that, and the
+demo's reconstruction and scoring are stand-ins (its scene, folders and checks are real).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import json
 import os
 import shutil
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import pytest
@@ -181,7 +181,12 @@ def _stand_ins(mp: pytest.MonkeyPatch, f: dict) -> None:
         if key not in f["renders"]:
             d = f["base"] / "renders" / str(len(f["renders"]))
             d.mkdir(parents=True)
-            f["renders"][key] = d, real_render(d, cfg, borrowed)
+            # a coarse ground truth (the views are the setting's), recorded as the setting's
+            cheap = replace(cfg, gt_points=2000, mesh_resolution=max(cfg.mesh_resolution, 6.0))
+            f["renders"][key] = d, real_render(d, cheap, borrowed)
+            meta = json.loads((d / "scene.json").read_text())
+            meta["config"] = json.loads(key)
+            (d / "scene.json").write_text(json.dumps(meta))
         d, result = f["renders"][key]
         for p in d.iterdir():
             (shutil.copytree if p.is_dir() else shutil.copyfile)(p, out / p.name)
@@ -291,10 +296,12 @@ def test_demo_makes_its_scene_again_when_the_size_changes(fx, tmp_path, capsys):
             _scene_json(Path(self.cfg.scene.path))["width"]), real(self, t))[1])
         code, err = _run(["demo", "-o", str(out), "--size", "40x30", "--no-progress"], capsys)
         assert code == 0, err
+        made = (out / "scene" / "image").stat().st_ino  # a scene made again is a new folder
         code, err = _run(["demo", "-o", str(out), "--size", "40x30", "--no-progress"], capsys)
         assert code == 0, err
     # made again for the new size, then reused; the reconstruction ran on the new scene
     assert seen == [40, 40] and _scene_json(out / "scene")["height"] == 30
+    assert (out / "scene" / "image").stat().st_ino == made
 
 
 @pytest.mark.parametrize("where", ["the scene", "inside it", "holding it", "another scene"])
