@@ -71,13 +71,13 @@ from svolsdf.scene.synthetic_shapes import OBJECT_KINDS, SynthObject, _sdf_grad,
 
 __all__ = [
     "OBJECT_KINDS",
+    "SCENE_OUTPUT",
     "SynthConfig",
     "SynthObject",
+    "made_with",
     "make_object",
-    "SCENE_OUTPUT",
     "make_synthetic_scene",
     "parse_size",
-    "made_with",
     "render_view",
 ]
 
