@@ -204,12 +204,17 @@ def _stand_ins(mp: pytest.MonkeyPatch, made: dict, empty_scores: bool) -> None:
     mp.setattr(render, "render_outputs", rendered)
 
     def synthesized(out, cfg):
-        out = user_path(out)
-        synthetic._prepare_out(out)  # the output folder's checks
+        from svolsdf.io.replace import check_replace, replace_outputs
+
+        spec, inputs = synthetic.SCENE_OUTPUT, [cfg.cameras_from]
+        check_replace(user_path(out), spec, inputs)  # the folder's checks
         if cfg.cameras_from:
             synthetic._borrowed_cameras(cfg)  # the borrowed scene's
-        shutil.copytree(made["scene"], out, dirs_exist_ok=True)
-        return out
+        with replace_outputs(user_path(out), spec, inputs) as stage:
+            for name in spec.names:
+                src = made["scene"] / name
+                (shutil.copytree if src.is_dir() else shutil.copyfile)(src, stage / name)
+        return user_path(out)
 
     mp.setattr(synthetic, "make_synthetic_scene", synthesized)
     if empty_scores:  # demo and benchmark score a run that the stand-in pipeline left empty

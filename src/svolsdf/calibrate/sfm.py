@@ -40,6 +40,7 @@ from PIL import Image
 
 from svolsdf.calibrate.inputs import Photo, gather_inputs, shared_camera
 from svolsdf.errors import InputError
+from svolsdf.io.replace import OutputSpec, check_replace, replace_outputs
 
 __all__ = ["CalibrateConfig", "CalibrationError", "calibrate", "undistort_simple_radial"]
 
@@ -85,22 +86,24 @@ def _pycolmap():
     return pycolmap
 
 
-def _prepare_out(scene: Path) -> None:
-    from svolsdf.io.paths import output_dir
+def _earlier_calibration(scene: Path) -> dict[str, int | None] | None:
+    """The files a calibration written before `svolsdf.io.replace` kept its record holds, from
+    its calibration.json; None when ``scene`` is no calibration."""
+    try:
+        registered = json.loads((scene / "calibration.json").read_text())["registered"]
+        names = [f"images/{n}" for n in registered if isinstance(n, str)]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return dict.fromkeys(["calibration.json", *names,
+                          *(f"sparse/0/{n}.txt" for n in ("cameras", "images", "points3D"))])
 
-    if scene.is_dir():
-        entries = [p.name for p in scene.iterdir()]
-        # colmap_logs/ alone: a calibration that registered too few photos
-        if entries and "calibration.json" not in entries and entries != ["colmap_logs"]:
-            raise InputError(f"{scene} is not empty and not an earlier calibration "
-                             f"({len(entries)} entries); pass a new or empty folder as -o")
-        for name in ("images", "sparse", "calibration.json"):
-            p = scene / name
-            if p.is_dir():
-                shutil.rmtree(p)
-            elif p.exists():
-                p.unlink()
-    output_dir(scene, "scene folder", "-o")
+
+SCENE_OUTPUT = OutputSpec(command="svolsdf calibrate",
+                          names=frozenset({"images", "sparse", "calibration.json"}),
+                          keeps=frozenset({"colmap_logs"}), earlier="an earlier calibration",
+                          legacy=_earlier_calibration)
+"""What `calibrate` writes (`svolsdf.io.replace`); COLMAP's log files are added to
+SCENE/colmap_logs/ and kept, also when too few photos register."""
 
 
 # --------------------------------------------------------------------------- SfM
@@ -308,12 +311,64 @@ def _colmap_log_files(pycolmap, folder: Path | None) -> None:
 
 
 # --------------------------------------------------------------------------- entry point
+def _calibrate_into(stage: Path, pycolmap, work: Path, inputs: Path, photos: list[Photo],
+                    video: bool, single: bool, matcher: str, cfg: CalibrateConfig,
+                    timing: dict, t_all: float) -> dict:
+    """SfM on the prepared ``photos`` in ``work``; the scene and its summary written into
+    ``stage`` (a new folder inside SCENE, swapped in by `replace_outputs`)."""
+    scene = stage.parent
+    # COLMAP logs every step at INFO level; keep its warnings and errors unless -v, in
+    # SCENE/colmap_logs/ (its own default is a file per run in /tmp)
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 1
+    _colmap_log_files(pycolmap, scene / "colmap_logs")
+    try:
+        model = _run_sfm(pycolmap, work, photos, single, matcher, cfg, timing)
+    finally:
+        pycolmap.logging.minloglevel = level
+        _colmap_log_files(pycolmap, None)
+    n_reg = 0
+    if model is not None:
+        n_reg = sum(1 for ln in (model / "images.txt").read_text().splitlines()
+                    if ln.strip() and not ln.startswith("#")) // 2
+    if n_reg < cfg.min_registered:
+        raise CalibrationError(
+            f"{inputs}: only {n_reg} of {len(photos)} "
+            f"{'frames' if video else 'photos'} could be registered (at least "
+            f"{cfg.min_registered} needed). What helps: more overlap between neighbouring "
+            f"photos (every part seen by 3 or more, 10-20 degrees apart), more photos, "
+            f"sharp photos of a textured object, "
+            + ("more --frames, " if video else "")
+            + ("--matcher exhaustive" if matcher == "sequential" else
+               "a larger --max-size"))
+    t0 = time.perf_counter()
+    written = _write_scene(model, work, stage, cfg)
+    timing["write"] = round(time.perf_counter() - t0, 2)
+    reg = set(written["registered"])
+    timing["total"] = round(time.perf_counter() - t_all, 2)
+    summary = {
+        "inputs": str(inputs), "video": video, "num_inputs": len(photos),
+        "size": list(photos[0].size), "shared_camera": single, "matcher": matcher,
+        "registered": sorted(reg), "unregistered": [p.name for p in photos if p.name not in reg],
+        "mean_reprojection_error_px": _mean_reprojection_error(model),
+        "radial_distortion_removed": written["radial_distortion"],
+        "focal_px": written["focal_px"],
+        "sources": {p.name: p.source for p in photos},
+        "seconds": timing, "config": asdict(cfg),
+        "pycolmap": getattr(pycolmap, "__version__", "unknown"),
+    }
+    (stage / "calibration.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
 def calibrate(inputs: str | Path, scene: str | Path, cfg: CalibrateConfig | None = None) -> dict:
     """Calibrate photos (a folder) or a video and write a COLMAP scene (module docstring).
 
     Args:
         inputs: a folder of photos or a video file.
-        scene: the output scene folder (new, empty, or an earlier calibration to replace).
+        scene: the output scene folder: new, empty, or an earlier calibration, which is replaced
+            only once the new one is complete (`svolsdf.io.replace`); it may hold the folder
+            of the photos (SCENE/photos), not in SCENE/images, which it writes.
         cfg: options; default `CalibrateConfig()`.
 
     Returns:
@@ -322,7 +377,8 @@ def calibrate(inputs: str | Path, scene: str | Path, cfg: CalibrateConfig | None
 
     Raises:
         InputError: pycolmap (or, for a video, imageio-ffmpeg) is missing, unreadable photos,
-            photos of different shapes, or a bad option.
+            photos of different shapes, a bad option, or an output folder that holds files of
+            the user's where the scene is written; raised before SCENE is touched.
         CalibrationError: fewer than ``cfg.min_registered`` photos registered.
     """
     cfg = cfg or CalibrateConfig()
@@ -331,13 +387,12 @@ def calibrate(inputs: str | Path, scene: str | Path, cfg: CalibrateConfig | None
     if cfg.max_size is not None and cfg.max_size < 64:
         raise InputError(f"--max-size {cfg.max_size} is too small (at least 64 pixels)")
     pycolmap = _pycolmap()
-    from svolsdf.io.paths import input_path, output_dir
+    from svolsdf.io.paths import input_path
 
+    # every input before SCENE is touched: the paths, then the photos themselves (read into a
+    # work folder); an earlier calibration in SCENE is replaced only by a finished one
     inputs = input_path(inputs, "folder of photos or video file")
-    scene = output_dir(scene, "scene folder", "-o", create=False)
-    if scene.resolve() == inputs.resolve():
-        raise InputError(f"-o {scene}: the output must not be the input folder")
-    _prepare_out(scene)
+    scene = check_replace(scene, SCENE_OUTPUT, [inputs])
     t_all = time.perf_counter()
     timing: dict = {}
     with tempfile.TemporaryDirectory(prefix="svolsdf_calibrate_") as tmp:
@@ -355,49 +410,9 @@ def calibrate(inputs: str | Path, scene: str | Path, cfg: CalibrateConfig | None
         log.info("calibrate: %d %s at %dx%d, %s, %s matching", len(photos),
                  "frames" if video else "photos", *photos[0].size,
                  "one shared camera" if single else "one camera per photo", matcher)
-        # COLMAP logs every step at INFO level; keep its warnings and errors unless -v, in
-        # SCENE/colmap_logs/ (its own default is a file per run in /tmp)
-        level = pycolmap.logging.minloglevel
-        pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 1
-        _colmap_log_files(pycolmap, scene / "colmap_logs")
-        try:
-            model = _run_sfm(pycolmap, work, photos, single, matcher, cfg, timing)
-        finally:
-            pycolmap.logging.minloglevel = level
-            _colmap_log_files(pycolmap, None)
-        n_reg = 0
-        if model is not None:
-            n_reg = sum(1 for ln in (model / "images.txt").read_text().splitlines()
-                        if ln.strip() and not ln.startswith("#")) // 2
-        if n_reg < cfg.min_registered:
-            shutil.rmtree(scene / "sparse", ignore_errors=True)
-            raise CalibrationError(
-                f"{inputs}: only {n_reg} of {len(photos)} "
-                f"{'frames' if video else 'photos'} could be registered (at least "
-                f"{cfg.min_registered} needed). What helps: more overlap between neighbouring "
-                f"photos (every part seen by 3 or more, 10-20 degrees apart), more photos, "
-                f"sharp photos of a textured object, "
-                + ("more --frames, " if video else "")
-                + ("--matcher exhaustive" if matcher == "sequential" else
-                   "a larger --max-size"))
-        t0 = time.perf_counter()
-        written = _write_scene(model, work, scene, cfg)
-        timing["write"] = round(time.perf_counter() - t0, 2)
-        reproj = _mean_reprojection_error(model)
-    reg = set(written["registered"])
-    timing["total"] = round(time.perf_counter() - t_all, 2)
-    summary = {
-        "inputs": str(inputs), "video": video, "num_inputs": len(photos),
-        "size": list(photos[0].size), "shared_camera": single, "matcher": matcher,
-        "registered": sorted(reg), "unregistered": [p.name for p in photos if p.name not in reg],
-        "mean_reprojection_error_px": reproj,
-        "radial_distortion_removed": written["radial_distortion"],
-        "focal_px": written["focal_px"],
-        "sources": {p.name: p.source for p in photos},
-        "seconds": timing, "config": asdict(cfg),
-        "pycolmap": getattr(pycolmap, "__version__", "unknown"),
-    }
-    (scene / "calibration.json").write_text(json.dumps(summary, indent=1))
+        with replace_outputs(scene, SCENE_OUTPUT, [inputs]) as stage:
+            summary = _calibrate_into(stage, pycolmap, work, inputs, photos, video, single,
+                                      matcher, cfg, timing, t_all)
     if summary["unregistered"]:
         log.warning("calibrate: %d of %d photos were not registered: %s",
                     len(summary["unregistered"]), len(photos),

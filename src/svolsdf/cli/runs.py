@@ -164,28 +164,47 @@ def demo(
     """Generate a synthetic scene, reconstruct it from 3 views with the fast preset, and score it.
 
     Prints where the outputs are and the Chamfer distance against the scene's ground truth, and
-    writes OUT/run/metrics.json and OUT/run/report.html (open it in a browser).
+    writes OUT/scene/, OUT/run/metrics.json and OUT/run/report.html (open it in a browser). A
+    rerun reuses the scene and the finished stages; with another --size or --seed the scene is
+    made again and the reconstruction reruns on it.
     """
     import json
 
     from svolsdf.config import apply_overrides, preset
     from svolsdf.evaluate.synthetic import synthetic_chamfer
     from svolsdf.io.ply import read_ply
+    from svolsdf.io.replace import check_replace
     from svolsdf.io.runfolder import RunFolder
     from svolsdf.pipeline import Pipeline
-    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+    from svolsdf.scene.checks import check_output_folder, check_outside_scenes
+    from svolsdf.scene.synthetic import (
+        SCENE_OUTPUT,
+        SynthConfig,
+        made_with,
+        make_synthetic_scene,
+    )
 
     out = output_dir(out, "output folder", "-o", create=False)
     w, h = _parse_size(size)
-    scene_dir = out / "scene"
-    # the run's options first: a bad one fails before minutes of scene rendering
+    scene_dir, run = out / "scene", out / "run"
+    synth_cfg = SynthConfig(views=5, width=w, height=h, seed=seed)
+    # the run's options and both folders first: a bad one fails before minutes of rendering,
+    # and the demo writes into no scene folder and replaces no file it did not write
     cfg = apply_overrides(preset("fast"), {"scene.path": str(scene_dir), "train.steps": steps},
                           labels={"train.steps": "--steps"})
+    check_outside_scenes(out, what="the demo", enclosing=True)
+    remake = not made_with(scene_dir, synth_cfg)
+    if out.is_dir():  # a new OUT (or a link to a folder not made yet) holds nothing to lose
+        if remake:
+            check_replace(scene_dir, SCENE_OUTPUT)
+        check_output_folder(run, scene_dir, "svolsdf reconstruct")
     output_dir(out, "output folder", "-o")  # made now: also through a link to a new folder
-    if not (scene_dir / "gt_points.ply").is_file():
+    if remake:
+        if (scene_dir / "scene.json").is_file():
+            typer.echo(f"{scene_dir} holds a scene of other settings: it is made again, and "
+                       "the reconstruction runs again on it")
         typer.echo(f"generating a synthetic scene ({w}x{h}, seed {seed}) in {scene_dir} ...")
-        make_synthetic_scene(scene_dir, SynthConfig(views=5, width=w, height=h, seed=seed))
-    run = out / "run"
+        make_synthetic_scene(scene_dir, synth_cfg)
     typer.echo(f"reconstructing into {run} (fast preset) ...")
     summary = _run_pipeline(Pipeline(cfg, run, progress=not no_progress))
     run_views = RunFolder(run).views()
@@ -234,7 +253,8 @@ def calibrate(
 
     Writes OUT as a COLMAP scene that `svolsdf reconstruct OUT --views auto` reads: the registered
     photos (undistorted) in OUT/images/, cameras and sparse points in OUT/sparse/0/, and a summary
-    in OUT/calibration.json.
+    in OUT/calibration.json. OUT may hold the folder of the photos (OUT/photos, not OUT/images);
+    a rerun replaces only what an earlier calibrate wrote, once the new calibration is complete.
     """
     from svolsdf.calibrate import CalibrateConfig
     from svolsdf.calibrate import calibrate as run_calibrate

@@ -43,6 +43,7 @@ from svolsdf.errors import InputError
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
 from svolsdf.io.paths import input_dir, output_dir
 from svolsdf.io.runfolder import RunFolder
+from svolsdf.scene.checks import check_outside_scenes
 
 __all__ = [
     "MODES",
@@ -432,6 +433,8 @@ def _validate(cfg: BenchmarkConfig) -> None:
                                  "(name it like scan65 or pass --scan N)")
         _check_dtu_files(cfg)
     cfg.out = output_dir(cfg.out, "output folder", "-o", create=False)
+    # the job folders OUT/<scene>/<mode>/ go neither into a scene nor among its files
+    check_outside_scenes(cfg.out, cfg.scenes, "the benchmark")
     for job in benchmark_jobs(cfg):  # every run config is valid
         job_config(job)
     _check_view_sets(cfg)

@@ -6,6 +6,8 @@ after minutes of work.
   right-handed camera rotations, cameras that do not all sit at one point, and input views that
   see the scene's bounding region (the unit sphere of its normalization), at least two of them
   the same part of it.
+- `check_outside_scenes`: the output is no scene folder, and neither is, lies inside nor holds
+  a scene the command reads (every command that writes runs: reconstruct, mvs, benchmark, demo).
 - `check_output_folder`: the output is neither the scene folder, inside it, nor around it, nor a
   folder that another command wrote (a scene, a run of ``reconstruct`` for ``mvs`` and back), nor
   a folder holding files that are not the command's (the user's notes, photos, ...): new, empty,
@@ -14,13 +16,15 @@ after minutes of work.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
 
 from svolsdf.scene.scene import Scene, SceneError
 
-__all__ = ["MIN_SIDE", "check_output_folder", "check_scene", "region_visibility"]
+__all__ = ["MIN_SIDE", "check_output_folder", "check_outside_scenes", "check_scene",
+           "region_visibility"]
 
 MIN_SIDE = 16
 """The smallest working width and height, in pixels. The field's warm-up target blurs the images
@@ -102,6 +106,45 @@ def _scene_format(folder: Path) -> str | None:
         return None
 
 
+def check_outside_scenes(out: str | Path, scenes: Sequence[str | Path] = (), what: str = "the run",
+                         enclosing: bool = False) -> None:
+    """Refuse an output folder that is a scene folder (any format), or is, lies inside or holds
+    one of ``scenes``: a command writes its runs to a folder of its own, never among a scene's
+    files (reconstruct, mvs, benchmark and demo share this check).
+
+    Args:
+        out: the output folder (need not exist).
+        scenes: the scene folders the command reads.
+        what: what the command writes, for the message ("the benchmark").
+        enclosing: also refuse an ``out`` inside any scene folder, not only those of
+            ``scenes`` (the demo, which reads none and makes a scene of its own).
+
+    Raises:
+        SceneError: one line naming the folder and why.
+    """
+    out = Path(out)
+    o = out.resolve()
+    for scene in scenes:
+        s = Path(scene).resolve()
+        if o == s or s in o.parents:
+            raise SceneError(f"-o {out}: the output is the scene folder {scene} or inside it; "
+                             f"write {what} to a folder of its own")
+        if o in s.parents:
+            raise SceneError(f"-o {out}: the output folder holds the scene {scene}; write "
+                             f"{what} to a folder of its own")
+    if out.is_dir():
+        fmt = _scene_format(out)
+        if fmt is not None:
+            raise SceneError(f"-o {out}: that folder is a scene ({fmt}); write {what} to a "
+                             "folder of its own")
+    if enclosing:
+        for a in o.parents:
+            fmt = _scene_format(a)
+            if fmt is not None:
+                raise SceneError(f"-o {out}: that folder is inside the scene {a} ({fmt}); "
+                                 f"write {what} to a folder of its own")
+
+
 def check_output_folder(out: str | Path, scene: str | Path | None, command: str) -> None:
     """Refuse an output folder that a run must not write (module docstring).
 
@@ -116,21 +159,9 @@ def check_output_folder(out: str | Path, scene: str | Path | None, command: str)
     from svolsdf.io.runfolder import MVS_NAMES, RUN_NAMES, RunFolder, foreign_names
 
     out = Path(out)
-    o = out.resolve()
-    if scene is not None:
-        s = Path(scene).resolve()
-        if o == s or s in o.parents:
-            raise SceneError(f"-o {out}: the output is the scene folder {scene} or inside it; "
-                             "write the run to a folder of its own")
-        if o in s.parents:
-            raise SceneError(f"-o {out}: the output folder holds the scene {scene}; write the "
-                             "run to a folder of its own")
+    check_outside_scenes(out, [] if scene is None else [scene])
     if not out.is_dir():
         return
-    fmt = _scene_format(out)
-    if fmt is not None:
-        raise SceneError(f"-o {out}: that folder is a scene ({fmt}); write the run to a folder "
-                         "of its own")
     run_files = [n for n in ("config.yaml", "views.json", "stages.json") if (out / n).is_file()]
     if command == "svolsdf mvs" and run_files:
         raise SceneError(f"-o {out}: that folder is a run of svolsdf reconstruct "

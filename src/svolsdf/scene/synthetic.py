@@ -51,7 +51,6 @@ import io
 import json
 import logging
 import math
-import shutil
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -62,8 +61,9 @@ from PIL import Image
 from torch import Tensor
 
 from svolsdf.errors import InputError
-from svolsdf.io.paths import input_dir, output_dir, user_path
+from svolsdf.io.paths import input_dir, user_path
 from svolsdf.io.ply import atomic_path, write_mesh_ply, write_points_ply
+from svolsdf.io.replace import OutputSpec, check_replace, replace_outputs
 from svolsdf.scene.cameras import Cameras, decompose_projection
 from svolsdf.scene.size import parse_size  # re-exported: the one size parser
 from svolsdf.scene.synthetic_render import _World, render_view
@@ -71,8 +71,10 @@ from svolsdf.scene.synthetic_shapes import OBJECT_KINDS, SynthObject, _sdf_grad,
 
 __all__ = [
     "OBJECT_KINDS",
+    "SCENE_OUTPUT",
     "SynthConfig",
     "SynthObject",
+    "made_with",
     "make_object",
     "make_synthetic_scene",
     "parse_size",
@@ -361,26 +363,38 @@ def _write_text(path: Path, text: str) -> None:
         tmp.write_text(text)
 
 
-def _prepare_out(out: Path) -> None:
-    output_dir(out, "scene folder")  # before anything is removed or rendered
-    if any(out.iterdir()):
-        meta = out / "scene.json"
-        ok = False
-        if meta.is_file():
-            try:
-                ok = json.loads(meta.read_text()).get("generator") == GENERATOR
-            except (OSError, ValueError):
-                ok = False
-        if not ok:
-            raise InputError(
-                f"{out}: folder exists, is not empty and is not a synthetic scene; "
-                "choose a new or empty folder"
-            )
-        # an earlier synthetic scene: remove its files so no stale view survives
-        for d in _SCENE_DIRS:
-            shutil.rmtree(out / d, ignore_errors=True)
-        for f in _SCENE_FILES:
-            (out / f).unlink(missing_ok=True)
+def _earlier_scene(out: Path) -> dict[str, int | None] | None:
+    """The files a synthetic scene written before `svolsdf.io.replace` kept its record holds,
+    from its scene.json; None when ``out`` is no synthetic scene."""
+    try:
+        meta = json.loads((out / "scene.json").read_text())
+        views = int(meta["views"]) if meta.get("generator") == GENERATOR else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if views is None:
+        return None
+    files: dict[str, int | None] = dict.fromkeys(_SCENE_FILES)
+    for i in range(views):
+        files.update(dict.fromkeys((f"image/{i:06d}.png", f"mask/{i:03d}.png",
+                                    f"gt_depth/{i:03d}.npy")))
+    return files
+
+
+SCENE_OUTPUT = OutputSpec(command="svolsdf synth", names=frozenset(_SCENE_FILES + _SCENE_DIRS),
+                          earlier="a synthetic scene", legacy=_earlier_scene, option=None)
+"""What `make_synthetic_scene` writes (`svolsdf.io.replace`): a rerun replaces only that."""
+
+
+def made_with(folder: str | Path, cfg: SynthConfig) -> bool:
+    """True when ``folder`` holds the synthetic scene that ``cfg`` makes (its scene.json says
+    so), False for another one (a size, seed, ... of its own) or none."""
+    try:
+        meta = json.loads((Path(folder) / "scene.json").read_text())
+    except (OSError, ValueError):
+        return False
+    want = json.loads(json.dumps(_json_ready(asdict(cfg))))
+    return isinstance(meta, dict) and meta.get("generator") == GENERATOR and meta.get(
+        "config") == want
 
 
 def _json_ready(x):
@@ -400,20 +414,33 @@ def make_synthetic_scene(out_dir, cfg: SynthConfig | None = None) -> Path:
 
     Args:
         out_dir: output folder; created if missing. It must be empty or an earlier synthetic
-            scene (whose files are then replaced).
+            scene, whose files are replaced only once the new scene is complete; a file the
+            user put among them is never removed (`svolsdf.io.replace`).
         cfg: generator settings (default `SynthConfig()`: 9 views at 768x576, random object).
 
     Returns:
         ``out_dir`` as a Path.
 
     Raises:
-        InputError: ``out_dir`` is a file or a non-empty foreign folder; bad ``cameras_from``.
+        InputError: ``out_dir`` is a file, a non-empty foreign folder, or holds a file of the
+            user's where the scene is written; bad ``cameras_from``. Raised before any
+            rendering and before ``out_dir`` is touched.
     """
+    cfg = cfg or SynthConfig()
+    inputs = [cfg.cameras_from]
+    out = check_replace(user_path(out_dir), SCENE_OUTPUT, inputs)
+    borrowed = _borrowed_cameras(cfg) if cfg.cameras_from else None
+    with replace_outputs(out, SCENE_OUTPUT, inputs) as stage:
+        views, points = _render_scene(stage, cfg, borrowed)
+    log.info("synthetic scene: %d views %dx%d, %d gt points -> %s", views, cfg.width,
+             cfg.height, points, out)
+    return out
+
+
+def _render_scene(out: Path, cfg: SynthConfig, borrowed: tuple | None) -> tuple[int, int]:
+    """Render the scene into ``out`` (an empty folder); returns (views, ground-truth points)."""
     from tqdm import tqdm
 
-    cfg = cfg or SynthConfig()
-    out = user_path(out_dir)
-    _prepare_out(out)
     rng = np.random.default_rng([cfg.seed, 2])
 
     obj = make_object(cfg.object, cfg.seed)
@@ -431,7 +458,7 @@ def make_synthetic_scene(out_dir, cfg: SynthConfig | None = None) -> Path:
     light = torch.tensor(cfg.light_dir, dtype=torch.float64)
     light = light / light.norm()
     if cfg.cameras_from:
-        cams, view_ids, borrowed_scale = _borrowed_cameras(cfg)
+        cams, view_ids, borrowed_scale = borrowed
         c_world = torch.tensor(borrowed_scale[:3, 3])
         s_world = float(borrowed_scale[0, 0])
         up = -cams.w2c[:, 1, :3].mean(0)
@@ -466,9 +493,8 @@ def make_synthetic_scene(out_dir, cfg: SynthConfig | None = None) -> Path:
         scale_mat[:3, :3] *= s
         scale_mat[:3, 3] = centre_w
 
-    (out / "image").mkdir(exist_ok=True)
-    (out / "mask").mkdir(exist_ok=True)
-    (out / "gt_depth").mkdir(exist_ok=True)
+    for d in _SCENE_DIRS:
+        (out / d).mkdir()
     depths = []
     npz: dict[str, np.ndarray] = {}
     for i in tqdm(range(len(cams)), desc="synth: rendering", unit="view", disable=None):
@@ -529,6 +555,4 @@ def make_synthetic_scene(out_dir, cfg: SynthConfig | None = None) -> Path:
                         for d in depths],
     }
     _write_text(out / "scene.json", json.dumps(_json_ready(meta), indent=1, sort_keys=True) + "\n")
-    log.info("synthetic scene: %d views %dx%d, %d gt points -> %s", len(cams), cfg.width,
-             cfg.height, len(pts_w), out)
-    return out
+    return len(cams), len(pts_w)
