@@ -2,7 +2,9 @@
 
 ``cameras.npz`` (IDR, VolSDF) or ``cameras_sphere.npz`` (NeuS) with ``world_mat_i`` (the top
 3x4 is P = K [R | t] in world units) and ``scale_mat_i`` (unit frame -> world); images in
-``image/`` or ``images/`` sorted by name (the index is the view id); optional masks in ``mask/``.
+``image/`` or ``images/``, numbered by their camera (``000007.png`` is view 7, whose camera is
+``world_mat_7``); optional masks in ``mask/``, numbered alike (``007.png``). One image (and mask)
+per camera: a gap or an extra file is refused, never matched by position.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from svolsdf.scene.formats._common import (
     find_dir,
     list_images,
     match_masks,
+    match_numbered,
+    numbered,
     scan_number,
 )
 from svolsdf.scene.pairs import read_pair_file
@@ -67,9 +71,8 @@ def read(path: Path, lighting=None) -> SceneSource:
                          f"(missing world_mat_{missing[0]})")
     n = len(idx)
     img_dir = find_dir(path, "image", "images")
-    images = list_images(img_dir)
-    if len(images) != n:
-        raise SceneError(f"{cam_file} has {n} cameras but {img_dir} has {len(images)} images")
+    images = match_numbered(numbered(list_images(img_dir)), list(range(n)), img_dir, "image",
+                            f"camera in {cam_file} (world_mat_0..world_mat_{n - 1})")
     masks = match_masks(find_dir(path, "mask", "masks"), images, list(range(n)))
 
     Ks, w2cs = [], []
