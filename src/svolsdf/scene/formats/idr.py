@@ -38,6 +38,15 @@ log = logging.getLogger(__name__)
 CAMERA_FILES = ("cameras.npz", "cameras_sphere.npz")
 
 
+def _matrix(value: np.ndarray, cam_file: Path, key: str) -> np.ndarray:
+    """``cam_file``'s entry ``key`` as a float64 array; `SceneError` naming both when it is not
+    numbers (a string, an object)."""
+    if value.dtype.kind not in "biuf":
+        raise SceneError(f"{cam_file}: {key} is stored as {value.dtype} ({value.dtype.kind!r} "
+                         f"data), not as numbers; save it as a 4x4 float array")
+    return np.asarray(value, dtype=np.float64)
+
+
 def detect(path: Path) -> bool:
     """True when ``path`` holds a camera file and an image folder of this layout."""
     return any((path / f).is_file() for f in CAMERA_FILES) and find_dir(
@@ -78,7 +87,7 @@ def read(path: Path, lighting=None) -> SceneSource:
     Ks, w2cs = [], []
     for i in range(n):
         key = f"world_mat_{i}"
-        P = np.asarray(data[key], dtype=np.float64)
+        P = _matrix(data[key], cam_file, key)
         if P.shape not in ((3, 4), (4, 4)):
             raise SceneError(f"{cam_file}: {key} has shape {P.shape}, expected 4x4 or 3x4")
         try:
@@ -92,7 +101,7 @@ def read(path: Path, lighting=None) -> SceneSource:
     normalization = None
     radius = 1.0 if cam_file.name == "cameras_sphere.npz" else 3.0
     if "scale_mat_0" in data:
-        S = np.asarray(data["scale_mat_0"], dtype=np.float64)
+        S = _matrix(data["scale_mat_0"], cam_file, "scale_mat_0")
         if S.shape != (4, 4) or not np.isfinite(S).all() or not S[0, 0] > 0:
             raise SceneError(f"{cam_file}: scale_mat_0 is not a finite 4x4 similarity with "
                              f"positive scale")
