@@ -133,6 +133,7 @@ def reconstruct(
     }, _RECONSTRUCT_OPTIONS, sets=set_)
     if auto:  # auto also replaces the views a --config file lists
         cfg.scene.views = None
+    _check_run_memory(cfg)
     pipe = Pipeline(cfg, out, progress=not no_progress)
     if auto:
         pipe.load()
@@ -147,6 +148,22 @@ def reconstruct(
 
 
 app.command("reconstruct")(with_flags(reconstruct, RECONSTRUCT_FLAGS))
+
+
+def _check_run_memory(cfg) -> None:
+    """The memory check of `svolsdf.config.validate_config` again at the scene's working size
+    (image headers only); a scene that cannot be read is left to the pipeline's message."""
+    from svolsdf.config import check_memory
+    from svolsdf.scene.loaders import load_scene
+    from svolsdf.scene.size import working_size
+
+    try:
+        head = load_scene(cfg.scene.path, load_images=False, lighting=cfg.scene.lighting)
+    except InputError:
+        return
+    size = working_size(head.width, head.height, size=cfg.scene.image_size)
+    check_memory(cfg, size, len(cfg.scene.views) if cfg.scene.views else None,
+                 labels=_RECONSTRUCT_OPTIONS)
 
 
 @app.command("demo")
