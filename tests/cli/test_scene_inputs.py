@@ -282,17 +282,20 @@ def test_a_projection_matrix_of_any_scale_is_the_same_camera(bases, tmp_path):
 
 
 def test_images_are_matched_to_cameras_by_number_not_position(bases, tmp_path):
-    """NeuS-style names (image/000.png with mask/000.png) and a view order that is not the
-    file order: each image goes with the camera its number names."""
+    """Names whose sorted order is not the cameras' (``0.png``, ``02.png``, ``1.png``, as
+    unpadded or mixed numbering sorts): each image and mask goes with the camera its number
+    names."""
     scene = tmp_path / "scene"
     shutil.copytree(bases / "idr", scene)
     ref = load_scene(bases / "idr")
-    for i in range(3):
-        (scene / "image" / f"{i:06d}.png").rename(scene / "image" / f"{i:03d}.png")
+    names = ["0.png", "1.png", "02.png"]
+    for i, n in enumerate(names):
+        (scene / "image" / f"{i:06d}.png").rename(scene / "image" / n)
+        (scene / "mask" / f"{i:03d}.png").rename(scene / "mask" / n)
     s = load_scene(scene)
     torch.testing.assert_close(s.images, ref.images)
     torch.testing.assert_close(s.masks, ref.masks)
-    assert [p.name for p in s.image_paths] == ["000.png", "001.png", "002.png"]
+    assert [p.name for p in s.image_paths] == names
 
 
 # --------------------------------------------------------------------------- messages elsewhere
