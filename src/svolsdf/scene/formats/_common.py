@@ -109,10 +109,12 @@ def list_images(folder: Path, what: str = "images") -> list[Path]:
     if not files:
         accepted = ", ".join(sorted(IMAGE_SUFFIXES))
         other = sorted({p.suffix.lower() or p.name for p in entries})
-        found = (f"it holds only {', '.join(other[:5])}" + (" ..." if len(other) > 5 else "")
-                 if other else "it is empty")
-        raise SceneError(f"{folder}: no {what} found ({found}; accepted types: {accepted}); "
-                         f"convert the {what} to one of these types")
+        if not other:
+            raise SceneError(f"{folder}: no {what} found (the folder is empty); add the {what} "
+                             f"({accepted}) or remove {folder.name}/")
+        found = ", ".join(other[:5]) + (" ..." if len(other) > 5 else "")
+        raise SceneError(f"{folder}: no {what} found (it holds only {found}; accepted types: "
+                         f"{accepted}); convert the {what} to one of these types")
     return files
 
 
