@@ -152,16 +152,18 @@ app.command("reconstruct")(with_flags(reconstruct, RECONSTRUCT_FLAGS))
 
 def _check_run_memory(cfg) -> None:
     """The memory check of `svolsdf.config.validate_config` again at the scene's working size
-    (image headers only); a scene that cannot be read is left to the pipeline's message."""
+    (the cameras and one image header); a scene that cannot be read is left to the pipeline's
+    message."""
     from svolsdf.config import check_memory
-    from svolsdf.scene.loaders import load_scene
+    from svolsdf.io.images import image_size
+    from svolsdf.scene.loaders import read_source
     from svolsdf.scene.size import working_size
 
     try:
-        head = load_scene(cfg.scene.path, load_images=False, lighting=cfg.scene.lighting)
-    except InputError:
+        width, height = image_size(read_source(cfg.scene.path, cfg.scene.lighting).image_paths[0])
+    except (InputError, OSError):
         return
-    size = working_size(head.width, head.height, size=cfg.scene.image_size)
+    size = working_size(width, height, size=cfg.scene.image_size)
     check_memory(cfg, size, len(cfg.scene.views) if cfg.scene.views else None,
                  labels=_RECONSTRUCT_OPTIONS)
 
