@@ -10,11 +10,17 @@ from __future__ import annotations
 import signal
 import sys
 
-import typer
+try:
+    # the console script imports this module before `main` runs, and the commands' imports load
+    # torch (seconds): a Ctrl-C meanwhile ends as a stopped run does, in one line
+    import typer
 
-from svolsdf.cli import results, runs  # noqa: F401  (registers the commands on the app)
-from svolsdf.cli.app import _Stopped, app, build_config
-from svolsdf.errors import InputError
+    from svolsdf.cli import results, runs  # noqa: F401  (registers the commands on the app)
+    from svolsdf.cli.app import _Stopped, app, build_config
+    from svolsdf.errors import InputError
+except KeyboardInterrupt:
+    print("interrupted", file=sys.stderr)
+    raise SystemExit(130) from None
 
 __all__ = ["REPEATED_OPTIONS", "app", "build_config", "expand_list_options", "main"]
 

@@ -135,6 +135,7 @@ def reconstruct(
     }, _RECONSTRUCT_OPTIONS, sets=set_)
     if auto:  # auto also replaces the views a --config file lists
         cfg.scene.views = None
+    _check_run_memory(cfg)
     pipe = Pipeline(cfg, out, progress=not no_progress)
     if auto:
         pipe.load()
@@ -149,6 +150,24 @@ def reconstruct(
 
 
 app.command("reconstruct")(with_flags(reconstruct, RECONSTRUCT_FLAGS))
+
+
+def _check_run_memory(cfg) -> None:
+    """The memory check of `svolsdf.config.validate_config` again at the scene's working size
+    (the cameras and one image header); a scene that cannot be read is left to the pipeline's
+    message."""
+    from svolsdf.config import check_memory
+    from svolsdf.io.images import image_size
+    from svolsdf.scene.loaders import read_source
+    from svolsdf.scene.size import working_size
+
+    try:
+        width, height = image_size(read_source(cfg.scene.path, cfg.scene.lighting).image_paths[0])
+    except (InputError, OSError):
+        return
+    size = working_size(width, height, size=cfg.scene.image_size)
+    check_memory(cfg, size, len(cfg.scene.views) if cfg.scene.views else None,
+                 labels=_RECONSTRUCT_OPTIONS)
 
 
 @app.command("demo")

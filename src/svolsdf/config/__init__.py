@@ -32,7 +32,7 @@ from svolsdf.config.schema import (
     TSDFConfig,
     choices,
 )
-from svolsdf.config.validate import validate_config
+from svolsdf.config.validate import check_memory, validate_config
 
 __all__ = [
     "Config",
@@ -56,6 +56,7 @@ __all__ = [
     "parse_set",
     "option_docs",
     "config_yaml",
+    "check_memory",
     "validate_config",
     "choices",
 ]

@@ -15,7 +15,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 from svolsdf.config.schema import Config
 from svolsdf.errors import InputError
 
-__all__ = ["validate_config"]
+__all__ = ["available_memory", "check_memory", "memory_needs", "validate_config"]
 
 
 class _Rejected(Exception):
@@ -190,7 +190,119 @@ def validate_config(cfg: Config, where: str | None = None,
     labels = labels or {}
     _validate_dataclass(cfg, "", where, labels)
     _check_combinations(cfg, f"{where}: " if where else "", labels)
+    check_memory(cfg, where=where, labels=labels)
     return cfg
+
+
+#: the smallest working side a run accepts (`svolsdf.scene.checks.MIN_SIDE`): without
+#: ``scene.image_size`` the memory estimate assumes images this small, so it is a lower bound
+_MIN_SIDE = 16
+
+
+def memory_needs(cfg: Config, size: tuple[int, int] | None = None, views: int | None = None
+                 ) -> list[tuple[tuple[str, ...], float, str]]:
+    """Lower bounds of the largest allocations the options ask for, in bytes.
+
+    Each bound counts only what the run surely allocates, so that a run the machine can hold is
+    never refused:
+
+    - the grid field's SDF grid, values and gradients, float32: a box with ``grid_resolution``
+      nodes along its longest side and at least a fifth of that along the others (the field's
+      box is padded by 0.15 of its longest side on each side, `svolsdf.field.bounds`), 2 x R x
+      (R / 5)^2 x 4 bytes;
+    - the MVS probability volumes, float32 hypotheses and probabilities (D, H_k, W_k) per view
+      (`svolsdf.mvs.volume.ProbabilityVolume`): stage 1 for every input view (kept in memory
+      through the run), or one view of a finer stage, 2 x D_k x H_k x W_k x 4 bytes, the stage
+      size at ``mvs.scale`` (at least 1) x the working size over 2^(3 - k).
+
+    Args:
+        cfg: the run's configuration.
+        size: the working size (W, H); default ``scene.image_size``, else the smallest a run
+            accepts (16 x 16).
+        views: input views; default the number ``scene.views`` lists, else 2.
+
+    Returns:
+        [(the options that set the allocation, bytes, what it is)].
+    """
+    W, H = size or cfg.scene.image_size or (_MIN_SIDE, _MIN_SIDE)
+    at = "the" if size or cfg.scene.image_size else "the smallest"
+    n_views = views or (len(cfg.scene.views) if cfg.scene.views else 2)
+    out = []
+    if cfg.field.kind == "grid" and cfg.train.mode != "mvs-only":
+        r = cfg.field.grid_resolution
+        out.append((("field.grid_resolution",), 2.0 * r * max(2, r // 5) ** 2 * 4,
+                    f"the {r}-node SDF grid"))
+    if cfg.train.mode != "volsdf":
+        scale = max(1.0, float(cfg.mvs.scale or 1.0))
+        need, stage = 0.0, 1
+        for k, d in enumerate(cfg.mvs.ndepths, start=1):
+            s = 2 ** (len(cfg.mvs.ndepths) - k)
+            hw = max(1, round(W * scale / s)) * max(1, round(H * scale / s))
+            b = 2.0 * d * hw * 4 * (n_views if k == 1 else 1)
+            if b > need:
+                need, stage = b, k
+        n = n_views if stage == 1 else 1
+        out.append((("mvs.ndepths",), need,
+                    f"the stage-{stage} MVS volume{'s' if n > 1 else ''} ({n} view"
+                    f"{'s' if n > 1 else ''} at {at} working size {W}x{H})"))
+    return out
+
+
+def available_memory() -> int | None:
+    """Bytes of memory the machine can give a new run now (psutil, else /proc/meminfo's
+    MemAvailable, else the free physical pages); None when none of them answers."""
+    try:
+        import psutil
+
+        return int(psutil.virtual_memory().available)
+    except Exception:  # noqa: BLE001  (not installed, or no answer on this system)
+        pass
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def check_memory(cfg: Config, size: tuple[int, int] | None = None, views: int | None = None,
+                 where: str | None = None, labels: Mapping[str, str] | None = None) -> None:
+    """Refuse options whose allocations (`memory_needs`, lower bounds) exceed the memory the
+    machine has available (`available_memory`; not checked when it cannot be read).
+
+    Raises:
+        InputError: naming the option (with the command-line option that set it), the memory
+            it needs and the memory available.
+    """
+    have = available_memory()
+    if have is None:
+        return
+    labels = labels or {}
+    for keys, need, what in memory_needs(cfg, size, views):
+        if need > have:
+            shown = ", ".join(_option(cfg, k, labels) for k in keys)
+            raise InputError(f"{where + ': ' if where else ''}{shown}: {what} would take at "
+                             f"least {_gb(need)} of memory, but {_gb(have)} is available; "
+                             "choose a smaller value")
+
+
+def _option(cfg: Config, key: str, labels: Mapping[str, str]) -> str:
+    """``key`` and its value as the user gave it (``--set key=value``, ``--flag value (key)``)."""
+    section, name = key.split(".")
+    value = _short(getattr(getattr(cfg, section), name))
+    label = labels.get(key)
+    if label is None:
+        return f"{key} = {value}"
+    return f"{label}={value}" if label == f"--set {key}" else f"{label} {value} ({key})"
+
+
+def _gb(n: float) -> str:
+    return f"{n / 2**30:.3g} GB" if n < 2**50 else f"{n / 2**50:.3g} PB"
 
 
 def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> None:

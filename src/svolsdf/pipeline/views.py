@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from svolsdf.config import DTU_EXCLUDED_IDS, DTU_TRAIN_IDS
-from svolsdf.scene.scene import Scene
+from svolsdf.scene.scene import Scene, SceneError
 
 __all__ = ["auto_views", "default_views", "test_views"]
 
@@ -41,6 +41,13 @@ def auto_views(scene: Scene, n: int = 3) -> list[int]:
         visible_in_views,
     )
 
+    V = len(scene.view_ids)
+    if V < 2:
+        raise SceneError(f"{scene.path}: --views auto: the scene has only {V} view "
+                         f"({scene.view_ids}); reconstruction needs at least 2 views")
+    if n > V:
+        raise SceneError(f"{scene.path}: --views auto {n}: the scene has only {V} views; ask "
+                         f"for at most {V} (--views auto {V})")
     src = read_source(scene.path, lighting=scene.extras.get("lighting", 3))
     cams = scene.cameras
     if src.points is not None and src.visibility is not None and len(src.points) > 0 and \

@@ -40,10 +40,17 @@ def decompose_projection(P: Tensor) -> tuple[Tensor, Tensor]:
     P = torch.as_tensor(P, dtype=torch.float64)[:3, :4]
     if not torch.isfinite(P).all():
         raise ValueError("projection matrix has non-finite entries")
+    # P is defined up to scale: divided by its largest entry, a P of any magnitude (1e300 P is
+    # the camera P) is decomposed without overflow
+    scale = float(P[:, :3].abs().max())
+    if scale == 0.0:
+        raise ValueError("projection matrix is singular (its left 3x3 block is zero)")
+    P = P / scale
+    if not torch.isfinite(P).all():
+        raise ValueError("projection matrix's translation is beyond float64 range relative to "
+                         "its left 3x3 block")
     M = P[:, :3]
-    # a zero block passes a relative test (0 < 0 is false): check it first
-    scale = float(M.abs().max())
-    if scale == 0.0 or abs(float(torch.linalg.det(M))) < 1e-12 * scale**3:
+    if abs(float(torch.linalg.det(M))) < 1e-12:
         raise ValueError("projection matrix is singular (its left 3x3 block has rank < 3)")
     # RQ decomposition of M via QR of the flipped transpose.
     flip = torch.flip(torch.eye(3, dtype=M.dtype), dims=[0])

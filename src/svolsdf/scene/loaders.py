@@ -183,6 +183,7 @@ def load_scene(path: str | Path, views: list[int] | None = None,
         raise SceneError(f"{src.cameras_file} gives cameras for {src.camera_size[0]}x"
                          f"{src.camera_size[1]} images but {image_paths[0]} is "
                          f"{size[0]}x{size[1]}")
+    _check_fit(src, idx, image_paths, size)
     cams_all = Cameras(src.K.double(), src.w2c.double(), size[0], size[1])
     dtu = _is_dtu(src, size)
     units = "mm" if dtu else src.units
@@ -270,6 +271,22 @@ def load_scene(path: str | Path, views: list[int] | None = None,
         depth_range=depth[idx], normalization=norm, path=src.path, format=src.format,
         units=units, image_paths=image_paths, extras=extras,
     )
+
+
+def _check_fit(src: SceneSource, idx: list[int], image_paths: list[Path],
+               size: tuple[int, int]) -> None:
+    """Refuse images that do not fit their cameras: a principal point outside the image (the
+    cameras are for images of another size or crop, and every ray would be wrong)."""
+    W, H = size
+    c = src.K[idx][:, :2, 2].double()
+    out = ((c[:, 0] < -0.5) | (c[:, 0] > W - 0.5) | (c[:, 1] < -0.5) | (c[:, 1] > H - 0.5))
+    if bool(out.any()):
+        k = int(out.nonzero()[0, 0])
+        cx, cy = (float(v) for v in c[k])
+        raise SceneError(f"{image_paths[k]} is {W}x{H} but its camera ({src.camera_source[idx[k]]}"
+                         f") has its principal point at ({cx:.1f}, {cy:.1f}), outside the image: "
+                         f"the cameras are for images of about {2 * cx + 1:.0f}x{2 * cy + 1:.0f}; "
+                         "give the images the size the cameras were calibrated at")
 
 
 def _read(fn, p: Path, *args):

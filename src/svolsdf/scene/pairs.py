@@ -228,7 +228,9 @@ def select_views(covisible: Tensor, centers: Tensor, target: Tensor, n: int = 3,
                          f"got {tuple(covisible.shape)}, {tuple(centers.shape)}, "
                          f"{tuple(target.shape)}")
     if n < 2 or n > V:
-        raise SceneError(f"cannot pick {n} views from a scene of {V} (need 2 <= N <= {V})")
+        raise SceneError(f"cannot pick {n} views from a scene of {V} view(s): "
+                         + ("a reconstruction needs at least 2" if V < 2 or n < 2 else
+                            f"ask for at most {V}"))
     d = centers.double() - target.double()
     d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     angle = torch.rad2deg(torch.arccos((d @ d.T).clamp(-1, 1)))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,8 @@ __all__ = [
     "list_images",
     "load_txt_matrix",
     "match_masks",
+    "match_numbered",
+    "numbered",
     "scan_number",
 ]
 
@@ -75,11 +78,44 @@ class SceneSource:
     extras: dict = field(default_factory=dict)
 
 
-def list_images(folder: Path) -> list[Path]:
-    """Image files in ``folder`` (not recursive), sorted by name; hidden files skipped."""
-    return sorted(p for p in folder.iterdir()
-                  if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-                  and not p.name.startswith("."))
+def _unreadable_entry(p: Path) -> str | None:
+    """Why the folder entry ``p`` (named like an image) is not an image file, or None."""
+    if p.is_file():
+        return None
+    if p.is_symlink() and not p.exists():
+        return f"{p} is a symbolic link to {os.readlink(p)}, which does not exist"
+    if p.is_dir():
+        return f"{p} is a folder, not an image file"
+    return f"{p} is not a regular file"
+
+
+def list_images(folder: Path, what: str = "images") -> list[Path]:
+    """Image files (`IMAGE_SUFFIXES`) in ``folder`` (not recursive), sorted by name; hidden
+    files skipped.
+
+    Raises:
+        SceneError: an entry named like an image is a folder, a dangling link or no regular
+            file (it would silently drop a view); or the folder holds no image (the message
+            lists the accepted types and the ones found).
+    """
+    entries = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
+    files = []
+    for p in entries:
+        if p.suffix.lower() in IMAGE_SUFFIXES:
+            cause = _unreadable_entry(p)
+            if cause is not None:
+                raise SceneError(f"{cause}; put the image file there or remove the entry")
+            files.append(p)
+    if not files:
+        accepted = ", ".join(sorted(IMAGE_SUFFIXES))
+        other = sorted({p.suffix.lower() or p.name for p in entries})
+        if not other:
+            raise SceneError(f"{folder}: no {what} found (the folder is empty); add the {what} "
+                             f"({accepted}) or remove {folder.name}/")
+        found = ", ".join(other[:5]) + (" ..." if len(other) > 5 else "")
+        raise SceneError(f"{folder}: no {what} found (it holds only {found}; accepted types: "
+                         f"{accepted}); convert the {what} to one of these types")
+    return files
 
 
 def find_dir(root: Path, *names: str) -> Path | None:
@@ -90,25 +126,77 @@ def find_dir(root: Path, *names: str) -> Path | None:
     return None
 
 
+def numbered(files: list[Path]) -> dict[int, Path]:
+    """{view number: file}: the number is the last run of digits in the file's stem
+    (``000007.png`` and ``7.jpg`` -> 7).
+
+    Raises:
+        SceneError: a file's name holds no number, or two files hold the same number.
+    """
+    out: dict[int, Path] = {}
+    for p in files:
+        digits = re.findall(r"\d+", p.stem)
+        if not digits:
+            raise SceneError(f"{p}: the file name holds no view number (name the files by the "
+                             f"number of their camera, e.g. 000007{p.suffix})")
+        v = int(digits[-1])
+        if v in out:
+            raise SceneError(f"{out[v]} and {p} both hold view {v}; keep one of them")
+        out[v] = p
+    return out
+
+
+def _ids_text(ids: list[int]) -> str:
+    shown = ", ".join(str(v) for v in ids[:5])
+    return shown + (f" and {len(ids) - 5} more" if len(ids) > 5 else "")
+
+
+def match_numbered(files: dict[int, Path], view_ids: list[int], folder: Path, what: str,
+                   owner: str) -> list[Path]:
+    """The files of ``view_ids`` in that order, matched by the number in their names
+    (`numbered`), never by position.
+
+    Args:
+        files: {view number: file} of ``folder``.
+        view_ids: the views the cameras define, in order.
+        what: "image" or "mask", for the message.
+        owner: what defines the views ("camera in cameras.npz (world_mat_0..world_mat_2)"),
+            for the message.
+
+    Raises:
+        SceneError: a view has no file (a gap) or a file has no view (an extra): both named.
+    """
+    missing = [v for v in view_ids if v not in files]
+    known = set(view_ids)
+    extra = sorted(v for v in files if v not in known)
+    if not missing and not extra:
+        return [files[v] for v in view_ids]
+    parts = []
+    if extra:
+        names = ", ".join(files[v].name for v in extra[:3]) + (" ..." if len(extra) > 3 else "")
+        parts.append(f"{folder}/{names} {'is' if len(extra) == 1 else 'are'} view "
+                     f"{_ids_text(extra)}, which has no {owner}")
+    if missing:
+        parts.append(f"{folder} has no {what} of view {_ids_text(missing)}")
+    raise SceneError("; ".join(parts) + f"; name each {what} by its camera's number (e.g. "
+                     f"{view_ids[0]:06d}.png), one per camera")
+
+
 def match_masks(mask_dir: Path | None, image_paths: list[Path], view_ids: list[int]
                 ) -> list[Path] | None:
     """Mask files for the views, or None when there is no mask folder.
 
-    Masks are matched by sorted order (IDR: ``mask/000.png`` goes with the first image), which
-    requires one mask per image.
+    Masks are matched by the number in their names (`numbered`: IDR's ``mask/007.png`` goes
+    with view 7, the image ``image/000007.png``), one per image.
 
     Raises:
-        SceneError: the counts differ (names both folders).
+        SceneError: a mask's name holds no number, a view has no mask or a mask no view.
     """
     if mask_dir is None:
         return None
-    masks = list_images(mask_dir)
-    if len(masks) != len(image_paths):
-        img_dir = image_paths[0].parent if image_paths else mask_dir.parent
-        raise SceneError(f"{mask_dir} has {len(masks)} masks but {img_dir} has "
-                         f"{len(image_paths)} images; give one mask per image or remove "
-                         f"{mask_dir.name}/")
-    return masks
+    masks = numbered(list_images(mask_dir, "masks"))
+    img_dir = image_paths[0].parent if image_paths else mask_dir.parent
+    return match_numbered(masks, view_ids, mask_dir, "mask", f"image in {img_dir}")
 
 
 def check_camera(K: Tensor, w2c: Tensor, where: str) -> None:

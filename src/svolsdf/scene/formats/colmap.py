@@ -9,7 +9,9 @@ error, track of (image id, 2D point index)).
 Conventions converted here: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), ours at
 (0, 0), so c_ours = c_colmap - 0.5. Distortion parameters are not applied (MVS needs undistorted
 images: run ``colmap image_undistorter``); non-zero ones are reported with a warning and
-recorded in ``extras["distortion_ignored"]``.
+recorded in ``extras["distortion_ignored"]``. Only pinhole models, exact or up to that distortion,
+are read (`SUPPORTED_MODELS`); a fisheye, FOV or unknown model, or a camera with the wrong number
+of parameters for its model, is refused.
 
 View ids are positions in name order (0-based); COLMAP's image ids are in
 ``extras["colmap_image_ids"]``.
@@ -31,6 +33,7 @@ from svolsdf.scene.scene import SceneError
 
 __all__ = [
     "CAMERA_MODELS",
+    "SUPPORTED_MODELS",
     "ColmapCamera",
     "ColmapImage",
     "detect",
@@ -50,6 +53,10 @@ CAMERA_MODELS = {
     8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
 }
 _MODEL_BY_NAME = {name: (mid, n) for mid, (name, n) in CAMERA_MODELS.items()}
+#: the models read here: a pinhole, exactly or up to lens distortion (ignored with a warning);
+#: the fisheye and FOV models project otherwise, and reading them as a pinhole shifts every ray
+SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV",
+                    "FULL_OPENCV")
 _FILES = ("cameras", "images", "points3D")
 
 
@@ -71,12 +78,13 @@ class ColmapCamera:
             fx = fy = p[0]
             cx, cy = p[1], p[2]
             dist = p[3:]
-        elif self.model == "FOV":
+        elif self.model in SUPPORTED_MODELS:  # PINHOLE, OPENCV, FULL_OPENCV
             fx, fy, cx, cy = p[:4]
             dist = p[4:]
-        else:  # PINHOLE, OPENCV, OPENCV_FISHEYE, FULL_OPENCV, THIN_PRISM_FISHEYE
-            fx, fy, cx, cy = p[:4]
-            dist = p[4:]
+        else:
+            raise ValueError(f"camera {self.id} has model {self.model}, which is not read here "
+                             f"(supported: {', '.join(SUPPORTED_MODELS)}); undistort the "
+                             "images to PINHOLE cameras with `colmap image_undistorter`")
         K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]], dtype=np.float64)
         return K, np.asarray(dist, dtype=np.float64)
 
@@ -121,6 +129,20 @@ def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- text
+def _check_model(where: Path, cid, model: str, n_params: int) -> None:
+    """Refuse (`SceneError` naming the file ``where``) a camera whose model is not read here or
+    whose number of parameters is not its model's."""
+    if model not in SUPPORTED_MODELS:
+        known = "" if model in _MODEL_BY_NAME else "an unknown model, "
+        raise SceneError(f"{where}: camera {cid} has model {model} ({known}not read here; "
+                         f"supported: {', '.join(SUPPORTED_MODELS)}); undistort the images to "
+                         "PINHOLE cameras with `colmap image_undistorter`")
+    need = _MODEL_BY_NAME[model][1]
+    if n_params != need:
+        raise SceneError(f"{where}: camera {cid} ({model}) has {n_params} parameters, but "
+                         f"{model} takes {need}")
+
+
 def _data_lines(path: Path) -> list[str]:
     return [ln.strip() for ln in path.read_text().splitlines()
             if ln.strip() and not ln.lstrip().startswith("#")]
@@ -131,6 +153,9 @@ def _read_text(folder: Path):
     f = folder / "cameras.txt"
     for ln in _data_lines(f):
         t = ln.split()
+        if len(t) < 4:
+            raise ValueError(f"camera line {ln!r} is not CAMERA_ID MODEL WIDTH HEIGHT PARAMS")
+        _check_model(f, t[0], t[1], len(t) - 4)
         cams[int(t[0])] = ColmapCamera(int(t[0]), t[1], int(t[2]), int(t[3]),
                                        np.array(t[4:], dtype=np.float64))
     imgs: dict[int, ColmapImage] = {}
@@ -184,9 +209,8 @@ def _read_binary(folder: Path):
     r = _Reader((folder / "cameras.bin").read_bytes())
     for _ in range(r.take("Q")[0]):
         cid, mid, w, h = r.take("iiQQ")
-        if mid not in CAMERA_MODELS:
-            raise ValueError(f"camera {cid} has unknown model id {mid}")
-        name, n = CAMERA_MODELS[mid]
+        name, n = CAMERA_MODELS.get(mid, (f"id {mid}", 0))
+        _check_model(folder / "cameras.bin", cid, name, n)
         cams[cid] = ColmapCamera(cid, name, w, h, np.array(r.take("d" * n)))
     imgs: dict[int, ColmapImage] = {}
     r = _Reader((folder / "images.bin").read_bytes())
@@ -212,13 +236,23 @@ def _read_binary(folder: Path):
 def find_model(path: Path) -> tuple[Path, str] | None:
     """(folder, "bin" or "txt") of the sparse model under ``path``, or None.
 
-    Looks in ``sparse/0``, then ``sparse``; prefers binary files when both exist.
+    Looks in ``sparse/0``, then ``sparse``; prefers binary files when both exist. A folder with
+    some of the model's files is a model too (`read` names the missing ones), so that a missing
+    file is not reported as an unknown layout.
     """
+    partial = None
     for folder in (path / "sparse" / "0", path / "sparse"):
         for ext in ("bin", "txt"):
-            if all((folder / f"{n}.{ext}").is_file() for n in _FILES):
+            have = [(folder / f"{n}.{ext}").is_file() for n in _FILES]
+            if all(have):
                 return folder, ext
-    return None
+            if any(have) and partial is None:
+                partial = folder, ext
+    return partial
+
+
+def _missing_files(folder: Path, ext: str) -> list[str]:
+    return [f"{n}.{ext}" for n in _FILES if not (folder / f"{n}.{ext}").is_file()]
 
 
 def read_model(folder: Path, ext: str):
@@ -233,6 +267,8 @@ def read_model(folder: Path, ext: str):
     """
     try:
         return _read_binary(folder) if ext == "bin" else _read_text(folder)
+    except SceneError:
+        raise
     except (OSError, ValueError, IndexError, struct.error, UnicodeDecodeError) as e:
         raise SceneError(f"{folder}: cannot read COLMAP {ext} model "
                          f"({e.__class__.__name__}: {e})") from None
@@ -250,6 +286,12 @@ def detect(path: Path) -> bool:
 def read(path: Path, lighting=None) -> SceneSource:
     """Read cameras, poses and sparse points (no pixels)."""
     folder, ext = find_model(path)
+    missing = _missing_files(folder, ext)
+    if missing:
+        have = [f"{n}.{ext}" for n in _FILES if f"{n}.{ext}" not in missing]
+        need = ", ".join(f"{n}.{ext}" for n in _FILES)
+        raise SceneError(f"{folder}/{missing[0]} is missing (the COLMAP model there has "
+                         f"{' and '.join(have)}; a model needs {need})")
     cams, imgs, pts, tracks = read_model(folder, ext)
     img_dir = find_dir(path, "images")
     order = sorted(imgs.values(), key=lambda im: im.name)

@@ -2,7 +2,9 @@
 
 ``cameras.npz`` (IDR, VolSDF) or ``cameras_sphere.npz`` (NeuS) with ``world_mat_i`` (the top
 3x4 is P = K [R | t] in world units) and ``scale_mat_i`` (unit frame -> world); images in
-``image/`` or ``images/`` sorted by name (the index is the view id); optional masks in ``mask/``.
+``image/`` or ``images/``, numbered by their camera (``000007.png`` is view 7, whose camera is
+``world_mat_7``); optional masks in ``mask/``, numbered alike (``007.png``). One image (and mask)
+per camera: a gap or an extra file is refused, never matched by position.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from svolsdf.scene.formats._common import (
     find_dir,
     list_images,
     match_masks,
+    match_numbered,
+    numbered,
     scan_number,
 )
 from svolsdf.scene.pairs import read_pair_file
@@ -32,6 +36,15 @@ __all__ = ["CAMERA_FILES", "detect", "read"]
 log = logging.getLogger(__name__)
 
 CAMERA_FILES = ("cameras.npz", "cameras_sphere.npz")
+
+
+def _matrix(value: np.ndarray, cam_file: Path, key: str) -> np.ndarray:
+    """``cam_file``'s entry ``key`` as a float64 array; `SceneError` naming both when it is not
+    numbers (a string, an object)."""
+    if value.dtype.kind not in "biuf":
+        raise SceneError(f"{cam_file}: {key} is stored as {value.dtype} ({value.dtype.kind!r} "
+                         f"data), not as numbers; save it as a 4x4 float array")
+    return np.asarray(value, dtype=np.float64)
 
 
 def detect(path: Path) -> bool:
@@ -67,15 +80,14 @@ def read(path: Path, lighting=None) -> SceneSource:
                          f"(missing world_mat_{missing[0]})")
     n = len(idx)
     img_dir = find_dir(path, "image", "images")
-    images = list_images(img_dir)
-    if len(images) != n:
-        raise SceneError(f"{cam_file} has {n} cameras but {img_dir} has {len(images)} images")
+    images = match_numbered(numbered(list_images(img_dir)), list(range(n)), img_dir, "image",
+                            f"camera in {cam_file} (world_mat_0..world_mat_{n - 1})")
     masks = match_masks(find_dir(path, "mask", "masks"), images, list(range(n)))
 
     Ks, w2cs = [], []
     for i in range(n):
         key = f"world_mat_{i}"
-        P = np.asarray(data[key], dtype=np.float64)
+        P = _matrix(data[key], cam_file, key)
         if P.shape not in ((3, 4), (4, 4)):
             raise SceneError(f"{cam_file}: {key} has shape {P.shape}, expected 4x4 or 3x4")
         try:
@@ -89,7 +101,7 @@ def read(path: Path, lighting=None) -> SceneSource:
     normalization = None
     radius = 1.0 if cam_file.name == "cameras_sphere.npz" else 3.0
     if "scale_mat_0" in data:
-        S = np.asarray(data["scale_mat_0"], dtype=np.float64)
+        S = _matrix(data["scale_mat_0"], cam_file, "scale_mat_0")
         if S.shape != (4, 4) or not np.isfinite(S).all() or not S[0, 0] > 0:
             raise SceneError(f"{cam_file}: scale_mat_0 is not a finite 4x4 similarity with "
                              f"positive scale")

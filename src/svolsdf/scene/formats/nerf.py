@@ -48,6 +48,16 @@ def _image_file(base: Path, file_path: str) -> Path:
     return p
 
 
+def _focal(g: dict, key: str, side: int, where: str) -> float:
+    """The focal length in pixels of the field of view ``g[key]`` (radians) across ``side``
+    pixels, f = side / (2 tan(a/2)); `SceneError` unless 0 < a < pi."""
+    a = float(g[key])
+    if not 0.0 < a < math.pi:
+        raise SceneError(f"{where}: {key} is {g[key]!r}; a field of view in radians must be "
+                         f"between 0 and pi (e.g. 0.69 for 40 degrees)")
+    return 0.5 * side / math.tan(0.5 * a)
+
+
 @register_scene_format("nerf", detect, order=50,
                        looks_for="transforms.json (NeRF)",
                        title="NeRF transforms.json")
@@ -59,11 +69,14 @@ def read(path: Path, lighting=None) -> SceneSource:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise SceneError(f"{f}: cannot parse JSON ({e})") from None
     frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not frames:
+    if not frames or not isinstance(frames, list):
         raise SceneError(f"{f}: no 'frames' list")
     Ks, w2cs, paths, sources, masks, sizes = [], [], [], [], [], set()
     for k, fr in enumerate(frames):
         where = f"{f}: frames[{k}]"
+        if not isinstance(fr, dict):
+            raise SceneError(f"{where} is {json.dumps(fr)[:40]}, not an object with "
+                             "'file_path' and 'transform_matrix'")
         g = {**meta, **fr}
         if "file_path" not in fr or "transform_matrix" not in fr:
             raise SceneError(f"{where} lacks 'file_path' or 'transform_matrix'")
@@ -76,16 +89,18 @@ def read(path: Path, lighting=None) -> SceneSource:
                 w, h = image_size(img)
             except ImageReadError as e:
                 raise SceneError(str(e)) from None
-        w, h = int(w), int(h)
+        try:
+            w, h = int(w), int(h)
+        except (TypeError, ValueError):
+            raise SceneError(f"{where}: image size w={w!r}, h={h!r} is not two integers") from None
         sizes.add((w, h))
         try:
             if "fl_x" in g:
                 fx = float(g["fl_x"])
                 fy = float(g.get("fl_y", fx))
             elif "camera_angle_x" in g:
-                fx = 0.5 * w / math.tan(0.5 * float(g["camera_angle_x"]))
-                fy = (0.5 * h / math.tan(0.5 * float(g["camera_angle_y"]))
-                      if "camera_angle_y" in g else fx)
+                fx = _focal(g, "camera_angle_x", w, where)
+                fy = _focal(g, "camera_angle_y", h, where) if "camera_angle_y" in g else fx
             else:
                 raise SceneError(f"{where}: no intrinsics (need fl_x or camera_angle_x)")
             cx = float(g.get("cx", w / 2.0)) - 0.5
