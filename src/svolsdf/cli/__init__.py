@@ -14,7 +14,7 @@ import typer
 
 from svolsdf.cli import results, runs  # noqa: F401  (registers the commands on the app)
 from svolsdf.cli.app import _Stopped, app, build_config
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, interrupted, note_interrupt, watch_interrupts
 
 __all__ = ["REPEATED_OPTIONS", "app", "build_config", "expand_list_options", "main"]
 
@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> None:
     stopped reconstruction names its stage, and a rerun resumes it).
     """
     try:
-        _main(argv)
+        with watch_interrupts():
+            _main(argv)
     except KeyboardInterrupt:
         # a Ctrl-C that lands outside the command's own handling, as it ends (the run's outputs
         # are written by then): the same one line, not a traceback
@@ -86,6 +87,7 @@ def _main(argv: list[str] | None) -> None:
 
     def terminate(signum, frame):
         got.append(signum)
+        note_interrupt()
         raise KeyboardInterrupt
 
     try:
@@ -99,6 +101,8 @@ def _main(argv: list[str] | None) -> None:
         print(e, file=sys.stderr)
         raise SystemExit(128 + got[0] if got else 130) from None
     except (InputError, OSError) as e:  # OSError: a missing, unreadable or unwritable path
+        if interrupted():  # an error a library made of the Ctrl-C (errors.py)
+            raise KeyboardInterrupt from None
         if debug:
             raise
         msg = str(e) if not isinstance(e, OSError) or not e.filename else (
@@ -114,6 +118,8 @@ def _main(argv: list[str] | None) -> None:
         print("aborted", file=sys.stderr)
         raise SystemExit(130) from None
     except Exception as e:
+        if interrupted():
+            raise KeyboardInterrupt from None
         # click's usage errors (an unknown option, a bad value): the message, not a traceback.
         # Recognised by their interface: typer >= 0.2x raises its vendored copy of click's
         # classes, older typer the click package's own
@@ -124,6 +130,8 @@ def _main(argv: list[str] | None) -> None:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+    if interrupted() and not code:  # an interrupt that something caught and printed
+        code = 130
     if code == 130:
         print("terminated" if got else "interrupted", file=sys.stderr)
         code = 128 + got[0] if got else 130

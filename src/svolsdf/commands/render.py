@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, raise_if_interrupted
 from svolsdf.scene.cameras import Cameras
 
 __all__ = [
@@ -150,6 +150,7 @@ def write_video(frames: list[np.ndarray], stem: Path, fps: int = 20) -> Path:
         log.info("orbit video %s (mp4, %d frames)", path, len(arr))
         return path
     except ImportError:
+        raise_if_interrupted()  # an import that Ctrl-C stopped is no missing imageio-ffmpeg
         path = stem.with_suffix(".gif")
         iio.imwrite(path, arr, extension=".gif", duration=1000.0 / fps, loop=0)
         log.info("orbit video %s (GIF: imageio-ffmpeg is not installed, so no MP4; "

@@ -35,7 +35,13 @@ import numpy as np
 import torch
 
 from svolsdf.config import Config, save_config, validate_config
-from svolsdf.errors import InputError, RunInterrupted
+from svolsdf.errors import (
+    InputError,
+    RunInterrupted,
+    interrupted,
+    raise_if_interrupted,
+    watch_interrupts,
+)
 from svolsdf.io.paths import user_path
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline import builders, options
@@ -107,6 +113,7 @@ class Pipeline(Run):
             try:
                 out.append(read(f))
             except Exception as e:
+                raise_if_interrupted()  # a read that Ctrl-C stopped: the file is kept
                 if not (isinstance(e, InputError) or is_unreadable_file(e)):
                     raise
                 why = f"{f} could not be read ({one_line(e)})"
@@ -126,6 +133,7 @@ class Pipeline(Run):
         return None if maps is None else dict(zip(files, maps, strict=True))
 
     def _mark(self, stage: str) -> None:
+        raise_if_interrupted()  # one that something swallowed: the stage is not finished
         self.dir.mark(stage, self.keys[stage], **self._provenance(stage))
 
     def _provenance(self, stage: str) -> dict:
@@ -200,23 +208,24 @@ class Pipeline(Run):
         self._check_options()
         new = not self.out.exists()
         output_dir(self.out)
-        with self.dir.lock():
+        with self.dir.lock(), watch_interrupts():
             handler = self.dir.attach_log()
             finished = False
             try:
                 res = self._run(t_all)
+                raise_if_interrupted()  # one that something swallowed: still status 130
                 finished = True
                 return res
-            except KeyboardInterrupt:
-                msg = self._interrupt_message()
-                self.dir.log_to_file(log, logging.WARNING, msg)
-                raise RunInterrupted(msg) from None
-            except InputError as e:  # the command line prints it; OUT/log keeps it too
-                self.dir.log_to_file(log, logging.ERROR, f"error: {e}")
-                raise
-            except Exception as e:
-                self.dir.log_to_file(log, logging.ERROR, f"failed in stage {self._stage}: "
-                                     f"{one_line(e)}", exc_info=True)
+            except BaseException as e:
+                # an error a library made of the Ctrl-C counts as the Ctrl-C (svolsdf.errors)
+                if isinstance(e, KeyboardInterrupt) or interrupted():
+                    msg = self._interrupt_message()
+                    self.dir.log_to_file(log, logging.WARNING, msg)
+                    raise RunInterrupted(msg) from None
+                if isinstance(e, Exception):  # the command line prints an InputError
+                    self.dir.log_to_file(log, logging.ERROR, f"error: {e}" if isinstance(
+                        e, InputError) else f"failed in stage {self._stage}: {one_line(e)}",
+                        exc_info=not isinstance(e, InputError))
                 raise
             finally:
                 if handler is not None:  # this run's OUT/log only gets this run's messages
