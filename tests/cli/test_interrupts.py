@@ -73,3 +73,32 @@ def test_ctrl_c_in_the_mesh_stage_is_never_a_failed_mesh(finished, tmp_path, mon
     main(argv)  # the rerun makes the Poisson mesh
     stages, timing = _state(out)
     assert stages["mesh"] != before["mesh"] and timing["mesh"]["mesh_source"] == "poisson"
+
+
+def test_a_ctrl_c_as_the_process_exits_is_status_130(tmp_path):
+    # the command done and its files written, a Ctrl-C while the process ends (here as the log
+    # handlers are flushed; Python's shutdown once took a moment): status 130 and one line, not
+    # Python's death by SIGINT (status -2) or an ignored traceback and status 0
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import svolsdf
+
+    code = ("import logging, os, signal, sys\n"
+            f"sys.argv = ['svolsdf', 'synth', {str(tmp_path / 's')!r}, '--size', '32x24', "
+            "'--views', '3']\n"
+            "real = logging.shutdown\n"
+            "def late(*a, **k):\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    return real(*a, **k)\n"
+            "logging.shutdown = late\n"
+            "from svolsdf.cli import main\n"
+            "main()\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(svolsdf.__file__).parents[1]))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 130, p.stderr
+    assert p.stderr.strip().splitlines()[-1] == "interrupted" and "Traceback" not in p.stderr
+    assert (tmp_path / "s" / "cameras.npz").is_file() or any((tmp_path / "s").iterdir())

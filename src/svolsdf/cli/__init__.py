@@ -7,8 +7,12 @@ line naming the file and the problem; ``--debug`` shows the traceback instead.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import signal
 import sys
+from typing import NoReturn
 
 import typer
 
@@ -67,8 +71,22 @@ def main(argv: list[str] | None = None) -> None:
 
     Exit status: 0 done; 2 bad input, a bad option, or a file or folder that cannot be read or
     written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one line; a
-    stopped reconstruction names its stage, and a rerun resumes it).
+    stopped reconstruction names its stage, and a rerun resumes it). As the process's command
+    (``argv`` None: ``python -m svolsdf``, the ``svolsdf`` script) it ends the process itself
+    (`_end_process`).
     """
+    if argv is not None:
+        _guarded(argv)
+        return
+    try:
+        _guarded(None)
+    except SystemExit as e:
+        _end_process(e.code)
+    _end_process(0)
+
+
+def _guarded(argv: list[str] | None) -> None:
+    """`_main` with its last guard against Ctrl-C."""
     try:
         with watch_interrupts():
             _main(argv)
@@ -77,6 +95,30 @@ def main(argv: list[str] | None = None) -> None:
         # are written by then): the same one line, not a traceback
         print("interrupted", file=sys.stderr)
         raise SystemExit(130) from None
+
+
+def _end_process(code) -> NoReturn:
+    """End the process with the status of SystemExit's ``code``, without Python's shutdown.
+
+    The command is done and its files are written, but Python's shutdown (torch's and OpenMP's
+    teardown) takes a moment in which a Ctrl-C ends the process killed by SIGINT (status -2) or
+    prints a traceback of whatever it interrupted. Output and log handlers are flushed first; a
+    Ctrl-C meanwhile exits 130 with the one line.
+    """
+    def interrupted_now(signum, frame) -> None:
+        print("interrupted", file=sys.stderr, flush=True)
+        os._exit(130)
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, interrupted_now)
+    if code is not None and not isinstance(code, int):  # SystemExit("message"), as Python does
+        print(code, file=sys.stderr)
+        code = 1
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        logging.shutdown()
+    os._exit(code or 0)
 
 
 def _main(argv: list[str] | None) -> None:

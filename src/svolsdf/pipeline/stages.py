@@ -161,6 +161,9 @@ class Pipeline(StageRecords, Run):
 
     def _interrupt_message(self) -> str:
         msg = f"interrupted: stage {self._stage} stopped"
+        keys = self.keys or {}
+        if self._stage in keys and self.dir.done(self._stage, keys[self._stage]):
+            msg = f"interrupted after stage {self._stage} finished"  # between two stages
         t, resumes = self._trainer, ""
         if self._stage == "field" and t is not None:
             msg += f" at step {t.step} of {self.cfg.train.steps}"
