@@ -203,6 +203,22 @@ def test_a_finished_output_cut_short_or_replaced_reruns_its_stage(field_run, tmp
                                       "blake2b digest)"
 
 
+def test_evaluate_and_render_refuse_an_output_changed_since_its_stage(field_run, tmp_path,
+                                                                     capsys):
+    """A points.ply, mesh.ply or model.pt cut short after the run finished is not scored or
+    rendered from: one line names the file and the command that makes it again."""
+    for rel, argv in (("points.ply", ["evaluate"]), ("mesh.ply", ["report"]),
+                      ("field/model.pt", ["render"])):
+        out = _copy(field_run, tmp_path / rel.replace("/", "_"))
+        f = out / rel
+        data = f.read_bytes()
+        f.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # the same size, another content
+        code, res = _run(argv + [out], capsys)
+        assert code == 2, res.err
+        assert f"{f} changed since the stage finished" in res.err
+        assert f"svolsdf reconstruct -o {out}" in res.err and len(res.err.splitlines()) == 1
+
+
 def test_a_run_folder_without_output_records_is_reused(field_run, tmp_path):
     """Folders from before the record keep every finished stage (only what was recorded is
     checked)."""

@@ -228,6 +228,10 @@ def render_outputs(
     from svolsdf.io.paths import output_dir
     from svolsdf.io.runfolder import config_digest, folder_lock
 
+    changed = p.dir.changed_output("field")
+    if changed is not None:
+        raise InputError(f"{out}: {changed}; run svolsdf reconstruct -o {out} --config "
+                         f"{p.dir.config_file} to train the field again")
     if p.dir.output_provenance(["field"])["field"] == "another config":
         raise InputError(f"{out}: field/model.pt came from an earlier config than "
                          f"{p.dir.config_file} (a rerun with other options stopped before it "

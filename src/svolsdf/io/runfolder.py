@@ -279,6 +279,24 @@ class RunFolder:
         """OUT/stages.json as a dict ({} when missing or unreadable, `read_stage_state`)."""
         return read_stage_state(self.root)
 
+    def changed_output(self, stage: str) -> str | None:
+        """How a file that ``stage`` recorded when it finished (`svolsdf.pipeline.RunDir.mark`)
+        differs from it now: missing,
+        of another size, or of another content (a truncated or replaced file); None when all
+        match or none is recorded (a folder made before the record)."""
+        rec = (_json_object(self.stages_file) or {}).get("outputs")
+        rec = rec.get(stage) if isinstance(rec, dict) else None
+        for name, was in (rec.items() if isinstance(rec, dict) else ()):
+            f = self.root / name
+            if not f.is_file():
+                return f"{f} is missing"
+            now = file_record(f)
+            if isinstance(was, dict) and was.get("size") not in (None, now["size"]):
+                return f"{f} has {now['size']} bytes, {was['size']} when the stage finished"
+            if isinstance(was, dict) and was.get("blake2b") not in (None, now["blake2b"]):
+                return f"{f} changed since the stage finished (another blake2b digest)"
+        return None
+
     def output_provenance(self, outputs: list[str]) -> dict[str, str]:
         """Whether config.yaml made each of ``outputs`` (`output_provenance`)."""
         return output_provenance(self.root, outputs)

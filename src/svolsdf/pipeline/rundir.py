@@ -117,8 +117,8 @@ class RunDir(RunFolder):
              config: str | None = None, outputs: Sequence[Path] | None = None) -> None:
         """Record ``stage`` as finished under ``key``, with the key of its ``inputs``, the
         digest of the ``config`` (config.yaml) that made it and the size and digest of each of
-        its ``outputs`` files (`svolsdf.io.runfolder.file_record`; `changed_output` compares
-        them), when given."""
+        its ``outputs`` files (`svolsdf.io.runfolder.file_record`; `RunFolder.changed_output`
+        compares them), when given."""
         st = self.state()
         st[stage] = key
         if inputs is not None or config is not None:
@@ -131,23 +131,6 @@ class RunDir(RunFolder):
                           for f in outputs}
             st["outputs"] = rec
         save_json(self.stages_file, st)
-
-    def changed_output(self, stage: str) -> str | None:
-        """How a file that finished ``stage`` recorded (`mark`) differs from it now: missing,
-        of another size, or of another content (a truncated or replaced file); None when all
-        match or none is recorded (a folder made before the record)."""
-        rec = self.state().get("outputs")
-        rec = rec.get(stage) if isinstance(rec, dict) else None
-        for name, was in (rec.items() if isinstance(rec, dict) else ()):
-            f = self.root / name
-            if not f.is_file():
-                return f"{f} is missing"
-            now = file_record(f)
-            if isinstance(was, dict) and was.get("size") not in (None, now["size"]):
-                return f"{f} has {now['size']} bytes, {was['size']} when the stage finished"
-            if isinstance(was, dict) and was.get("blake2b") not in (None, now["blake2b"]):
-                return f"{f} changed since the stage finished (another blake2b digest)"
-        return None
 
     def record(self, output: str, config: str | None) -> None:
         """Record that ``output`` (e.g. "render": renders/) was made under the config.yaml of
