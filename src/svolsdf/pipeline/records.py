@@ -102,7 +102,7 @@ class StageRecords:
 
     def _done(self, stage: str) -> bool:
         """``stage`` finished under the current key and inputs, and its files are those it
-        finished with (a truncated or replaced one reruns it, `RunDir.changed_output`)."""
+        finished with (a truncated or replaced one reruns it, `RunFolder.changed_output`)."""
         if not self._inputs_unchanged(stage, stage):
             return False
         changed = self.dir.changed_output(stage)
