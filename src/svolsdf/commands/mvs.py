@@ -66,7 +66,8 @@ class MVSJobConfig:
     scene: Path
     """Scene folder (any format `svolsdf.scene.loaders.load_scene` reads)."""
     out: Path
-    """Output folder (created; existing files of the same names are replaced)."""
+    """Output folder (created; an earlier job's finished stages there are read back when they
+    match, the other files of the same names replaced)."""
     views: list[int] | None = None
     """Input view ids (default: all views of the scene)."""
     backbone: str = "planesweep"
