@@ -214,9 +214,10 @@ def test_an_interrupt_as_the_command_ends_exits_130_with_one_line(monkeypatch, t
     real, calls = cli.signal.signal, []
 
     def late(signum, handler):
-        calls.append(signum)
-        if len(calls) == 2:  # the restore in main's finally
-            raise KeyboardInterrupt
+        if signum == cli.signal.SIGTERM:  # (SIGINT's handler is svolsdf.errors')
+            calls.append(signum)
+            if len(calls) == 2:  # the restore in main's finally
+                raise KeyboardInterrupt
         return real(signum, handler)
 
     monkeypatch.setattr(cli.signal, "signal", late)
@@ -327,7 +328,8 @@ def test_corrupt_model_render_exits_2_reconstruct_trains_again(small_run, tmp_pa
     assert len(res.err.strip().splitlines()) == 1
     main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"), "--no-progress"])
     log = (out / "log").read_text()
-    assert "model.pt could not be read" in log and "running the stage field again" in log
+    # found by the size its stage recorded (a folder without the record: "could not be read")
+    assert "model.pt has 200 bytes" in log and "running the stage field again" in log
     import torch
 
     assert "model_state_dict" in torch.load(model, weights_only=False)

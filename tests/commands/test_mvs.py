@@ -82,3 +82,48 @@ def test_cli_mvs(tiny_scene, tmp_path, capsys):
         cli_main(["mvs", str(tiny_scene), "-o", str(out), "--backbone", "casmvsnet"])
     assert e.value.code == 2
     assert "--weights" in capsys.readouterr().err
+
+
+def test_a_stopped_mvs_job_resumes_from_its_finished_stages(tiny_scene, tmp_path, monkeypatch,
+                                                            capsys):
+    """Killed after its stage 1, the job once kept nothing: each stage's volumes are marked
+    finished as they are written, and the rerun reads them back and computes only the rest, with
+    the outputs of a job that never stopped."""
+    import svolsdf.mvs.cascade as cascade
+
+    whole = tmp_path / "whole"
+    run_mvs(MVSJobConfig(scene=tiny_scene, out=whole, views=[0, 1, 2]))
+    out = tmp_path / "out"
+    real, ran, stop = cascade.run_cascade, [], [True]
+
+    def stop_at_stage_2(backbone, scene, stages, **kw):
+        ran.append(stages)
+        if stages == (2,) and stop[0]:
+            raise KeyboardInterrupt
+        return real(backbone, scene, stages=stages, **kw)
+
+    monkeypatch.setattr(cascade, "run_cascade", stop_at_stage_2)
+    argv = ["mvs", str(tiny_scene), "-o", str(out), "--views", "0", "1", "2"]
+    with pytest.raises(SystemExit) as e:
+        cli_main(argv)
+    assert e.value.code == 130 and "interrupted" in capsys.readouterr().err
+    state = json.loads((out / "mvs" / "stages.json").read_text())
+    assert "stage1" in state and "stage2" not in state and not (out / "mvs.json").exists()
+    stage1 = (out / "mvs" / "stage1" / "1.npz").read_bytes()
+    ran.clear()
+    stop[0] = False
+    cli_main(argv)  # resumed: stage 1 read back
+    assert ran == [(2,), (3,)]
+    assert (out / "mvs" / "stage1" / "1.npz").read_bytes() == stage1
+    for rel in ("depth/1.npy", "confidence/1.npy", "mvs/stage3/1.npz", "points.ply"):
+        assert (out / rel).read_bytes() == (whole / rel).read_bytes(), rel
+    # a stage-1 volume cut short: found by its record, stage 1 and the later ones run again
+    f = out / "mvs" / "stage1" / "0.npz"
+    f.write_bytes(f.read_bytes()[:100])
+    ran.clear()
+    cli_main(argv)
+    assert ran == [(1,), (2,), (3,)]
+    # a changed option runs the stages again
+    ran.clear()
+    cli_main(argv + ["--depth-range", "300,900"])
+    assert ran == [(1,), (2,), (3,)]

@@ -7,8 +7,12 @@ line naming the file and the problem; ``--debug`` shows the traceback instead.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import signal
 import sys
+from typing import NoReturn
 
 try:
     # the console script imports this module before `main` runs, and the commands' imports load
@@ -17,7 +21,7 @@ try:
 
     from svolsdf.cli import results, runs  # noqa: F401  (registers the commands on the app)
     from svolsdf.cli.app import _Stopped, app, build_config
-    from svolsdf.errors import InputError
+    from svolsdf.errors import InputError, interrupted, note_interrupt, watch_interrupts
 except KeyboardInterrupt:
     print("interrupted", file=sys.stderr)
     raise SystemExit(130) from None
@@ -74,15 +78,54 @@ def main(argv: list[str] | None = None) -> None:
     Exit status: 0 done; 1 a benchmark job failed (the other jobs' rows are written, the last
     line names the failed ones); 2 bad input, a bad option, or a file or folder that cannot be
     read or written (one line, ``--debug`` for the traceback); 130 Ctrl-C, 143 SIGTERM (one
-    line; a stopped reconstruction names its stage, and a rerun resumes it).
+    line; a stopped reconstruction names its stage, and a rerun resumes it). As the process's
+    command (``argv`` None: ``python -m svolsdf``, the ``svolsdf`` script) it ends the process
+    itself (`_end_process`).
     """
+    if argv is not None:
+        _guarded(argv)
+        return
     try:
-        _main(argv)
+        _guarded(None)
+    except SystemExit as e:
+        _end_process(e.code)
+    _end_process(0)
+
+
+def _guarded(argv: list[str] | None) -> None:
+    """`_main` with its last guard against Ctrl-C."""
+    try:
+        with watch_interrupts():
+            _main(argv)
     except KeyboardInterrupt:
         # a Ctrl-C that lands outside the command's own handling, as it ends (the run's outputs
         # are written by then): the same one line, not a traceback
         print("interrupted", file=sys.stderr)
         raise SystemExit(130) from None
+
+
+def _end_process(code) -> NoReturn:
+    """End the process with the status of SystemExit's ``code``, without Python's shutdown.
+
+    The command is done and its files are written, but Python's shutdown (torch's and OpenMP's
+    teardown) takes a moment in which a Ctrl-C ends the process killed by SIGINT (status -2) or
+    prints a traceback of whatever it interrupted. Output and log handlers are flushed first; a
+    Ctrl-C meanwhile exits 130 with the one line.
+    """
+    def interrupted_now(signum, frame) -> None:
+        print("interrupted", file=sys.stderr, flush=True)
+        os._exit(130)
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, interrupted_now)
+    if code is not None and not isinstance(code, int):  # SystemExit("message"), as Python does
+        print(code, file=sys.stderr)
+        code = 1
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        logging.shutdown()
+    os._exit(code or 0)
 
 
 def _main(argv: list[str] | None) -> None:
@@ -93,6 +136,7 @@ def _main(argv: list[str] | None) -> None:
 
     def terminate(signum, frame):
         got.append(signum)
+        note_interrupt()
         raise KeyboardInterrupt
 
     try:
@@ -106,6 +150,8 @@ def _main(argv: list[str] | None) -> None:
         print(e, file=sys.stderr)
         raise SystemExit(128 + got[0] if got else 130) from None
     except (InputError, OSError) as e:  # OSError: a missing, unreadable or unwritable path
+        if interrupted():  # an error a library made of the Ctrl-C (errors.py)
+            raise KeyboardInterrupt from None
         if debug:
             raise
         msg = str(e) if not isinstance(e, OSError) or not e.filename else (
@@ -121,6 +167,8 @@ def _main(argv: list[str] | None) -> None:
         print("aborted", file=sys.stderr)
         raise SystemExit(130) from None
     except Exception as e:
+        if interrupted():
+            raise KeyboardInterrupt from None
         # click's usage errors (an unknown option, a bad value): the message, not a traceback.
         # Recognised by their interface: typer >= 0.2x raises its vendored copy of click's
         # classes, older typer the click package's own
@@ -131,6 +179,8 @@ def _main(argv: list[str] | None) -> None:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+    if interrupted() and not code:  # an interrupt that something caught and printed
+        code = 130
     if code == 130:
         print("terminated" if got else "interrupted", file=sys.stderr)
         code = 128 + got[0] if got else 130

@@ -321,7 +321,8 @@ def mvs(
 
     Writes OUT/mvs/stage{1,2,3}/<view>.npz, OUT/depth/<view>.npy (+ PNG; stage-3 z-depth in
     world units at the backbone's MVS size, 2x the working size for the plane sweep),
-    OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json.
+    OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json. A stopped job resumes:
+    the rerun reads back the stages that finished.
     """
     from svolsdf.commands.mvs import MVSJobConfig, run_mvs
     from svolsdf.scene.loaders import scene_folder

@@ -39,7 +39,7 @@ from pathlib import Path
 
 from svolsdf.commands.executors import ExecutorConfig, job_threads
 from svolsdf.config import choices
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, raise_if_interrupted
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
 from svolsdf.io.paths import input_dir, output_dir
 from svolsdf.io.runfolder import RunFolder
@@ -374,6 +374,7 @@ def run_job(job: BenchmarkJob) -> dict:
                "views": job.views, "field": _field_kind(job),
                "threads": torch.get_num_threads()}  # what the job's sums ran on
     except Exception as e:  # one failed run must not lose the others
+        raise_if_interrupted()  # but a Ctrl-C that a library made an error stops them all
         log.error("%s / %s failed: %s", job.label, job.mode, e,
                   exc_info=not isinstance(e, InputError))
         row = failed_row(job, e)

@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, raise_if_interrupted
 
 __all__ = ["EXECUTORS", "ExecutorConfig", "check_executor", "check_ray_address", "job_threads",
            "run_jobs", "run_local", "run_ray"]
@@ -225,6 +225,7 @@ def run_ray(fn: Callable[[Any], dict], jobs: Sequence, on_row: Callable[[int, di
                     try:
                         row = ray.get(ref)
                     except Exception as e:  # the task itself failed: one row, the others go on
+                        raise_if_interrupted()
                         log.error("job %d failed in Ray: %s", i, e)
                         row = on_error(jobs[i], e)
                     on_row(i, row)

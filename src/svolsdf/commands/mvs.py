@@ -14,6 +14,13 @@ and writes under ``out``::
     confidence/<view id>.png         the same as a grey picture
     points.ply                       MVS-only fused point cloud (docs/method.md 6.3, as released)
     mvs.json                         backbone, views, size, depth ranges, timings, fusion stats
+    mvs/stages.json                  the finished stages (`svolsdf.io.runfolder.MVS_STATE`)
+
+Each stage's volumes are written as it finishes and marked in mvs/stages.json with a key of what
+decides them (the backbone's signature, the input images by content, the cameras, size and depth
+ranges) and the size and digest of each file, as `svolsdf reconstruct` marks its stages
+(docs/run-folder.md): a rerun of a stopped or killed job reads the finished stages back and
+computes only the others; a changed option, input or file runs that stage and the later ones.
 
 Depth range: the scene's per-view range (from the file, a dataset rule, or the object sphere; see
 `svolsdf.scene.loaders`), unless ``depth_range`` gives one (near, far) for every view.
@@ -22,6 +29,7 @@ Depth range: the scene's per-view range (from the file, a dataset rule, or the o
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import time
@@ -31,14 +39,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svolsdf.errors import InputError
-from svolsdf.io.runfolder import atomic_write
+from svolsdf.errors import InputError, raise_if_interrupted
+from svolsdf.io.runfolder import MVS_STATE, atomic_write
+from svolsdf.pipeline.rundir import RunDir, is_unreadable_file, one_line
 from svolsdf.scene.scene import Scene
 from svolsdf.scene.size import working_size
 
 __all__ = ["MVSJobConfig", "run_mvs", "mvs_depth_range"]
 
 log = logging.getLogger(__name__)
+
+class _MVSFolder(RunDir):
+    """The output folder of ``svolsdf mvs``: its stage state in mvs/stages.json (a top-level
+    stages.json names a run of svolsdf reconstruct, `svolsdf.scene.checks`)."""
+
+    @property
+    def stages_file(self) -> Path:
+        return self.root / MVS_STATE
 
 
 
@@ -49,7 +66,8 @@ class MVSJobConfig:
     scene: Path
     """Scene folder (any format `svolsdf.scene.loaders.load_scene` reads)."""
     out: Path
-    """Output folder (created; existing files of the same names are replaced)."""
+    """Output folder (created; an earlier job's finished stages there are read back when they
+    match, the other files of the same names replaced)."""
     views: list[int] | None = None
     """Input view ids (default: all views of the scene)."""
     backbone: str = "planesweep"
@@ -96,8 +114,9 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     """
     from svolsdf.io.images import write_depth_preview
     from svolsdf.io.paths import output_dir
-    from svolsdf.mvs.backbone import get_backbone
+    from svolsdf.mvs.backbone import backbone_signature, get_backbone
     from svolsdf.mvs.cascade import run_cascade, save_cascade
+    from svolsdf.pipeline.keys import input_manifest
     from svolsdf.scene.loaders import load_scene
 
     t_start = time.perf_counter()
@@ -122,12 +141,25 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
              cfg.backbone)
 
     timings: dict[str, float] = {"load": t_load}
+    folder = _MVSFolder(out)
+    inputs = {k: e.get("sha1") for k, e in input_manifest(scene).items()}
+    base = [backbone_signature(cfg.backbone, weights=cfg.weights), inputs]
     res = {}
     last = None
     for k in (1, 2, 3):
         t0 = time.perf_counter()
-        res.update(run_cascade(backbone, scene, stages=(k,), prev=last))
-        last = {v.view_id: v for v in res[k]}
+        key = hashlib.sha1(json.dumps([*base, k], sort_keys=True, default=str).encode()
+                           ).hexdigest()[:12]
+        vols = _finished_stage(folder, k, key, scene.view_ids)
+        if vols is None:
+            folder.unmark([f"stage{j}" for j in range(k, 4)])
+            vols = run_cascade(backbone, scene, stages=(k,), prev=last)[k]
+            files = [out / "mvs" / f"stage{k}" / f"{v.view_id}.npz" for v in vols]
+            for v, f in zip(vols, files, strict=True):
+                v.save(f)
+            folder.mark(f"stage{k}", key, outputs=files)
+        res[k] = vols
+        last = {v.view_id: v for v in vols}
         timings[f"stage{k}"] = time.perf_counter() - t0
 
     out.mkdir(parents=True, exist_ok=True)
@@ -141,7 +173,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
             m = None
         write_depth_preview(path, torch.from_numpy(depth), mask=m)
 
-    files = save_cascade(res, out, picture=picture)
+    files = save_cascade(res, out, picture=picture, volumes=False)  # the volumes are saved
     for f in files.values():
         _save_grey_png(f["confidence"].with_suffix(".png"), np.load(f["confidence"]))
     timings["save"] = time.perf_counter() - t0
@@ -171,6 +203,30 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     atomic_write(out / "mvs.json", lambda tmp: tmp.write_text(text))
     log.info("mvs: wrote %s in %.1f s", out, timings["total"])
     return summary
+
+
+def _finished_stage(folder: _MVSFolder, k: int, key: str, views: list[int]) -> list | None:
+    """Stage ``k``'s volumes read back from an earlier run of the job, None when it has not
+    finished under ``key``, a file differs from the one it finished with (OUT/log says which), or
+    cannot be read."""
+    from svolsdf.mvs.volume import ProbabilityVolume
+
+    files = [folder.root / "mvs" / f"stage{k}" / f"{v}.npz" for v in views]
+    if not folder.done(f"stage{k}", key) or not all(f.is_file() for f in files):
+        return None
+    why = folder.changed_output(f"stage{k}")
+    if why is None:
+        try:
+            vols = [ProbabilityVolume.load(f) for f in files]
+            log.info("mvs: stage %d read back from %s", k, files[0].parent)
+            return vols
+        except Exception as e:
+            raise_if_interrupted()
+            if not is_unreadable_file(e):
+                raise
+            why = f"a volume could not be read ({one_line(e)})"
+    log.warning("mvs: stage %d: %s; running it again", k, why)
+    return None
 
 
 def _fuse(scene: Scene, files: dict, path: Path, device: str = "cpu") -> dict:

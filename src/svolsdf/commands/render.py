@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, raise_if_interrupted
 from svolsdf.scene.cameras import Cameras
 
 __all__ = [
@@ -150,6 +150,7 @@ def write_video(frames: list[np.ndarray], stem: Path, fps: int = 20) -> Path:
         log.info("orbit video %s (mp4, %d frames)", path, len(arr))
         return path
     except ImportError:
+        raise_if_interrupted()  # an import that Ctrl-C stopped is no missing imageio-ffmpeg
         path = stem.with_suffix(".gif")
         iio.imwrite(path, arr, extension=".gif", duration=1000.0 / fps, loop=0)
         log.info("orbit video %s (GIF: imageio-ffmpeg is not installed, so no MP4; "
@@ -230,6 +231,10 @@ def render_outputs(
         refuse_in_progress(out)  # not "stopped before it trained the field" while it trains
     p = open_run(out, progress=False)
 
+    changed = p.dir.changed_output("field")
+    if changed is not None:
+        raise InputError(f"{out}: {changed}; run svolsdf reconstruct -o {out} --config "
+                         f"{p.dir.config_file} to train the field again")
     if p.dir.output_provenance(["field"])["field"] == "another config":
         raise InputError(f"{out}: field/model.pt came from an earlier config than "
                          f"{p.dir.config_file} (a rerun with other options stopped before it "

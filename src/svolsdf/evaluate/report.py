@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
+from svolsdf.errors import raise_if_interrupted
 from svolsdf.io.runfolder import RunFolder, atomic_write
 
 __all__ = ["ViewImages", "METRIC_INFO", "write_report"]
@@ -93,6 +94,7 @@ def _file_b64(path: Path) -> str | None:
         with Image.open(path) as im:
             return _png_b64(np.asarray(im.convert("RGB")))
     except Exception as e:  # a broken preview must not break the report
+        raise_if_interrupted()
         log.warning("report: cannot read %s (%s)", path, e)
         return None
 
@@ -304,6 +306,7 @@ def _depth_section(out_dir: Path, view_ids: list[int], gt_depth: dict | None,
         try:
             d = np.load(p).astype(np.float64)
         except Exception as e:
+            raise_if_interrupted()
             log.warning("report: cannot read %s (%s)", p, e)
             continue
         d = d.reshape(d.shape[-2:])

@@ -16,7 +16,7 @@ import numpy as np
 from svolsdf.errors import InputError
 from svolsdf.evaluate.report import ViewImages
 from svolsdf.io.paths import input_file
-from svolsdf.io.runfolder import RunFolder
+from svolsdf.io.runfolder import OUTPUT_STAGES, RunFolder
 
 __all__ = ["chamfer_block", "check_provenance", "check_run_folder", "check_views_rendered",
            "empty_images", "empty_metrics", "finite_or_none", "load_gt_points", "load_renders",
@@ -133,6 +133,11 @@ def check_provenance(run: RunFolder, found: list[str]) -> dict[str, str]:
     names = [n for n in found if n in ("points.ply", "mesh.ply")]
     if any(n.startswith("renders") for n in found):
         names.append("renders")
+    for name in names:  # cut short or replaced since its stage finished: no score for it
+        why = run.changed_output(OUTPUT_STAGES.get(name, name))
+        if why is not None:
+            raise InputError(f"{run.root}: {why}; run svolsdf reconstruct -o {run.root} "
+                             f"--config {run.config_file} to make it again")
     prov = run.output_provenance(names)
     stale = [n for n, v in prov.items() if v == "another config"]
     if stale:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
+from svolsdf.errors import raise_if_interrupted
 from svolsdf.registry import Registry
 from svolsdf.scene.scene import Scene
 
@@ -131,6 +132,7 @@ def run_mesh_method(method: MeshMethod, inputs: MeshInputs
                 raise RuntimeError("no face left after culling")
             return vw, f, cols, method.name
         except (RuntimeError, ValueError, ImportError) as e:
+            raise_if_interrupted()  # a Ctrl-C that pycolmap's import made an error: no fallback
             reason = " ".join(str(e).split())[:200]
             log.warning("mesh: no %s surface of the fused points (%s); the field's zero level "
                         "instead", method.name, reason)

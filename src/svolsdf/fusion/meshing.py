@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from svolsdf.errors import raise_if_interrupted
 from svolsdf.scene.scene import Scene
 
 __all__ = ["MeshCleanup", "clean_mesh", "field_mesh", "field_mesh_colours", "fill_small_holes",
@@ -98,6 +99,7 @@ def field_mesh_colours(model, v: Tensor, faces: Tensor, device=None) -> Tensor |
     try:
         return colors_from_fn(v, vertex_normals(v, faces), model_colour_fn(model), device=device)
     except Exception as e:  # colours are a convenience
+        raise_if_interrupted()
         log.warning("mesh colours failed: %s", e)
         return None
 

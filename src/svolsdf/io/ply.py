@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from svolsdf.errors import InputError
+from svolsdf.errors import InputError, raise_if_interrupted
 
 __all__ = ["atomic_path", "read_ply", "write_mesh_ply", "write_obj", "write_points_ply"]
 
@@ -181,6 +181,7 @@ def _read_plydata(path: Path) -> PlyData:
         try:
             ply = PlyData.read(str(path), known_list_len={"face": {key: 3}})
         except Exception:  # not all triangles, another property name, an ASCII file, ...
+            raise_if_interrupted()
             continue
         if "face" not in [el.name for el in ply.elements] or key in (
                 ply["face"].data.dtype.names or ()):

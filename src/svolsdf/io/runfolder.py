@@ -28,10 +28,10 @@ from pathlib import Path
 
 from svolsdf.errors import InputError
 
-__all__ = ["LOCK_NAME", "MVS_NAMES", "OUTPUT_STAGES", "RUN_NAMES", "RunFolder", "RunViews",
-           "atomic_write", "config_digest", "folder_lock", "foreign_names", "lock_holder",
-           "mesh_source",
-           "output_provenance", "read_stage_state", "refuse_in_progress", "unique_temp"]
+__all__ = ["LOCK_NAME", "MVS_NAMES", "MVS_STATE", "OUTPUT_STAGES", "RUN_NAMES", "RunFolder",
+           "RunViews", "atomic_write", "config_digest", "file_record", "folder_lock",
+           "foreign_names", "lock_holder", "mesh_source", "output_provenance", "read_stage_state",
+           "refuse_in_progress", "unique_temp"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,10 @@ is no run."""
 
 MVS_NAMES = frozenset({"mvs", "depth", "confidence", "points.ply", "mvs.json", LOCK_NAME})
 """The names at the top of an output folder of ``svolsdf mvs`` (`svolsdf.commands.mvs`)."""
+
+MVS_STATE = "mvs/stages.json"
+"""Where an output folder of ``svolsdf mvs`` records its finished stages (a stages.json at the
+top names a run of ``svolsdf reconstruct``)."""
 
 #: files a desktop leaves in any folder it shows: not the user's data
 _SYSTEM_FILES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
@@ -85,7 +89,8 @@ class RunFolder:
     - ``config.yaml``, ``views.json`` (inputs, test views, working size, scene), ``stages.json``
       (stage -> key of the config it finished under; "provenance": stage -> the key of its
       inputs and the digest of the config.yaml it finished or was last reused under;
-      "manifest": the input files, `svolsdf.pipeline.keys.input_manifest`), ``timing.json``,
+      "manifest": the input files, `svolsdf.pipeline.keys.input_manifest`; "outputs": stage ->
+      {file: `file_record`} of the files it wrote when it finished), ``timing.json``,
       ``log``, ``.svolsdf.lock`` (`folder_lock`: every command that writes here);
     - ``mvs/stage1/<id>.npz`` (stages 2-3 too with ``mvs.save_volumes``), ``depth/<id>.npy``
       (+ .png), ``confidence/<id>.npy``;
@@ -196,6 +201,21 @@ class RunFolder:
         """{view: folder/<view><suffix>}."""
         return {v: folder / f"{v}{suffix}" for v in views}
 
+    def stage_outputs(self, stage: str, views: Sequence[int]) -> list[Path]:
+        """The files of this folder that ``stage`` of `svolsdf.pipeline` writes for the input
+        ``views`` and that exist (what its finished marker records, `file_record`): mvs1 the
+        stage-1 volumes, field model.pt, guide the rendered depth, mvs23 the final depth and
+        confidence (and the stage-2/3 volumes of ``mvs.save_volumes``), unguided its depth and
+        confidence, fusion points.ply; [] for another name (the mesh stage names its file)."""
+        per_view = {"mvs1": ["mvs/stage1/{}.npz"], "guide": ["field/render_depth/{}.npy"],
+                    "mvs23": ["depth/{}.npy", "confidence/{}.npy", "mvs/stage2/{}.npz",
+                              "mvs/stage3/{}.npz"],
+                    "unguided": ["unguided/depth/{}.npy", "unguided/confidence/{}.npy"]}
+        whole = {"field": [self.model], "fusion": [self.points]}
+        files = whole.get(stage) or [self.root / f.format(v) for f in per_view.get(stage, [])
+                                     for v in views]
+        return [f for f in files if f.is_file()]
+
     # ------------------------------------------------------------------ what it holds
     def is_run(self) -> bool:
         """A reconstruct wrote config.yaml and views.json here."""
@@ -259,6 +279,24 @@ class RunFolder:
     def stage_state(self) -> dict:
         """OUT/stages.json as a dict ({} when missing or unreadable, `read_stage_state`)."""
         return read_stage_state(self.root)
+
+    def changed_output(self, stage: str) -> str | None:
+        """How a file that ``stage`` recorded when it finished (`svolsdf.pipeline.RunDir.mark`)
+        differs from it now: missing,
+        of another size, or of another content (a truncated or replaced file); None when all
+        match or none is recorded (a folder made before the record)."""
+        rec = (_json_object(self.stages_file) or {}).get("outputs")
+        rec = rec.get(stage) if isinstance(rec, dict) else None
+        for name, was in (rec.items() if isinstance(rec, dict) else ()):
+            f = self.root / name
+            if not f.is_file():
+                return f"{f} is missing"
+            now = file_record(f)
+            if isinstance(was, dict) and was.get("size") not in (None, now["size"]):
+                return f"{f} has {now['size']} bytes, {was['size']} when the stage finished"
+            if isinstance(was, dict) and was.get("blake2b") not in (None, now["blake2b"]):
+                return f"{f} changed since the stage finished (another blake2b digest)"
+        return None
 
     def output_provenance(self, outputs: list[str]) -> dict[str, str]:
         """Whether config.yaml made each of ``outputs`` (`output_provenance`)."""
@@ -452,6 +490,19 @@ def atomic_write(path: str | Path, write: Callable[[Path], None], suffix: str = 
 
 
 # --------------------------------------------------------------------------- provenance
+def file_record(path: str | Path) -> dict:
+    """{"size": bytes, "blake2b": 32-hex digest of the content} of a file, as a stage's finished
+    marker records each file it wrote, so that a rerun notices a truncated or replaced output
+    (docs/run-folder.md "Finished outputs are checked")."""
+    h = hashlib.blake2b(digest_size=16)
+    size = 0
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+            size += len(chunk)
+    return {"size": size, "blake2b": h.hexdigest()}
+
+
 def config_digest(path: str | Path) -> str | None:
     """12-hex digest of a config.yaml's values (comments and layout do not count); None when the
     file is missing or is not YAML."""

@@ -29,6 +29,7 @@ from torch import Tensor
 from torch.profiler import record_function
 
 from svolsdf.config import TrainConfig
+from svolsdf.errors import raise_if_interrupted
 from svolsdf.field.base import SurfaceModel
 from svolsdf.optimize import losses as L
 from svolsdf.optimize.modes import ABLATIONS, supervised_by_mvs_depth, uses_prior
@@ -514,4 +515,5 @@ class Trainer:
             fig.savefig(self.out_dir / "losses.png", dpi=80)
             plt.close(fig)
         except Exception as e:  # plotting is a convenience; never fail a run on it
+            raise_if_interrupted()
             log.debug("loss plot failed: %s", e)

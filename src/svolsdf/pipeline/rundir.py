@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svolsdf.io.runfolder import RunFolder, atomic_write, folder_lock
+from svolsdf.io.runfolder import RunFolder, atomic_write, file_record, folder_lock
 
 __all__ = ["UNREADABLE_FILE_ERRORS", "RunDir", "is_unreadable_file", "save_json", "save_npy",
            "save_torch"]
@@ -97,8 +97,8 @@ class RunDir(RunFolder):
 
     # ------------------------------------------------------------------ stage state
     def state(self) -> dict:
-        """OUT/stages.json: {stage: key, "provenance": {...}, "manifest": {...}}; {} (with one
-        warning) when it is unreadable."""
+        """OUT/stages.json: {stage: key, "provenance": {...}, "manifest": {...}, "outputs":
+        {...}}; {} (with one warning) when it is unreadable."""
         p = self.stages_file
         if not p.is_file():
             return {}
@@ -114,15 +114,22 @@ class RunDir(RunFolder):
         return {}
 
     def mark(self, stage: str, key: str, inputs: str | None = None,
-             config: str | None = None) -> None:
-        """Record ``stage`` as finished under ``key``, with the key of its ``inputs`` and the
-        digest of the ``config`` (config.yaml) that made it, when given."""
+             config: str | None = None, outputs: Sequence[Path] | None = None) -> None:
+        """Record ``stage`` as finished under ``key``, with the key of its ``inputs``, the
+        digest of the ``config`` (config.yaml) that made it and the size and digest of each of
+        its ``outputs`` files (`svolsdf.io.runfolder.file_record`; `RunFolder.changed_output`
+        compares them), when given."""
         st = self.state()
         st[stage] = key
         if inputs is not None or config is not None:
             prov = st.get("provenance") if isinstance(st.get("provenance"), dict) else {}
             prov[stage] = {"inputs": inputs, "config": config}
             st["provenance"] = prov
+        if outputs is not None:
+            rec = st.get("outputs") if isinstance(st.get("outputs"), dict) else {}
+            rec[stage] = {Path(f).relative_to(self.root).as_posix(): file_record(f)
+                          for f in outputs}
+            st["outputs"] = rec
         save_json(self.stages_file, st)
 
     def record(self, output: str, config: str | None) -> None:
@@ -152,8 +159,9 @@ class RunDir(RunFolder):
     def unmark(self, stages: Sequence[str]) -> None:
         """Forget ``stages`` (their files no longer follow from earlier ones)."""
         st = {k: v for k, v in self.state().items() if k not in stages}
-        if isinstance(st.get("provenance"), dict):
-            st["provenance"] = {k: v for k, v in st["provenance"].items() if k not in stages}
+        for part in ("provenance", "outputs"):
+            if isinstance(st.get(part), dict):
+                st[part] = {k: v for k, v in st[part].items() if k not in stages}
         save_json(self.stages_file, st)
 
     def done(self, stage: str, key: str) -> bool:

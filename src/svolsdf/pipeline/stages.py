@@ -27,43 +27,35 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 import torch
 
 from svolsdf.config import Config, save_config, validate_config
-from svolsdf.errors import InputError, RunInterrupted
+from svolsdf.errors import (
+    InputError,
+    RunInterrupted,
+    interrupted,
+    raise_if_interrupted,
+    watch_interrupts,
+)
 from svolsdf.io.paths import user_path
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline import builders, options
 from svolsdf.pipeline.context import GuideRender
-from svolsdf.pipeline.keys import STAGES, describe_changes, input_keys, input_manifest
+from svolsdf.pipeline.keys import describe_changes, input_keys, input_manifest
 from svolsdf.pipeline.loaded_run import Run, load_model
-from svolsdf.pipeline.machine import peak_rss_gb, set_threads
-from svolsdf.pipeline.rundir import is_unreadable_file, one_line, save_npy, save_torch
+from svolsdf.pipeline.machine import set_threads
+from svolsdf.pipeline.records import StageRecords, load_maps
+from svolsdf.pipeline.rundir import one_line, save_npy, save_torch
 
 __all__ = ["Pipeline"]
 
 # the run's messages in OUT/log keep the logger name they always had
 log = logging.getLogger("svolsdf.pipeline")
 
-T = TypeVar("T")
-
-
-def _load_map(path: Path) -> torch.Tensor:
-    """The (H, W) map of an .npy file."""
-    return torch.from_numpy(np.load(path))
-
-
-def _load_maps(files: dict[int, Path]) -> dict[int, torch.Tensor]:
-    """{view: (H, W) map} from .npy files."""
-    return {v: _load_map(f) for v, f in files.items()}
-
-
-class Pipeline(Run):
+class Pipeline(StageRecords, Run):
     """Runs a `Config` into an output folder.
 
     Args:
@@ -90,95 +82,6 @@ class Pipeline(Run):
         self._logged: set[str] = set()  # the stages whose reuse or rerun OUT/log explained
         self._reruns: dict[str, str] = {}  # stage -> the file that could not be read, and why
 
-    # ------------------------------------------------------------------ bookkeeping
-    def _reuse(self, stage: str, files: list[Path], read: Callable[[Path], T],
-               discard: bool = False) -> list[T] | None:
-        """``[read(f) for f in files]``, the files of a finished (or, for the field, started)
-        ``stage``; None when one cannot be read: a warning in OUT/log names it and why, the
-        stage and the later ones run again, the stage's entry in timing.json says so
-        (``rerun``), and with ``discard`` the file is deleted.
-
-        Only what a truncated, corrupt or older file raises counts as unreadable
-        (`svolsdf.pipeline.rundir.is_unreadable_file`; and `InputError`, which `load_model`
-        raises for such a file): any other exception is a bug of the loader and propagates.
-        """
-        out = []
-        for f in files:
-            try:
-                out.append(read(f))
-            except Exception as e:
-                if not (isinstance(e, InputError) or is_unreadable_file(e)):
-                    raise
-                why = f"{f} could not be read ({one_line(e)})"
-                self._reruns[stage] = why
-                log.warning("%s: %s; %srunning the stage %s again", self.out, why,
-                            "discarding it and " if discard else "", stage)
-                if discard:
-                    f.unlink(missing_ok=True)
-                self.dir.unmark(STAGES[STAGES.index(stage):])
-                return None
-        return out
-
-    def _reuse_maps(self, stage: str, files: dict[int, Path]) -> dict[int, torch.Tensor] | None:
-        """{view: (H, W) map} of a finished ``stage``'s .npy files, None when one cannot be read
-        (`_reuse`)."""
-        maps = self._reuse(stage, list(files.values()), _load_map)
-        return None if maps is None else dict(zip(files, maps, strict=True))
-
-    def _mark(self, stage: str) -> None:
-        self.dir.mark(stage, self.keys[stage], **self._provenance(stage))
-
-    def _provenance(self, stage: str) -> dict:
-        """The inputs key and config digest a finished ``stage`` records (none outside run)."""
-        if self.input_keys is None:
-            return {}
-        base = "field" if stage == "field_partial" else stage
-        return {"inputs": self.input_keys[base], "config": self._config_digest}
-
-    def _done(self, stage: str) -> bool:
-        return self._inputs_unchanged(stage, stage)
-
-    def _inputs_unchanged(self, stage: str, marker: str) -> bool:
-        """``marker`` (``stage`` or field_partial) is recorded under the stage's key, and its
-        inputs are the current ones. A marker without an inputs record (a run folder made before
-        they were recorded) is kept, with a line in OUT/log."""
-        if not self.dir.done(marker, self.keys[stage]):
-            return False
-        if self.input_keys is None:
-            return True
-        rec = self.dir.provenance(marker).get("inputs")
-        if rec is None:
-            if "unknown" not in self._logged:
-                self._logged.add("unknown")
-                log.info("%s: stages finished before their inputs were recorded are kept as "
-                         "finished (whether the scene's files changed since is unknown; delete "
-                         "%s to compute them again)", self.out, self.dir.stages_file)
-            return True
-        if rec == self.input_keys[stage]:
-            return True
-        if stage not in self._logged:
-            self._logged.add(stage)
-            what = "; ".join(self._input_changes) or "the scene's files"
-            log.info("stage %s: its inputs changed since it finished (%s); running it again",
-                     stage, what)
-        return False
-
-    def _adopt(self, stage: str) -> None:
-        """Record the current inputs and config.yaml for ``stage`` when it finished (or was
-        reused) under them, so that its outputs name the config that stands for them."""
-        if self.input_keys is None or not self.dir.done(stage, self.keys[stage]):
-            return
-        if self.dir.provenance(stage) != self._provenance(stage):
-            self._mark(stage)
-
-    def _time(self, stage: str, t0: float, **extra) -> None:
-        """Record ``stage``'s time, peak memory and ``extra`` in OUT/timing.json, with why it ran
-        again (``rerun``) when its earlier file could not be read (`_reuse`)."""
-        rerun = {"rerun": self._reruns.pop(stage)} if stage in self._reruns else {}
-        self.timing[stage] = {"seconds": round(time.perf_counter() - t0, 3),
-                              "peak_memory_gb": round(peak_rss_gb(), 3), **extra, **rerun}
-        self.dir.write_timing(self.timing)
-
     def model(self):
         """The fitted field (runs the field stage when it has not run in this process)."""
         if self._model is None:
@@ -200,23 +103,24 @@ class Pipeline(Run):
         self._check_options()
         new = not self.out.exists()
         output_dir(self.out)
-        with self.dir.lock():
+        with self.dir.lock(), watch_interrupts():
             handler = self.dir.attach_log()
             finished = False
             try:
                 res = self._run(t_all)
+                raise_if_interrupted()  # one that something swallowed: still status 130
                 finished = True
                 return res
-            except KeyboardInterrupt:
-                msg = self._interrupt_message()
-                self.dir.log_to_file(log, logging.WARNING, msg)
-                raise RunInterrupted(msg) from None
-            except InputError as e:  # the command line prints it; OUT/log keeps it too
-                self.dir.log_to_file(log, logging.ERROR, f"error: {e}")
-                raise
-            except Exception as e:
-                self.dir.log_to_file(log, logging.ERROR, f"failed in stage {self._stage}: "
-                                     f"{one_line(e)}", exc_info=True)
+            except BaseException as e:
+                # an error a library made of the Ctrl-C counts as the Ctrl-C (svolsdf.errors)
+                if isinstance(e, KeyboardInterrupt) or interrupted():
+                    msg = self._interrupt_message()
+                    self.dir.log_to_file(log, logging.WARNING, msg)
+                    raise RunInterrupted(msg) from None
+                if isinstance(e, Exception):  # the command line prints an InputError
+                    self.dir.log_to_file(log, logging.ERROR, f"error: {e}" if isinstance(
+                        e, InputError) else f"failed in stage {self._stage}: {one_line(e)}",
+                        exc_info=not isinstance(e, InputError))
                 raise
             finally:
                 if handler is not None:  # this run's OUT/log only gets this run's messages
@@ -257,6 +161,9 @@ class Pipeline(Run):
 
     def _interrupt_message(self) -> str:
         msg = f"interrupted: stage {self._stage} stopped"
+        keys = self.keys or {}
+        if self._stage in keys and self.dir.done(self._stage, keys[self._stage]):
+            msg = f"interrupted after stage {self._stage} finished"  # between two stages
         t, resumes = self._trainer, ""
         if self._stage == "field" and t is not None:
             msg += f" at step {t.step} of {self.cfg.train.steps}"
@@ -446,7 +353,7 @@ class Pipeline(Run):
         missing = [str(f) for f in files.values() if not f.is_file()]
         if missing:
             raise RuntimeError(f"the guide stage has not run: {missing[0]} is missing")
-        return _load_maps(files)
+        return load_maps(files)
 
     def render_guide(self, previews: bool = False) -> GuideRender:
         """The field's rendered z-depth (world) of each input view, with docs/method.md 6.1's rule
@@ -499,8 +406,9 @@ class Pipeline(Run):
             if guide is None and self._volumes1 is None:
                 stages = (1, 2, 3)
             earlier = {1: self._volumes1} if self._volumes1 is not None else None
-            # stages 2-3's volumes only on request (mvs.save_volumes): nothing reads them again
-            keep = (1, 2, 3) if self.cfg.mvs.save_volumes else (1,) if 1 in stages else ()
+            # stages 2-3's volumes only on request (mvs.save_volumes): nothing reads them again;
+            # stage 1's only when run here (the mvs1 stage's files are its own, with its record)
+            keep = tuple(k for k in stages if k == 1 or self.cfg.mvs.save_volumes)
             if self.cfg.mvs.finer_stage_optimization and guide is not None:
                 from svolsdf.pipeline.finer import finer_stage_cascade
 
@@ -595,6 +503,6 @@ class Pipeline(Run):
 
         vw, f, cols, info = build_mesh(self)
         save_mesh(path, vw, f, cols, fmt=self.cfg.mesh.format)
-        self._mark("mesh")
+        self._mark("mesh", [path])
         self._time("mesh", t0, vertices=int(len(vw)), faces=int(len(f)), **info)
         return path

@@ -156,7 +156,7 @@ def check_output_folder(out: str | Path, scene: str | Path | None, command: str)
     Raises:
         SceneError: one line naming the folder and why.
     """
-    from svolsdf.io.runfolder import MVS_NAMES, RUN_NAMES, RunFolder, foreign_names
+    from svolsdf.io.runfolder import MVS_NAMES, MVS_STATE, RUN_NAMES, RunFolder, foreign_names
 
     out = Path(out)
     check_outside_scenes(out, [] if scene is None else [scene])
@@ -167,14 +167,15 @@ def check_output_folder(out: str | Path, scene: str | Path | None, command: str)
         raise SceneError(f"-o {out}: that folder is a run of svolsdf reconstruct "
                          f"({run_files[0]}); svolsdf mvs would replace its points.ply and depth/: "
                          "choose another output folder")
-    if command == "svolsdf reconstruct" and (out / "mvs.json").is_file() and not run_files:
+    mvs_output = (out / "mvs.json").is_file() or (out / MVS_STATE).is_file()
+    if command == "svolsdf reconstruct" and mvs_output and not run_files:
         raise SceneError(f"-o {out}: that folder holds the output of svolsdf mvs (mvs.json); "
                          "choose another output folder")
     # a run of this command (resumed or replaced) is recognised by its bookkeeping file; a folder
     # without one must hold nothing but what the command writes (a run stopped before writing
     # it, or a new folder), never files of the user's that the run would mix with its own
     if command == "svolsdf mvs":
-        own, mine, again = MVS_NAMES, (out / "mvs.json").is_file(), "replace that earlier output"
+        own, mine, again = MVS_NAMES, mvs_output, "resume or replace that earlier output"
     else:
         own, mine, again = RUN_NAMES, RunFolder(out).is_run(), "resume that earlier run"
     try:
