@@ -232,3 +232,43 @@ def test_empty_foreground_shows_the_sphere_map():
     out = render_rays(empty, rays, z, background=bg, create_graph=False)
     torch.testing.assert_close(out.rgb, torch.full_like(out.rgb, float(torch.sigmoid(
         torch.tensor(1.0)))), atol=1e-4, rtol=0)
+
+
+# --------------------------------------------------------------------------- colour steps
+def test_colour_steps_train_only_the_colour_and_give_the_model_back_whole(tmp_path):
+    torch.manual_seed(0)
+    model = GridSDFField(torch.tensor([[-0.8] * 3, [0.8] * 3]),
+                         GridFieldConfig(resolution=8, sphere_clamp_scale=None))
+    model.background = SphereMapBackground(R_SPHERE)
+    cfg = TrainConfig(mode="volsdf", steps=2, rays=16, colour_steps=3, colour_rays=32,
+                      checkpoint_every=0)
+    tr = Trainer(model, _data(), cfg,
+                 sampler=MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=8, n_uniform=4,
+                                                                    n_fine=4)),
+                 out_dir=tmp_path)
+    tr.fit(steps=2, progress=False)
+    sdf, beta = model.sdf_grid.detach().clone(), model.laplace.beta_param.detach().clone() \
+        if hasattr(model.laplace, "beta_param") else None
+    feats = [g.detach().clone() for g in model.feature_grids]
+    tr.fit(progress=False)  # the colour steps: 2 -> 5
+    assert tr.step == 5 and "colour_rgb" in tr.history[-1]
+    assert torch.equal(model.sdf_grid.detach(), sdf)  # the surface did not move
+    if beta is not None:
+        assert torch.equal(model.laplace.beta_param.detach(), beta)
+    assert any(not torch.equal(a, g.detach()) for a, g in zip(feats, model.feature_grids,
+                                                              strict=True))
+    assert all(p.requires_grad for p in model.parameters())  # given back trainable
+
+
+def test_colour_steps_are_refused_for_the_mlp_field():
+    from svolsdf.config import validate_config
+    from svolsdf.errors import InputError
+
+    cfg = preset("paper")
+    cfg.train.colour_steps = 10
+    try:
+        validate_config(cfg)
+    except InputError as e:
+        assert "train.colour_steps" in str(e)
+    else:
+        raise AssertionError("colour_steps with the MLP field was accepted")

@@ -189,6 +189,16 @@ class TrainConfig:
     uniform). Scenes without masks ignore it. No preset sets it."""
     object_ray_dilation: int = _limited(12, min=0)
     """Dilation in pixels (working size) of the masks for ``object_ray_fraction``."""
+    colour_steps: int = _limited(0, min=0)
+    """Steps after ``steps`` in which only the colour trains (the feature grids, the colour
+    network and the background), the surface frozen: no SDF gradient, eikonal or prior, so a
+    ray costs a fraction of a full step's. Grid field only; 0 = none, as the paper
+    (docs/novel-views.md)."""
+    colour_rays: int = _limited(2048, min=1)
+    """Rays per colour step (``colour_steps``)."""
+    colour_object_fraction: float = _limited(0.5, min=0, max=1)
+    """Share of each colour step's rays drawn inside the view's object mask (dilated by
+    ``object_ray_dilation`` px); scenes without masks draw every ray uniformly."""
     lr: float = _limited(5e-4, min=0)
     """Adam learning rate for networks (constant, docs/method.md 4.6)."""
     lr_grid: float = _limited(1e-2, min=0)

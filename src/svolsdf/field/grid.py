@@ -296,6 +296,13 @@ class GridSDFField(SurfaceModel):
             {"params": rest, "lr": lr_mlp, "name": "mlp"},
         ]
 
+    def colour_parameters(self) -> list[nn.Parameter]:
+        """The parameters of the colour alone: the feature grids, the colour network and the
+        background's (`svolsdf.optimize.trainer.Trainer`'s colour steps train only these)."""
+        bg = getattr(self, "background", None)
+        return [*self.feature_grids, *self.colour_net.parameters(),
+                *(bg.parameters() if bg is not None else [])]
+
     def recycle_grads(self) -> None:
         """Clear the feature grids' gradients (``.grad = None``), keeping their memory for the
         next backward (`grid_ops.GradBuffers`). For an optimizer loop that clears the gradients

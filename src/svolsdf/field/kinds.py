@@ -239,6 +239,10 @@ def check_mlp(f, t, from_sphere: bool) -> Refusal | None:
         return ("field.kind", f.kind, *bad, "the MLP's skip connection enters gamma(x) (39 "
                 "values) again at layer 4, which must be a hidden layer for the sphere start: "
                 "give field.mlp_depth >= 5 and field.mlp_width >= 40")
+    if t.colour_steps > 0:
+        return ("train.colour_steps", t.colour_steps, "field.kind", f.kind,
+                "the colour steps train a grid field's colour features alone; the MLP's "
+                "colour and surface share one network: use field.kind=grid or colour_steps=0")
     if f.init == "mvs" and t.mode == "svolsdf":
         return ("field.kind", f.kind, "field.init", f.init,
                 "only the grid field starts from the MVS surface; the MLP starts from VolSDF's "

@@ -113,7 +113,10 @@ class Trainer:
         self.V, self.H, self.W = V, H, W
         # pixel indices (into H*W) of each view's focus region, padded: (V, max count), (V,)
         self.focus_index = self.focus_count = None
-        if data.focus is not None and cfg.object_ray_fraction > 0:
+        if cfg.colour_steps > 0 and not callable(getattr(model, "colour_parameters", None)):
+            raise ValueError("train.colour_steps needs a field whose colour trains alone "
+                             "(colour_parameters: the grid field)")
+        if data.focus is not None and (cfg.object_ray_fraction > 0 or cfg.colour_steps > 0):
             if tuple(data.focus.shape) != (V, H, W):
                 raise ValueError(f"TrainData.focus is {tuple(data.focus.shape)}, expected "
                                  f"{(V, H, W)}")
@@ -184,8 +187,10 @@ class Trainer:
                 log.info("grid grown to %d at step %d", res, self.step)
 
     # ------------------------------------------------------------------ rays
-    def sample_rays(self, n: int) -> tuple[RayBundle, Tensor, Tensor]:
-        """n random pixels of one random view (docs/method.md 4.6), drawn on the device.
+    def sample_rays(self, n: int, focus_share: float | None = None
+                    ) -> tuple[RayBundle, Tensor, Tensor]:
+        """n random pixels of one random view (docs/method.md 4.6), drawn on the device; a share
+        ``focus_share`` (default ``object_ray_fraction``) inside the view's focus region.
 
         Returns:
             rays (R,), pixel index (R,) long into H*W, view index (1,) long (a 1-element
@@ -194,7 +199,8 @@ class Trainer:
         t = torch.randint(self.V, (1,), generator=self.generator, device=self.device)
         n_focus = 0
         if self.focus_index is not None:
-            n_focus = min(n, int(round(self.cfg.object_ray_fraction * n)))
+            share = self.cfg.object_ray_fraction if focus_share is None else focus_share
+            n_focus = min(n, int(round(share * n)))
         if self.host_branch:  # (unique's size is read on the host)
             pix = distinct_pixels(self.H * self.W, n - n_focus, self.generator, self.device)
         else:
@@ -337,8 +343,32 @@ class Trainer:
         lap.beta_param.requires_grad_(False)
         lap.beta_param.data.fill_(max(beta - lap.beta_min, 0.0))
 
+    def colour_losses(self) -> dict[str, Tensor]:
+        """One batch of a colour step (``train.colour_steps``): ``colour_rays`` rays, a share
+        ``colour_object_fraction`` in the object, the frozen surface's weights and the colour's
+        L1 loss (docs/method.md 4.1); no eikonal, prior or sparsity term."""
+        cfg = self.cfg
+        rays, pix, t = self.sample_rays(cfg.colour_rays, cfg.colour_object_fraction)
+        with torch.no_grad():
+            s = self.sampler(self.model, rays, training=False)
+        out = render_rays(self.model, rays, s.z, background=self.background, create_graph=False,
+                          colour_min_weight=max(cfg.colour_min_weight, 1e-4))
+        target = self.images[t].reshape(3, -1)[:, pix].T
+        rgb = L.rgb_l1_loss(out.rgb, target)
+        psnr = -10.0 * torch.log10(((out.rgb.detach() - target) ** 2).mean() + 1e-10)
+        return {"colour_rgb": rgb, "total": cfg.rgb_weight * rgb, "psnr": psnr}
+
+    def _freeze_surface(self, frozen: bool) -> None:
+        """Colour steps: only `colour_parameters` keep ``requires_grad`` (``frozen``), or every
+        parameter again (the model leaves the trainer as it came)."""
+        keep = {id(p) for p in self.model.colour_parameters()} if frozen else None
+        for p in self.model.parameters():
+            p.requires_grad_(keep is None or id(p) in keep)
+        self._surface_frozen = frozen
+
     def train_step(self) -> dict[str, Tensor]:
-        """One optimization step; returns the (detached) loss terms."""
+        """One optimization step; returns the (detached) loss terms. Steps from ``steps`` on
+        are colour steps (`colour_losses`)."""
         with record_function("svolsdf.train_step"):
             self._maybe_grow_grid()
             self._anneal_beta()
@@ -347,7 +377,10 @@ class Trainer:
             if recycle is not None:  # the grid field reuses its dense gradients' memory
                 recycle()
             self.optimizer.zero_grad(set_to_none=True)
-            terms = self.losses()
+            colour = self.cfg.colour_steps > 0 and self.step >= self.cfg.steps
+            if colour != getattr(self, "_surface_frozen", False):
+                self._freeze_surface(colour)
+            terms = self.colour_losses() if colour else self.losses()
             with record_function("svolsdf.backward"):
                 terms["total"].backward()
             params = [p for p in self.model.parameters() if p.grad is not None]
@@ -389,10 +422,11 @@ class Trainer:
     # ------------------------------------------------------------------ loop
     def fit(self, steps: int | None = None, progress: bool = True, log_every: int = 10,
             on_checkpoint=None) -> list[dict]:
-        """Run until ``steps`` (default cfg.steps) total steps, checkpointing as configured."""
+        """Run until ``steps`` (default cfg.steps + cfg.colour_steps) total steps,
+        checkpointing as configured."""
         from tqdm.auto import tqdm
 
-        steps = self.cfg.steps if steps is None else steps
+        steps = self.cfg.steps + self.cfg.colour_steps if steps is None else steps
         bar = tqdm(total=steps, initial=self.step, disable=not progress, desc="optimize",
                    dynamic_ncols=True)
         t0 = time.perf_counter()
@@ -427,6 +461,8 @@ class Trainer:
             raise
         finally:
             bar.close()
+            if getattr(self, "_surface_frozen", False):
+                self._freeze_surface(False)
             if self.out_dir is not None:  # Ctrl-C: the CSV, not seconds of plotting
                 self.write_log(plot=not stopped)
         return self.history

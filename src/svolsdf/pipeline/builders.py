@@ -143,11 +143,13 @@ def unit_near_far(scene: Scene) -> torch.Tensor:
 def build_train_data(cfg: Config, scene: Scene, mvs_depth: torch.Tensor | None = None):
     """The field stage's `TrainData`: images (V, 3, H, W), unit-frame cameras, near/far,
     ``mvs_depth`` (V, H, W) unit-frame depth of the ablations, and with
-    ``train.object_ray_fraction`` the object masks dilated by ``train.object_ray_dilation``."""
+    ``train.object_ray_fraction`` or ``train.colour_steps`` the object masks dilated by
+    ``train.object_ray_dilation``."""
     from svolsdf.optimize.trainer import TrainData
 
     focus = None
-    if cfg.train.object_ray_fraction > 0 and scene.masks is not None and cfg.scene.use_masks:
+    wants = cfg.train.object_ray_fraction > 0 or cfg.train.colour_steps > 0
+    if wants and scene.masks is not None and cfg.scene.use_masks:
         from svolsdf.geometry import dilate_mask
 
         r = cfg.train.object_ray_dilation

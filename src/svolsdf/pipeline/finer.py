@@ -41,7 +41,7 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
     model = p.model()
     t = p.cfg.train
     # continue at the end of the stage-1 schedule: fixed final beta, no warm-up
-    t2 = replace(t, steps=max(1, t.steps // 5), anneal_rgb=0,
+    t2 = replace(t, steps=max(1, t.steps // 5), anneal_rgb=0, colour_steps=0,
                  beta_start=t.beta_end if t.beta_start > 0 else 0.0)
     prior2 = MVSPrior(res2[2], scene.normalization, device=p.device)
     trainer = Trainer(model, p.train_data(), t2, prior=prior2,

@@ -101,6 +101,11 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     for k in ("colour_min_weight", "prior_floor"):
         if not (c["train"].get(k) and has_field(cfg)):
             c["train"].pop(k, None)
+    # the colour phase's options enter only with train.colour_steps > 0: run folders from
+    # before them keep their keys
+    if not c["train"].get("colour_steps"):
+        for k in ("colour_steps", "colour_rays", "colour_object_fraction"):
+            c["train"].pop(k, None)
     # ditto train.prior_sources: only "selected", with a field
     if not (c["train"].get("prior_sources") == "selected" and has_field(cfg)):
         c["train"].pop("prior_sources", None)
@@ -109,7 +114,8 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     if not (cfg.field.background and cfg.field.background_model != "nerf++"):
         c["field"].pop("background_model", None)
     no_masks = [] if cfg.scene.use_masks else ["no masks"]
-    reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0)
+    reads_masks = has_field(cfg) and (field_from_mvs(cfg) or cfg.train.object_ray_fraction > 0
+                                      or cfg.train.colour_steps > 0)
     k_field = _hash(k_mvs1, c["field"], c["train"], c["preset"],
                     *(no_masks if reads_masks else []))
     # guide_mask_dilation enters only when set, so runs that render every pixel keep the
