@@ -169,6 +169,39 @@ def measure_run(out: Path, work: Path, threshold: float, pictures: Path | None) 
     return res
 
 
+def run_facts(out: Path) -> dict:
+    """What a run folder says of itself, without rendering: the options that tell the variants
+    apart, the guide stage's field PSNR on the inputs (inside the masks, timing.json), the field
+    stage's and the whole run's seconds, and the mean whole-image training PSNR of the last 100
+    steps (field/losses.csv: every ray of the step, object, table and background)."""
+    import csv
+
+    import yaml
+
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    f, t = cfg.get("field", {}), cfg.get("train", {})
+    options = {"field.background": f.get("background"),
+               "field.background_model": f.get("background_model", "nerf++")
+               if f.get("background") else None,
+               "train.object_ray_fraction": t.get("object_ray_fraction"),
+               "train.colour_steps": t.get("colour_steps", 0),
+               "train.colour_rays": t.get("colour_rays") if t.get("colour_steps") else None}
+    timing = json.loads((out / "timing.json").read_text())
+    fp = timing.get("guide", {}).get("field_psnr")
+    train_psnr = None
+    if (out / "field" / "losses.csv").is_file():
+        rows = list(csv.DictReader(open(out / "field" / "losses.csv")))
+        steps = int(t.get("steps", 1000))
+        main = [float(r["psnr"]) for r in rows if int(r["step"]) <= steps
+                and int(r["step"]) > steps - 100 and r.get("psnr")]
+        train_psnr = float(np.mean(main)) if main else None
+    return {"options": options,
+            "field_psnr_guide": fp.get("mean_db") if isinstance(fp, dict) else None,
+            "field_s": timing.get("field", {}).get("seconds"),
+            "total_s": timing.get("total", {}).get("seconds"),
+            "training_psnr_last100": train_psnr}
+
+
 def _picture(path: Path, photo, rgb, err, cls, bad) -> None:
     from PIL import Image
 
@@ -195,8 +228,8 @@ def render_markdown(data: dict) -> str:
     lines = [
         "# The field against its own input views (DTU)",
         "",
-        f"Commit {data['commit']}, {data['date']}, {data['machine']}; "
-        f"`{data['command']}`.",
+        f"Commit {data['commit']}, {data['date']}, {data['machine']}; made by "
+        + "; ".join(f"`{c}`" for c in data.get("commands", [data.get("command")])) + ".",
         "",
         "Every pixel of each input view rendered by the run's field and compared with the photo "
         "it was trained on (768x576). Classes: object (inside the mask), table (outside the "
@@ -219,6 +252,20 @@ def render_markdown(data: dict) -> str:
             f"| {_fmt(m['table']['share'], 3)} "
             f"| {_fmt(m['background']['psnr'])} | {_fmt(m['background']['unexplained'], 3)} "
             f"| {_fmt(row['object_psnr_mean_of_views'])} |")
+    lines += ["", "What each run folder says of itself: the options that differ, the guide "
+              "stage's field PSNR on its inputs inside the masks (timing.json), the mean "
+              "whole-image training PSNR of the schedule's last 100 steps (field/losses.csv), "
+              "and seconds (field stage / whole run, two shared cores).", "",
+              "| scan | variant | options | field PSNR (guide) | training PSNR | field s "
+              "| total s |", "|---|---|---|---|---|---|---|"]
+    for row in data["rows"]:
+        if "options" not in row:
+            continue
+        opts = ", ".join(f"`{k}={v}`" for k, v in row["options"].items()
+                         if v not in (None, False, 0, 0.0))
+        lines.append(f"| {row['scan']} | {row['variant']} | {opts or 'fast preset'} "
+                     f"| {_fmt(row['field_psnr_guide'])} | {_fmt(row['training_psnr_last100'])} "
+                     f"| {_fmt(row['field_s'], 0)} | {_fmt(row['total_s'], 0)} |")
     lines += ["", "Per view (object / table / background PSNR, unexplained share):", ""]
     for row in data["rows"]:
         for v, pv in row["views"].items():
@@ -236,7 +283,7 @@ def render_markdown(data: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", nargs="+", required=True,
+    ap.add_argument("--runs", nargs="+", default=[],
                     help="SCAN:VARIANT=RUN_FOLDER (SCAN:VARIANT@CHOSEN_ON=... names the scan a "
                          "choice was made on)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/input_views_dtu"))
@@ -246,10 +293,22 @@ def main() -> None:
     ap.add_argument("--pictures", action="store_true")
     ap.add_argument("--append", action="store_true",
                     help="keep the rows of an existing results JSON (others than these runs)")
+    ap.add_argument("--facts-only", action="store_true",
+                    help="with --append: only (re)read what the run folders say of themselves "
+                         "(options, timing, training PSNR) into their existing rows")
+    ap.add_argument("--from-json", type=Path,
+                    help="only render the Markdown of this results JSON into --results' .md")
     args = ap.parse_args()
-    rows = []
+    if args.from_json:
+        write_results(args.results.with_suffix(".md"),
+                      render_markdown(json.loads(args.from_json.read_text())))
+        return
+    if not args.runs:
+        ap.error("give --runs (or --from-json)")
+    rows, commands = [], []
     if args.append and args.results.is_file():
-        rows = json.loads(args.results.read_text())["rows"]
+        old = json.loads(args.results.read_text())
+        rows, commands = old["rows"], old.get("commands", [old.get("command")])
     for spec in args.runs:
         name, _, folder = spec.partition("=")
         scan, _, variant = name.partition(":")
@@ -257,8 +316,13 @@ def main() -> None:
         pics = None
         if args.pictures:
             pics = args.results.parent / "input_views_dtu" / scan / variant
+        if args.facts_only:
+            row = next(r for r in rows if (r["scan"], r["variant"]) == (scan, variant))
+            row.update(run_facts(Path(folder)))
+            continue
         row = measure_run(Path(folder), args.work, args.threshold, pics)
         row.pop("out")
+        row.update(run_facts(Path(folder)))
         row.update(scan=scan, variant=variant, chosen_on=chosen or "-",
                    pictures=(str(pics.relative_to(REPO)) if pics and pics.is_relative_to(REPO)
                              else str(pics) if pics else None))
@@ -267,7 +331,8 @@ def main() -> None:
               f"unexplained {row['mean']['object']['unexplained']:.3f}", flush=True)
     data = {"commit": _commit(), "date": time.strftime("%Y-%m-%d"),
             "machine": f"{cpu_name()}, {os.cpu_count()} cores, {platform.system()}",
-            "command": public_argv(["python", "benchmarks/input_views_dtu.py", *sys.argv[1:]]),
+            "commands": [c for c in commands if c] + [
+                public_argv(["python", "benchmarks/input_views_dtu.py", *sys.argv[1:]])],
             "threshold": args.threshold, "rows": rows}
     args.results.parent.mkdir(parents=True, exist_ok=True)
     args.results.write_text(json.dumps(data, indent=1) + "\n")

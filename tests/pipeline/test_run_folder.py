@@ -85,7 +85,8 @@ def _mutate(path: Path) -> None:
         d = dict(np.load(path))
         for k in d:
             if k.startswith("world_mat"):
-                d[k] = d[k] * 1.0 + np.eye(4)[0] * 0.5  # shift the principal point of every view
+                d[k] = d[k] * 1.0
+                d[k][0, 3] += 0.5  # move every camera a little (its image still fits it)
         np.savez(path, **d)
     elif path.suffix == ".npy":
         np.save(path, np.load(path) + 1)
