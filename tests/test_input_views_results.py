@@ -14,8 +14,9 @@ RESULTS = REPO / "benchmarks" / "results"
 
 def test_input_views_md_is_made_from_its_json(tmp_path):
     out = tmp_path / "input_views_dtu.json"
-    subprocess.run([sys.executable, str(REPO / "benchmarks" / "input_views_dtu.py"), "--from-json", str(RESULTS / "input_views_dtu.json"), "--results",
-                    str(out)], check=True, capture_output=True, cwd=tmp_path)
+    subprocess.run([sys.executable, str(REPO / "benchmarks" / "input_views_dtu.py"),
+                    "--from-json", str(RESULTS / "input_views_dtu.json"), "--results", str(out)],
+                   check=True, capture_output=True, cwd=tmp_path)
     assert out.with_suffix(".md").read_bytes() == (RESULTS / "input_views_dtu.md").read_bytes()
 
 
