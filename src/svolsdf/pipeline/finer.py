@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 
 import numpy as np
@@ -28,8 +29,6 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
     Returns:
         {2: stage-2 volumes, 3: stage-3 volumes}.
     """
-    from dataclasses import replace
-
     from svolsdf.mvs.cascade import run_cascade
     from svolsdf.optimize.trainer import Trainer
     from svolsdf.pipeline.builders import build_sampler
@@ -41,8 +40,11 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
     model = p.model()
     t = p.cfg.train
     # continue at the end of the stage-1 schedule: fixed final beta, no warm-up
-    t2 = replace(t, steps=max(1, t.steps // 5), anneal_rgb=0, colour_steps=0,
-                 beta_start=t.beta_end if t.beta_start > 0 else 0.0)
+    # (a copy, then the changed fields: `replace` would read every field, the colour steps'
+    # too, which this schedule never runs)
+    t2 = copy.copy(t)
+    t2.steps, t2.anneal_rgb, t2.colour_steps = max(1, t.steps // 5), 0, 0
+    t2.beta_start = t.beta_end if t.beta_start > 0 else 0.0
     prior2 = MVSPrior(res2[2], scene.normalization, device=p.device)
     trainer = Trainer(model, p.train_data(), t2, prior=prior2,
                       sampler=build_sampler(p.cfg, prior2),
