@@ -29,6 +29,8 @@ REGENERABLE = {
     "table1.md": "benchmarks/table1.py",
     "fast_preset_against_854eaed.md": "benchmarks/fast_preset.py",
     "fast_preset_against_c184b53.md": "benchmarks/fast_preset.py",
+    "input_views_dtu.md": "benchmarks/input_views_dtu.py",
+    "novel_views_dtu.md": "benchmarks/novel_views_dtu.py",
 }
 TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
 
