@@ -241,20 +241,18 @@ def test_colour_steps_train_only_the_colour_and_give_the_model_back_whole(tmp_pa
                          GridFieldConfig(resolution=8, sphere_clamp_scale=None))
     model.background = SphereMapBackground(R_SPHERE)
     cfg = TrainConfig(mode="volsdf", steps=2, rays=16, colour_steps=3, colour_rays=32,
-                      checkpoint_every=0)
+                      checkpoint_every=0, beta_start=0.05, beta_end=0.01)
     tr = Trainer(model, _data(), cfg,
                  sampler=MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=8, n_uniform=4,
                                                                     n_fine=4)),
                  out_dir=tmp_path)
     tr.fit(steps=2, progress=False)
-    sdf, beta = model.sdf_grid.detach().clone(), model.laplace.beta_param.detach().clone() \
-        if hasattr(model.laplace, "beta_param") else None
+    sdf, beta = model.sdf_grid.detach().clone(), model.beta.detach().clone()
     feats = [g.detach().clone() for g in model.feature_grids]
     tr.fit(progress=False)  # the colour steps: 2 -> 5
     assert tr.step == 5 and "colour_rgb" in tr.history[-1]
     assert torch.equal(model.sdf_grid.detach(), sdf)  # the surface did not move
-    if beta is not None:
-        assert torch.equal(model.laplace.beta_param.detach(), beta)
+    assert torch.equal(model.beta.detach(), beta)  # the density too (beta is not annealed on)
     assert any(not torch.equal(a, g.detach()) for a, g in zip(feats, model.feature_grids,
                                                               strict=True))
     assert all(p.requires_grad for p in model.parameters())  # given back trainable

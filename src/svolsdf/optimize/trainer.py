@@ -370,14 +370,15 @@ class Trainer:
         """One optimization step; returns the (detached) loss terms. Steps from ``steps`` on
         are colour steps (`colour_losses`)."""
         with record_function("svolsdf.train_step"):
+            colour = self.cfg.colour_steps > 0 and self.step >= self.cfg.steps
             self._maybe_grow_grid()
-            self._anneal_beta()
+            if not colour:  # colour steps keep the surface's last beta, as its density
+                self._anneal_beta()
             self.model.train()
             recycle = getattr(self.model, "recycle_grads", None)
             if recycle is not None:  # the grid field reuses its dense gradients' memory
                 recycle()
             self.optimizer.zero_grad(set_to_none=True)
-            colour = self.cfg.colour_steps > 0 and self.step >= self.cfg.steps
             if colour != getattr(self, "_surface_frozen", False):
                 self._freeze_surface(colour)
             terms = self.colour_losses() if colour else self.losses()
