@@ -76,10 +76,6 @@ INERT_READS: dict[str, Rule] = {
         "the field started from the MVS surface reads it but the term applies only to a grid "
         "started from a sphere (Trainer: not mvs_initialised); keys.py leaves it out then",
         lambda c: not opt.grid_from_sphere(c)),
-    "train.lr_sdf_sphere": (
-        "ditto: the rate of a grid started from a sphere (read by dataclasses.replace in the "
-        "finer-stage optimization, whose field started from MVS)",
-        lambda c: not opt.grid_from_sphere(c)),
     "mesh.cull_tol": (
         "passed to the mesh methods, used only with mesh.cull_unseen",
         lambda c: not c.mesh.cull_unseen),
