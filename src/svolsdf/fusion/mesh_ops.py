@@ -208,6 +208,13 @@ def extract_mesh(
             f"{resolution} (range [{grid.min():.4g}, {grid.max():.4g}])"
         )
     spacing = tuple(float(s) for s in (b[1] - b[0]) / (resolution - 1))
+    # a node within a thousandth of a cell of the level set is moved off it (outwards, keeping
+    # its sign): two sheets that meet at such a node would share a vertex there, an edge of four
+    # faces once coincident float32 vertices are merged (a non-manifold, not closed, surface)
+    eps = 1e-3 * min(spacing)
+    near = np.abs(grid) < eps
+    if near.any():
+        grid = np.where(near, np.where(grid < 0, -eps, eps), grid).astype(grid.dtype)
     # skimage orders triangles by the left-hand rule; with SDF < 0 inside, 'descent' yields
     # faces whose right-hand-rule normals point outwards (checked in the tests).
     verts, faces, _, _ = measure.marching_cubes(
