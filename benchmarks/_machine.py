@@ -6,7 +6,7 @@ import platform
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["copy_run", "cpu_name", "peak_rss_gb", "public_argv", "write_results"]
+__all__ = ["copy_run", "cpu_name", "git_commit", "peak_rss_gb", "public_argv", "write_results"]
 
 
 def cpu_name() -> str:
@@ -18,6 +18,18 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def git_commit() -> str:
+    """The repository's short HEAD commit, or "unknown" outside a git checkout."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"],
+                              cwd=Path(__file__).resolve().parents[1], check=True,
+                              capture_output=True, text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def peak_rss_gb() -> float:

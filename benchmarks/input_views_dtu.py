@@ -35,25 +35,16 @@ import json
 import math
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from _machine import cpu_name, public_argv, write_results
+from _machine import cpu_name, git_commit, public_argv, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 CLASSES = ("object", "table", "background")
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, check=True,
-                              capture_output=True, text=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def reference_input_depths(scene_dir: Path, work: Path, ids: list[int], size: tuple[int, int]
@@ -329,7 +320,7 @@ def main() -> None:
         rows = [r for r in rows if (r["scan"], r["variant"]) != (scan, variant)] + [row]
         print(f"{scan} {variant}: object {row['mean']['object']['psnr']:.2f} dB, "
               f"unexplained {row['mean']['object']['unexplained']:.3f}", flush=True)
-    data = {"commit": _commit(), "date": time.strftime("%Y-%m-%d"),
+    data = {"commit": git_commit(), "date": time.strftime("%Y-%m-%d"),
             "machine": f"{cpu_name()}, {os.cpu_count()} cores, {platform.system()}",
             "commands": [c for c in commands if c] + [
                 public_argv(["python", "benchmarks/input_views_dtu.py", *sys.argv[1:]])],

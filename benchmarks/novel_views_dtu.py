@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _machine import cpu_name, write_results
+from _machine import cpu_name, git_commit, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -89,14 +89,6 @@ def _run(*args: str, log: Path | None = None) -> float:
         with open(log, "a") as f:
             subprocess.run(cmd, check=True, stdout=f, stderr=subprocess.STDOUT)
     return time.perf_counter() - t0
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, check=True,
-                              capture_output=True, text=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 # --------------------------------------------------------------------------- reference depth
@@ -414,7 +406,7 @@ def _write(args, results: dict, seconds: float) -> None:
         r.pop("out", None)  # a machine's folder
         r["chosen_on"] = sorted(args.tuned_on)
         rows[key] = r
-    data = {"commit": _commit(), "date": time.strftime("%Y-%m-%d"),
+    data = {"commit": git_commit(), "date": time.strftime("%Y-%m-%d"),
             "machine": f"nproc = {os.cpu_count()}, CPU: {cpu_name()}",
             "software": f"Python {platform.python_version()}, torch {torch.__version__}",
             "command": public_argv(["python", "benchmarks/novel_views_dtu.py", *sys.argv[1:]]),

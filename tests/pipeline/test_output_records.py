@@ -6,45 +6,22 @@ outputs are checked")."""
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
+from tests.pipeline.tiny_pipeline import cli as _main
+from tests.pipeline.tiny_pipeline import cli_exit as _run
+from tests.pipeline.tiny_pipeline import copy_run as _copy
+from tests.pipeline.tiny_pipeline import make_small_sphere_scene, small_field_run
 
-from svolsdf.cli import main
 from svolsdf.pipeline import STAGES
-from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
 
 @pytest.fixture(scope="module")
 def field_run(tmp_path_factory):
     """A finished run with a field of a 64x48 sphere (a 16^3 grid, 10 steps: seconds)."""
     d = tmp_path_factory.mktemp("records")
-    scene = d / "scene"
-    make_synthetic_scene(scene, SynthConfig(views=4, width=64, height=48, seed=2, supersample=1,
-                                            gt_points=3000, object="sphere"))
-    (d / "small.yaml").write_text(
-        f"scene: {{path: {scene}, views: [0, 1, 2]}}\n"
-        "field: {grid_start_resolution: 16, grid_resolution: 16}\n"
-        "mesh: {resolution: 24}\nfusion: {unguided: false}\n"
-        "train: {rays: 32, checkpoint_every: 0, steps: 10}\n")
-    _main(["reconstruct", "-o", d / "run", "--config", d / "small.yaml", "--no-progress"])
-    return d / "run"
-
-
-def _main(argv) -> None:
-    main([str(a) for a in argv])
-
-
-def _run(argv, capsys):
-    with pytest.raises(SystemExit) as e:
-        main([str(a) for a in argv])
-    return e.value.code, capsys.readouterr()
-
-
-def _copy(src: Path, dest: Path) -> Path:
-    shutil.copytree(src, dest, ignore=shutil.ignore_patterns(".svolsdf.lock"))
-    return dest
+    return small_field_run(make_small_sphere_scene(d / "scene"), d)
 
 
 def _truncate(path: Path) -> None:

@@ -7,6 +7,7 @@ import functools
 import shutil
 from pathlib import Path
 
+from svolsdf.cli import main
 from svolsdf.config import Config, load_config, preset
 from svolsdf.pipeline import Pipeline
 from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
@@ -53,3 +54,44 @@ def rerun_on_copy(out: Path, dest: Path, **options) -> Pipeline:
     p2 = Pipeline(cfg, dest, progress=False)
     p2.run()
     return p2
+
+
+# --------------------------------------------------------------------------- through the CLI
+def make_small_sphere_scene(folder: Path) -> Path:
+    """A four-view 64x48 synthetic sphere (seed 2) written to ``folder``."""
+    make_synthetic_scene(folder, SynthConfig(views=4, width=64, height=48, seed=2, supersample=1,
+                                             gt_points=3000, object="sphere"))
+    return folder
+
+
+def small_field_run(scene: Path, folder: Path) -> Path:
+    """``svolsdf reconstruct`` of views 0 1 2 of ``scene`` with a field of a 16^3 grid and 10
+    steps (seconds) into FOLDER/run, its config FOLDER/small.yaml; returns the run folder."""
+    (folder / "small.yaml").write_text(
+        f"scene: {{path: {scene}, views: [0, 1, 2]}}\n"
+        "field: {grid_start_resolution: 16, grid_resolution: 16}\n"
+        "mesh: {resolution: 24}\nfusion: {unguided: false}\n"
+        "train: {rays: 32, checkpoint_every: 0, steps: 10}\n")
+    cli(["reconstruct", "-o", folder / "run", "--config", folder / "small.yaml",
+         "--no-progress"])
+    return folder / "run"
+
+
+def cli(argv) -> None:
+    """``svolsdf`` with ``argv`` (paths turned into strings), in this process."""
+    main([str(a) for a in argv])
+
+
+def cli_exit(argv, capsys):
+    """``svolsdf`` with ``argv`` expected to exit: (its status, what it printed)."""
+    import pytest
+
+    with pytest.raises(SystemExit) as e:
+        main([str(a) for a in argv])
+    return e.value.code, capsys.readouterr()
+
+
+def copy_run(src: Path, dest: Path) -> Path:
+    """A copy of the run folder ``src`` at ``dest``, without its lock file."""
+    shutil.copytree(src, dest, ignore=shutil.ignore_patterns(".svolsdf.lock"))
+    return dest

@@ -136,6 +136,7 @@ class Trainer:
             # docs/method.md 4.4: heavily smoothed targets for the first anneal_rgb steps
             self.smoothed = L.warmup_rgb_target(self.images)
         self.grid_schedule = sorted(grid_schedule or [])
+        self._surface_frozen = False  # colour steps (`_freeze_surface`)
         self.step = 0
         self.out_dir = Path(out_dir) if out_dir is not None else None
         # on the training device: the view and pixel draws never leave it (no host copy and no
@@ -379,7 +380,7 @@ class Trainer:
             if recycle is not None:  # the grid field reuses its dense gradients' memory
                 recycle()
             self.optimizer.zero_grad(set_to_none=True)
-            if colour != getattr(self, "_surface_frozen", False):
+            if colour != self._surface_frozen:
                 self._freeze_surface(colour)
             terms = self.colour_losses() if colour else self.losses()
             with record_function("svolsdf.backward"):
@@ -462,7 +463,7 @@ class Trainer:
             raise
         finally:
             bar.close()
-            if getattr(self, "_surface_frozen", False):
+            if self._surface_frozen:
                 self._freeze_surface(False)
             if self.out_dir is not None:  # Ctrl-C: the CSV, not seconds of plotting
                 self.write_log(plot=not stopped)
