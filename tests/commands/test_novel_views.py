@@ -129,3 +129,58 @@ def test_box_near_far_and_normals():
     img = camera_normals(n, torch.ones(2, 2), w2c[0])
     assert torch.allclose(img[:, 0, 0], torch.tensor([0.5, 0.5, 0.0]))
 
+
+
+def test_mesh_depth_fill_fills_only_the_holes():
+    """A plane z = 2 as two triangles seen by a camera looking down +z: holes take its depth,
+    rendered depths stay, pixels the mesh misses stay 0."""
+    from svolsdf.commands.render import mesh_depth_fill
+
+    K = torch.tensor([[[20.0, 0, 16], [0, 20.0, 12], [0, 0, 1]]])
+    cams = Cameras(K, torch.eye(4)[None], 32, 24)
+    v = np.array([[-0.5, -0.5, 2], [0.5, -0.5, 2], [0.5, 0.5, 2], [-0.5, 0.5, 2]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    depth = torch.zeros(1, 24, 24 + 8)
+    depth[0, :, :4] = 5.0  # rendered surface outside the plane's footprint
+    depth[0, 12, 16] = 3.0  # rendered surface inside it
+    out = mesh_depth_fill(depth, cams, v, f)
+    assert float(out[0, 12, 16]) == 3.0  # a rendered depth is kept
+    inner = out[0, 9:15, 12:20]  # the plane covers u 11..21, v 7..17
+    assert torch.allclose(inner[inner != 3.0], torch.tensor(2.0))
+    assert (out[0, :, :4] == 5.0).all()
+    assert float(out[0, 0, 31]) == 0.0  # neither rendered nor on the mesh
+
+
+def test_ibr_holes_mesh_warps_the_photos_where_the_field_is_empty(tiny_run, tmp_path):
+    """--ibr-holes mesh: the IBR records the choice in ibr.json and is no worse on a held-out
+    view (the tiny field has few holes; `mesh_depth_fill` is checked exactly above); a run
+    without mesh.ply is refused, with exit 2, before anything is rendered."""
+    import shutil
+
+    from svolsdf.ibr import IBRConfig
+
+    scene, out = tiny_run
+    v = json.loads((out / "views.json").read_text())["test"][0]
+    a = render_outputs(out, views=[v], ibr=True, progress=False,
+                       ibr_config=IBRConfig(hole_depth="mesh"))
+    assert a["ibr_files"]
+    rec = json.loads((out / "renders_ibr" / "ibr.json").read_text())
+    assert rec["hole_depth"] == "mesh"
+    gt_scene = load_scene(scene, views=[v])
+    with_mesh = read_image(out / "renders_ibr" / f"{v}.png")
+    render_outputs(out, views=[v], ibr=True, progress=False)
+    without = read_image(out / "renders_ibr" / f"{v}.png")
+    m = gt_scene.masks[0, 0]
+    assert float(masked_psnr(with_mesh, gt_scene.images[0], m)) >= \
+        float(masked_psnr(without, gt_scene.images[0], m)) - 0.5
+    bare = tmp_path / "bare"
+    shutil.copytree(out, bare)
+    (bare / "mesh.ply").unlink()
+    before = sorted(p.name for p in (bare / "renders_ibr").iterdir())
+    with pytest.raises(InputError, match="mesh.ply"):
+        render_outputs(bare, views=[v], ibr=True, progress=False,
+                       ibr_config=IBRConfig(hole_depth="mesh"))
+    assert sorted(p.name for p in (bare / "renders_ibr").iterdir()) == before
+    with pytest.raises(SystemExit) as e:
+        cli_main(["render", str(bare), "--ibr", "--ibr-holes", "mesh"])
+    assert e.value.code == 2

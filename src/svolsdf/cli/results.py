@@ -228,6 +228,11 @@ def render(
         "--ibr-unseen", help="IBR where no input view sees the surface: 'render' (the paper: "
                              "the volume-rendered colour) or 'inpaint' (the seen colours spread "
                              "by push-pull; docs/novel-views.md).")] = "render",
+    ibr_holes: Annotated[str, typer.Option(
+        "--ibr-holes", help="IBR where the field renders no surface: 'none' (the paper: the "
+                            "rendered colour, black where the field is empty) or 'mesh' (the "
+                            "run's mesh.ply gives the depth there, so the photos are warped "
+                            "onto it).")] = "none",
 ) -> None:
     """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
     from svolsdf.commands.render import render_outputs
@@ -236,10 +241,12 @@ def render(
 
     if ibr_unseen not in ("render", "inpaint"):
         raise InputError(f"--ibr-unseen {ibr_unseen!r}: expected 'render' or 'inpaint'")
+    if ibr_holes not in ("none", "mesh"):
+        raise InputError(f"--ibr-holes {ibr_holes!r}: expected 'none' or 'mesh'")
     out = input_dir(out, "run folder")
     res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
                          size=_parse_size(size), frames=frames, chunk=chunk, progress=True,
-                         ibr_config=IBRConfig(unseen=ibr_unseen))
+                         ibr_config=IBRConfig(unseen=ibr_unseen, hole_depth=ibr_holes))
     w, h = res["size"]
     typer.echo(f"rendered {len(res['files'])} view(s) at {w}x{h} "
                f"({res['seconds_per_view']:.1f} s per view) -> {out / 'renders'}"

@@ -47,6 +47,7 @@ __all__ = [
     "OPACITY_SURFACE",
     "box_near_far",
     "camera_normals",
+    "mesh_depth_fill",
     "open_run",
     "render_outputs",
     "write_video",
@@ -241,10 +242,69 @@ def render_outputs(
                          f"trained the field again); run svolsdf reconstruct -o {out} --config "
                          f"{p.dir.config_file} first")
     output_dir(out, "run folder")  # renders/ goes there: fail before rendering
+    if ibr and ibr_config is not None and ibr_config.hole_depth == "mesh":
+        _hole_mesh(p, out, ibr_config)  # a missing or changed mesh: refused before any work
     with folder_lock(out, "svolsdf render"):
         res = _render(p, out, views, path, ibr, size, frames, chunk, fps, ibr_config, progress)
         p.dir.record("render", config_digest(p.dir.config_file))  # evaluate checks it
     return res
+
+
+def mesh_depth_fill(depth: Tensor, cams: Cameras, vertices: np.ndarray, faces: np.ndarray
+                    ) -> Tensor:
+    """Rendered depth maps with their holes filled by a mesh's depth (``IBRConfig.hole_depth =
+    "mesh"``).
+
+    Args:
+        depth: (V, H, W) world z-depth, <= 0 where the field rendered no surface.
+        cams: `Cameras` of the V views (world frame), any size: rescaled to W x H.
+        vertices: (N, 3) world points of the mesh; faces: (F, 3) vertex indices.
+
+    Returns:
+        (V, H, W) float32: ``depth`` where it is > 0, else the z-depth of the nearest mesh
+        triangle at the pixel centre (`svolsdf.evaluate.raster.rasterize_mesh`), 0 where the
+        mesh does not cover the pixel either.
+    """
+    from svolsdf.evaluate.raster import rasterize_mesh
+
+    V, H, W = depth.shape
+    if len(cams) != V:
+        raise ValueError(f"mesh_depth_fill: {len(cams)} cameras for {V} depth maps")
+    if (cams.width, cams.height) != (W, H):
+        cams = cams.resize(W, H)
+    out = depth.detach().float().cpu().clone()
+    for i in range(V):
+        hole = ~(out[i] > 0)
+        if not bool(hole.any()):
+            continue
+        r = rasterize_mesh(vertices, faces, cams.K[i].double().cpu().numpy(),
+                           cams.w2c[i].double().cpu().numpy(), W, H)
+        z = torch.from_numpy(r.depth).float()
+        out[i] = torch.where(hole, z, out[i])
+    return out.to(depth.device)
+
+
+def _hole_mesh(p, out: Path, cfg_ibr) -> tuple[np.ndarray, np.ndarray] | None:
+    """The run's mesh (vertices, faces) when ``cfg_ibr.hole_depth == "mesh"``, else None.
+
+    Raises:
+        InputError: the run has no mesh.ply (the option names it).
+    """
+    if cfg_ibr.hole_depth != "mesh":
+        return None
+    from svolsdf.io.ply import read_ply
+
+    f = out / "mesh.ply"
+    if not f.is_file():
+        raise InputError(f"--ibr-holes mesh: {f} not found (the run made no mesh; "
+                         "run svolsdf reconstruct to the end, or leave --ibr-holes none)")
+    changed = p.dir.changed_output("mesh")
+    if changed is not None:
+        raise InputError(f"--ibr-holes mesh: {out}: {changed}")
+    m = read_ply(f)
+    if m["faces"] is None or not len(m["faces"]):
+        raise InputError(f"--ibr-holes mesh: {f} has no faces")
+    return m["points"], m["faces"]
 
 
 def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config,
@@ -302,14 +362,17 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
              " with IBR" if ibr else "")
 
     # --- IBR sources: the input images with their rendered depths, once per call
-    src = None
+    src = mesh = None
     if ibr:
         cfg_ibr = ibr_config or IBRConfig()
+        mesh = _hole_mesh(p, out, cfg_ibr)
         t0 = time.perf_counter()
         r = p.render_views(scene.cameras_unit, _scene_range(scene, s).to(p.device), chunk=chunk,
                            keys=("depth", "opacity"))
         d = r["depth"] * s
         d = torch.where(r["opacity"] >= OPACITY_SURFACE, d, torch.zeros_like(d))
+        if mesh is not None:
+            d = mesh_depth_fill(d, scene.cameras, *mesh)
         src = (scene.images, scene.cameras.to(dtype=torch.float64), d.float())
         import dataclasses
         import json
@@ -342,6 +405,8 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
         if path == "orbit":
             rgb_frames.append(_uint8(rgb))
         if src is not None:
+            if mesh is not None:  # the target's holes too (IBRConfig.hole_depth)
+                depth = mesh_depth_fill(depth[None], cams_w[[k]], *mesh)[0]
             res = ibr_render(cams_w[[k]], depth, rgb, src[0], src[1], src[2], cfg_ibr)
             ibr_files.append(write_image(idir / f"{name}.png", res.rgb))
             if path == "orbit":

@@ -126,6 +126,13 @@ class IBRConfig:
     smoothness prior for the surface no input view saw (docs/novel-views.md: on DTU that
     surface is a quarter of the test views' masks and holds about half of their error)."""
 
+    hole_depth: Literal["none", "mesh"] = "none"
+    """Depth of the target and source pixels where the field renders no surface (opacity
+    below 0.5; `svolsdf render` applies it, `ibr_render` takes the depths it is given).
+    "none" (paper): no depth there, so the rendered colour shows (black where the field left
+    the ray empty). "mesh": the run's mesh (OUT/mesh.ply) rasterized at the view fills those
+    pixels, so the input photos are warped there too (docs/novel-views.md)."""
+
     inpaint_levels: int = 8
     """Pyramid levels of the push-pull fill (``unseen == "inpaint"``); 8 spreads colour about
     2^8 pixels, across any hole of a 768x576 view."""
@@ -161,6 +168,9 @@ class IBRConfig:
             raise ValueError(f"IBRConfig.pyramid_levels must be >= 1, got {self.pyramid_levels}")
         if self.unseen not in ("render", "inpaint"):
             raise ValueError(f"IBRConfig.unseen must be 'render' or 'inpaint', got {self.unseen!r}")
+        if self.hole_depth not in ("none", "mesh"):
+            raise ValueError("IBRConfig.hole_depth must be 'none' or 'mesh', "
+                             f"got {self.hole_depth!r}")
         if self.inpaint_levels < 1:
             raise ValueError(f"IBRConfig.inpaint_levels must be >= 1, got {self.inpaint_levels}")
 
