@@ -178,10 +178,20 @@ def ibr_variant(out: Path, scene_dir: Path, ids: list[int], cfg) -> dict[int, to
 
     scene, d_src = input_depths(out)
     tsc = load_scene(scene_dir, views=ids, image_size=SIZE, load_images=False)
+    mesh = None
+    if cfg.hole_depth == "mesh":  # as svolsdf render --ibr-holes mesh
+        from svolsdf.commands.render import mesh_depth_fill
+        from svolsdf.io.ply import read_ply
+
+        m = read_ply(out / "mesh.ply")
+        mesh = (m["points"], m["faces"])
+        d_src = mesh_depth_fill(d_src, scene.cameras, *mesh)
     res = {}
     for k, v in enumerate(ids):
         vr = read_image(out / "renders" / f"{v}.png")
         d = torch.from_numpy(np.load(out / "renders" / "depth" / f"{v}.npy")).float()
+        if mesh is not None:
+            d = mesh_depth_fill(d[None], tsc.cameras[[k]], *mesh)[0]
         res[v] = ibr_render(tsc.cameras[[k]].to(dtype=torch.float64), d, vr, scene.images,
                             scene.cameras.to(dtype=torch.float64), d_src, cfg).rgb
     return res
@@ -323,6 +333,9 @@ def main() -> None:
     ap.add_argument("--pictures", action="store_true")
     ap.add_argument("--inpaint", action="store_true",
                     help="also score IBR with --ibr-unseen inpaint (docs/novel-views.md)")
+    ap.add_argument("--ibr-holes-mesh", action="store_true",
+                    help="also score IBR with --ibr-holes mesh (the mesh's depth where the "
+                         "field renders none)")
     ap.add_argument("--variant", default="",
                     help="a name for the --set options below (run folders MODE-VARIANT)")
     ap.add_argument("--set", dest="sets", action="append", default=[],
@@ -383,6 +396,15 @@ def main() -> None:
                 else:
                     preds = ibr_variant(out, scene_dir, test, IBRConfig(unseen="inpaint"))
                     r[kind] = score_views(preds, gts, masks, test, lp)
+            if args.ibr_holes_mesh:  # IBR with the mesh's depth in the field's holes
+                from svolsdf.ibr import IBRConfig  # (svolsdf render --ibr-holes mesh)
+
+                kind = "IBR, holes from the mesh"
+                if args.skip_runs and kind in earlier.get(key, {}):
+                    r[kind] = earlier[key][kind]
+                else:
+                    preds = ibr_variant(out, scene_dir, test, IBRConfig(hole_depth="mesh"))
+                    r[kind] = score_views(preds, gts, masks, test, lp)
             if ref is not None:
                 pic = (args.results.parent / "novel_views_dtu" / scene_dir.name / mode
                        if args.pictures else None)
@@ -440,7 +462,8 @@ def render_markdown(data: dict) -> str:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for key, r in results.items():
         scan, mode = key.split("/")
-        for kind in ("volume rendering", "IBR", "IBR, unseen inpainted"):
+        for kind in ("volume rendering", "IBR", "IBR, unseen inpainted",
+                     "IBR, holes from the mesh"):
             if kind not in r:
                 continue
             m = r[kind]["mean"]
