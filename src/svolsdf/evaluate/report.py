@@ -92,12 +92,20 @@ def _metrics_table(metrics: dict, units: str | None) -> str:
         if metrics.get(k) is not None:
             rows.append((f"{k.capitalize()}{at}", metrics.get(k), "0..1", METRIC_INFO[k]))
     unit = {"psnr": "dB", "ssim": "0..1", "lpips": "0..1"}
-    for group, label in (("images", "volume rendering"), ("images_ibr", "IBR")):
+    region = (metrics.get("settings") or {}).get("image_region") or "region not recorded"
+    for group, label in (("images", "novel views, volume rendering"),
+                         ("images_ibr", "novel views, IBR"),
+                         ("images_input_views", "input views, volume rendering"),
+                         ("images_ibr_input_views", "input views, IBR")):
         g = metrics.get(group) or {}
         for k in ("psnr", "ssim", "lpips"):
             m = (g.get(k) or {}).get("mean")
             if m is not None or group == "images":
-                rows.append((f"{k.upper()} mean ({label})", m, unit[k], METRIC_INFO[k]))
+                why = METRIC_INFO[k] + f"; {region}"
+                if group.endswith("_input_views"):
+                    why += ("; views the run trained on, rendered back: not a novel-view "
+                            "score")
+                rows.append((f"{k.upper()} mean ({label})", m, unit[k], why))
     body = "".join(f"<tr><td>{html.escape(a)}</td><td>{fmt(b)}</td><td>{html.escape(c)}</td>"
                    f"<td class='why'>{html.escape(d)}</td></tr>" for a, b, c, d in rows)
     return (f'<table id="metrics"><thead><tr><th>metric</th><th>value</th><th>unit</th>'
@@ -109,11 +117,13 @@ def _per_view_table(views: list[ViewImages]) -> str:
         return ""
     keys = sorted({k for v in views for k in v.metrics})
     head = "".join(f"<th>{html.escape(k)}</th>" for k in keys)
+    role = {"novel": "novel (held out)", "input": "input view (trained on)"}
     body = "".join(
-        f"<tr><td>{v.view_id}</td><td>{html.escape(v.kind)}</td>"
+        f"<tr><td>{v.view_id}</td><td>{html.escape(role.get(v.role, v.role))}</td>"
+        f"<td>{html.escape(v.kind)}</td>"
         + "".join(f"<td>{fmt(v.metrics.get(k))}</td>" for k in keys) + "</tr>" for v in views)
-    return (f'<table id="per-view"><thead><tr><th>view</th><th>renderer</th>{head}</tr></thead>'
-            f"<tbody>{body}</tbody></table>")
+    return (f'<table id="per-view"><thead><tr><th>view</th><th>role</th><th>renderer</th>'
+            f"{head}</tr></thead><tbody>{body}</tbody></table>")
 
 
 def _timing_table(timing: dict | None) -> str:

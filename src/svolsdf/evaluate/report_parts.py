@@ -37,6 +37,8 @@ class ViewImages:
         mask: (1, H, W) object mask or None.
         metrics: metric name -> value for this view.
         kind: which renderer ("volume" or "ibr").
+        role: "novel" for a view the run held out, "input" for one of its input (training)
+            views rendered back, which no mean of novel views counts.
     """
 
     view_id: int
@@ -45,6 +47,7 @@ class ViewImages:
     mask: Tensor | None = None
     metrics: dict = field(default_factory=dict)
     kind: str = "volume"
+    role: str = "novel"
 
 
 # --------------------------------------------------------------------------- small helpers

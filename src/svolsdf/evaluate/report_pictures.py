@@ -174,8 +174,24 @@ def orbit_section(mesh, cameras, frames: int) -> str:
 
 
 def novel_section(views: list[ViewImages]) -> str:
-    """One strip per novel view: ground truth | volume rendering | IBR | |error| of each, with
-    one error scale per strip (mean absolute error over RGB, black outside the mask)."""
+    """One strip per evaluated view: ground truth | volume rendering | IBR | |error| of each,
+    with one error scale per strip (mean absolute error over RGB inside the object mask, black
+    outside it). Novel (held-out) views and input views rendered back go to two sections, so
+    that a training view copied back is never shown as a novel one."""
+    novel = _strips([v for v in views if v.role == "novel"])
+    inputs = _strips([v for v in views if v.role != "novel"])
+    out = ""
+    if novel:
+        out += "<h2>Novel views: ground truth, volume rendering, IBR, error</h2>" + novel
+    if inputs:
+        out += ("<h2>Input views rendered back: ground truth, volume rendering, IBR, error</h2>"
+                "<p>The run trained on these views: their renders show how well it fits its "
+                "inputs, not how it renders an unseen view, and no novel-view number counts "
+                "them.</p>" + inputs)
+    return out
+
+
+def _strips(views: list[ViewImages]) -> str:
     if not views:
         return ""
     by_id: dict[int, dict[str, ViewImages]] = {}
@@ -192,6 +208,8 @@ def novel_section(views: list[ViewImages]) -> str:
         for kind, v in kinds.items():
             errs[kind] = (v.pred.detach().float().clamp(0, 1).cpu() - gt).abs().mean(0).numpy()
         vmax = max([0.05] + [float(e[inside].max()) for e in errs.values() if inside.any()])
+        where = ("inside the object mask" if first.mask is not None else
+                 "over all pixels: the scene has no object mask")
         tiles = [tensor_u8(gt)] + [tensor_u8(kinds[k].pred) for k in ("volume", "ibr")
                                     if k in kinds]
         tiles += [colorize(errs[k], inside, ERROR_CMAP, 0, vmax) for k in ("volume", "ibr")
@@ -208,9 +226,8 @@ def novel_section(views: list[ViewImages]) -> str:
                         for k, v in kinds.items() if v.metrics)
         strips.append(figure(png_b64(strip, width=min(len(tiles), 5) * 240),
                            f"view {vid}: {' | '.join(names)}" + (f"; {cap}" if cap else ""),
-                           colorbar(ERROR_CMAP, 0.0, vmax, "mean absolute RGB error")))
-    return ("<h2>Novel views: ground truth, volume rendering, IBR, error</h2>"
-            + "".join(strips))
+                           colorbar(ERROR_CMAP, 0.0, vmax, f"mean absolute RGB error ({where})")))
+    return "".join(strips)
 
 
 def gt_distance_summary(point_errors, units: str | None) -> str:

@@ -20,6 +20,7 @@ from svolsdf.evaluate.run_outputs import (
     empty_metrics,
     load_gt_points,
     load_renders,
+    mark_roles,
     run_scene,
     scene_problem,
 )
@@ -108,10 +109,11 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
         except InputError as e:
             notes.append(f"Novel views not shown: {e}")
             loaded = {}
+        mark_roles(loaded, input_views)
         views = []
         for key, group in loaded.items():
-            for v in group:
-                blk = metrics.get(key) or {}
+            for v in group:  # an input view's values are those of its own label
+                blk = metrics.get(key if v.role == "novel" else f"{key}_input_views") or {}
                 v.metrics = {m: (blk.get(m) or {}).get("per_view", {}).get(str(v.view_id))
                              for m in ("psnr", "ssim", "lpips")}
                 v.metrics = {m: x for m, x in v.metrics.items() if x is not None}
