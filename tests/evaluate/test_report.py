@@ -227,3 +227,23 @@ def test_metrics_table_says_how_the_mesh_was_scored():
     old = _metrics_table({"chamfer": {}, "chamfer_mesh": block}, "mm")
     assert "<td>mesh scored by</td><td>its vertices (metrics of an older version)</td>" in old
     assert "mesh scored by" not in _metrics_table({"chamfer": {}, "chamfer_mesh": {}}, "mm")
+
+
+def test_depth_error_counts_inside_the_object_mask(run, tmp_path):
+    """The report's depth error of a scene with masks is the object's: a background off by 50
+    and an object off by 1 give a median of 1, and the caption says where it was measured."""
+    import shutil
+
+    from svolsdf.evaluate.report_pictures import depth_error
+
+    out = tmp_path / "copy"
+    shutil.copytree(run, out)
+    scene = run.parent / "scene"
+    g = np.load(scene / "gt_depth" / "000.npy").astype(np.float64)
+    mask = np.asarray(Image.open(scene / "mask" / "000.png").convert("L")) > 127
+    assert (g[~mask] > 0).sum() > mask.sum()  # more background with depth than object
+    np.save(out / "depth" / "0.npy", np.where(mask, g + 1.0, g + 50.0).astype(np.float32))
+    err, valid = depth_error(np.where(mask, g + 1.0, g + 50.0), g, mask)
+    assert valid.sum() == (mask & (g > 0)).sum() and np.allclose(err[valid], 1.0, atol=1e-3)
+    page = write_run_report(out).read_text()
+    assert "view 0: |depth - ground truth| inside the object mask, median 1 mm" in page

@@ -94,6 +94,7 @@ def test_evaluate_writes_metrics_and_report(tmp_path):
         assert blk["mean"] == pytest.approx(blk["per_view"]["2"])
         assert m["images_ibr"][key]["mean"] == pytest.approx(blk["mean"])
     assert m["views"] == {"inputs": [0, 1], "novel_scored": [2], "input_scored": [1]}
+    assert m["settings"]["image_region"].startswith("inside the object mask")
     assert 0 < m["images"]["ssim"]["mean"] < 1 and m["images"]["lpips"]["mean"] > 0
     assert m["timing"]["optimize"] == 12.5 and m["timing"]["evaluate_seconds"] > 0
     page = (out / "report.html").read_text()
@@ -421,3 +422,5 @@ def test_input_views_rendered_back_are_never_scored_as_novel_views(tmp_path, cap
     assert "<h2>Novel views" not in page and "<h2>Input views rendered back" in page
     assert "PSNR mean (input views, volume rendering)" in page
     assert "input view (trained on)" in page and "novel (held out)" not in page
+    assert "[inside the object mask" in printed and "; inside the object mask" in page
+    assert "mean absolute RGB error (inside the object mask)" in page

@@ -167,6 +167,7 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
                  notes: list[str] | None = None, *, cameras=None,
                  gt_points: np.ndarray | None = None, gt_depth: dict | None = None,
                  units: str | None = None, config_text: str | None = None,
+                 masks: dict | None = None,
                  orbit_frames: int = 8, viewer=None) -> Path:
     """Write ``out_dir/report.html``.
 
@@ -184,6 +185,7 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
             3D view, pictures of the mesh from the inputs and from an orbit.
         gt_points: (M, 3) ground-truth points: the points' distances to them are shown.
         gt_depth: view id -> (H, W) ground-truth z-depth (0 = none): per-view depth error maps.
+        masks: view id -> (H, W) object mask of the inputs: depth errors count inside it.
         units: world units ("mm", ...).
         config_text: the run's config.yaml, shown verbatim.
         orbit_frames: pictures of the mesh along the orbit (0: none).
@@ -242,7 +244,7 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
     parts.append(_per_view_table(views or []))
     parts.append(inputs_html)
     parts.append(depth_section(out_dir, [vid for vid, _ in inputs or []]
-                                or _depth_ids(out_dir), gt_depth, units))
+                               or _depth_ids(out_dir), gt_depth, units, masks))
     parts.append(normals_section(out_dir))
     parts.append(orbit_section(mesh, cameras, orbit_frames))
     parts.append(novel_section(views or []))

@@ -26,7 +26,7 @@ from svolsdf.evaluate.report_parts import (
 )
 from svolsdf.io.runfolder import RunFolder
 
-__all__ = ["depth_section", "gt_distance_summary", "inputs_section", "mesh_pictures",
+__all__ = ["depth_error", "depth_section", "gt_distance_summary", "inputs_section", "mesh_pictures",
            "normals_section", "novel_section", "orbit_section"]
 
 log = logging.getLogger(__name__)
@@ -94,10 +94,39 @@ def inputs_section(inputs, cameras, mesh) -> str:
     return f"<h2>{title}</h2>{key}{''.join(rows)}"
 
 
+def depth_error(depth: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """|depth - ground truth| at the ground truth's pixels, and where it counts.
+
+    Args:
+        depth: (h, w) the run's z-depth (0 or non-finite: none), any size: read at the ground
+            truth's pixels (nearest, so no mixing across edges).
+        gt: (H, W) ground-truth z-depth (0: none).
+        mask: (H', W') object mask (any size, > 0.5 = object) or None: with one, only pixels
+            inside it count, so that the background (a table, the far wall) does not swamp the
+            object's error.
+
+    Returns:
+        (H, W) float64 absolute error and the (H, W) bool pixels where it counts.
+    """
+    def at_gt(a: np.ndarray) -> np.ndarray:
+        ys = ((np.arange(gt.shape[0]) + 0.5) * a.shape[0] / gt.shape[0]).astype(int)
+        xs = ((np.arange(gt.shape[1]) + 0.5) * a.shape[1] / gt.shape[1]).astype(int)
+        return a[np.ix_(ys, xs)]
+
+    dd = at_gt(depth)
+    valid = (gt > 0) & np.isfinite(dd) & (dd > 0)
+    if mask is not None:
+        valid &= at_gt(np.asarray(mask, np.float64).reshape(mask.shape[-2:])) > 0.5
+    err = np.where(valid, np.abs(np.where(np.isfinite(dd), dd, 0.0) - gt), 0.0)
+    return err, valid
+
+
 def depth_section(out_dir: Path, view_ids: list[int], gt_depth: dict | None,
-                   units: str | None) -> str:
+                  units: str | None, masks: dict | None = None) -> str:
     """Depth maps of the run (depth/<id>.npy) with a colour bar; with ground-truth depth, the
-    per-view absolute error with its own colour bar."""
+    per-view absolute error with its own colour bar, inside the object mask of ``masks`` (view
+    id -> (H, W) mask) where the scene has one (`depth_error`), as each caption says."""
     u = units_label(units)
     rows = []
     depth_dir = RunFolder(out_dir).depth_dir
@@ -124,20 +153,18 @@ def depth_section(out_dir: Path, view_ids: list[int], gt_depth: dict | None,
                      colorbar(DEPTH_CMAP, lo, hi, f"z-depth ({u})"))]
         g = (gt_depth or {}).get(vid)
         if g is not None:
-            g = np.asarray(g, np.float64)
-            # the run's depth at the ground truth's pixels (nearest: no mixing across edges)
-            ys = ((np.arange(g.shape[0]) + 0.5) * d.shape[0] / g.shape[0]).astype(int)
-            xs = ((np.arange(g.shape[1]) + 0.5) * d.shape[1] / g.shape[1]).astype(int)
-            dd = d[np.ix_(ys, xs)]
-            both = (g > 0) & np.isfinite(dd) & (dd > 0)
+            m = (masks or {}).get(vid)
+            err, both = depth_error(d, np.asarray(g, np.float64), m)
             if both.any():
-                err = np.abs(dd - g)
+                where = ("inside the object mask" if m is not None else
+                         "over every pixel with ground truth: no object mask")
                 vmax = float(np.percentile(err[both], 95)) or 1e-9
                 figs.append(figure(
                     png_b64(colorize(err, both, ERROR_CMAP, 0.0, vmax)),
-                    f"view {vid}: |depth - ground truth|, median {np.median(err[both]):.3g} {u}",
+                    f"view {vid}: |depth - ground truth| {where}, median "
+                    f"{np.median(err[both]):.3g} {u}",
                     colorbar(ERROR_CMAP, 0.0, vmax, f"absolute depth error ({u}; clipped at "
-                                                      "the 95th percentile)")))
+                                                    "the 95th percentile)")))
         rows.append(f"<div class='row'>{''.join(figs)}</div>")
     title = "Depth maps and depth error" if gt_depth else "Depth maps"
     return (f"<h2>{title}</h2><p>The fused depth of each input view (depth/&lt;view&gt;.npy); "

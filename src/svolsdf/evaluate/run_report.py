@@ -118,7 +118,7 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
                              for m in ("psnr", "ssim", "lpips")}
                 v.metrics = {m: x for m, x in v.metrics.items() if x is not None}
                 views.append(v)
-    inputs, cameras, units, gt_depth = [], None, None, None
+    inputs, cameras, units, gt_depth, masks = [], None, None, None, None
     if scene_path is not None:
         ids = input_views or sorted(int(p.stem) for p in run.depth_dir.glob("*.npy")
                                     if re.fullmatch(r"\d+", p.stem))
@@ -126,9 +126,11 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
             try:
                 from svolsdf.scene.loaders import load_scene
 
-                s = load_scene(scene_path, views=ids, masks=False)
+                s = load_scene(scene_path, views=ids)
                 inputs = list(zip(s.view_ids, s.images, strict=True))
                 cameras, units = s.cameras, s.units
+                if s.masks is not None:  # depth errors count inside the object
+                    masks = {v: s.masks[k, 0].numpy() for k, v in enumerate(s.view_ids)}
             except InputError as e:
                 notes.append(f"Inputs not shown: {e}")
             if is_synthetic_scene(scene_path):
@@ -141,7 +143,7 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
     return write_report(out, metrics, views, inputs, points, mesh,
                         title=f"svolsdf run {out.resolve().name}", notes=notes, cameras=cameras,
                         gt_points=_report_gt_points(metrics, scene_path), gt_depth=gt_depth,
-                        units=units, config_text=config_text)
+                        units=units, config_text=config_text, masks=masks)
 
 
 def _report_gt_points(metrics: dict, scene_path: Path | None) -> np.ndarray | None:
