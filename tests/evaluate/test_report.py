@@ -247,3 +247,14 @@ def test_depth_error_counts_inside_the_object_mask(run, tmp_path):
     assert valid.sum() == (mask & (g > 0)).sum() and np.allclose(err[valid], 1.0, atol=1e-3)
     page = write_run_report(out).read_text()
     assert "view 0: |depth - ground truth| inside the object mask, median 1 mm" in page
+
+
+def test_metrics_table_says_which_protocol_each_chamfer_follows():
+    from svolsdf.evaluate.report import _metrics_table
+
+    block = {"accuracy": 1.0, "completeness": 2.0, "overall": 1.5}
+    page = _metrics_table({"chamfer": {**block, "protocol": "generic"},
+                           "chamfer_mesh": {**block, "protocol": "dtu-mesh",
+                                            "sampled": "surface", "density": 0.2}}, "mm")
+    assert page.count("protocol: generic two-way Chamfer against the whole --gt-points") == 3
+    assert page.count("protocol: DTU protocol on the mesh&#x27;s surface") == 3

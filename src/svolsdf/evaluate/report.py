@@ -30,6 +30,7 @@ from svolsdf.evaluate.report_pictures import (
     novel_section,
     orbit_section,
 )
+from svolsdf.evaluate.run_outputs import protocol_label
 from svolsdf.io.runfolder import RunFolder, atomic_write
 
 __all__ = ["ViewImages", "METRIC_INFO", "write_report"]
@@ -64,8 +65,10 @@ def _metrics_table(metrics: dict, units: str | None) -> str:
         blk = metrics.get(key) or {}
         if key == "chamfer_mesh" and blk.get("overall") is None:
             continue
+        proto = f"; protocol: {protocol_label(blk.get('protocol'))}" if blk.get(
+            "overall") is not None else ""
         for k in ("accuracy", "completeness", "overall"):
-            rows.append((f"Chamfer {k} ({src})", blk.get(k), u, METRIC_INFO[k]))
+            rows.append((f"Chamfer {k} ({src})", blk.get(k), u, METRIC_INFO[k] + proto))
     ratio = metrics.get("mesh_over_points") or {}
     for k in ("accuracy", "completeness", "overall"):
         if ratio.get(k) is not None:

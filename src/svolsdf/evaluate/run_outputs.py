@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from svolsdf.errors import InputError
-from svolsdf.evaluate.report import ViewImages
+from svolsdf.evaluate.report_parts import ViewImages
 from svolsdf.io.paths import input_file
 from svolsdf.io.runfolder import OUTPUT_STAGES, RunFolder
 
