@@ -5,7 +5,6 @@ builds the page).
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 from pathlib import Path
@@ -134,7 +133,6 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
             except InputError as e:
                 notes.append(f"Inputs not shown: {e}")
             if is_synthetic_scene(scene_path):
-                units = units if units not in (None, "unknown") else _synthetic_units(scene_path)
                 gt_depth = {v: np.load(f) for v in ids
                             if (f := Path(scene_path) / "gt_depth" / f"{v:03d}.npy").is_file()}
     config_text = run.config_file.read_text() if run.config_file.is_file() else None
@@ -163,10 +161,3 @@ def _report_gt_points(metrics: dict, scene_path: Path | None) -> np.ndarray | No
         log.warning("report: ground truth not shown (%s)", e)
     return None
 
-
-def _synthetic_units(scene_path: Path) -> str | None:
-    """The "units" that `svolsdf synth` records in scene.json (millimetres), or None."""
-    try:
-        return json.loads((Path(scene_path) / "scene.json").read_text()).get("units")
-    except (OSError, ValueError, AttributeError):
-        return None
