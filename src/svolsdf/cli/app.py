@@ -27,8 +27,11 @@ class _Stopped(Exception):
 
 
 def _run_pipeline(pipeline) -> dict:
-    try:
-        return pipeline.run()
+    from svolsdf.io.progress import show_progress
+
+    try:  # --no-progress turns off every stage's bars, not only the optimization's
+        with show_progress(None if pipeline.progress else False):
+            return pipeline.run()
     except RunInterrupted as e:
         raise _Stopped(str(e)) from None
 

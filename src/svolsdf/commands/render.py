@@ -307,7 +307,7 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
         cfg_ibr = ibr_config or IBRConfig()
         t0 = time.perf_counter()
         r = p.render_views(scene.cameras_unit, _scene_range(scene, s).to(p.device), chunk=chunk,
-                           keys=("depth", "opacity"))
+                           keys=("depth", "opacity"), desc="IBR: depth of the input views")
         d = r["depth"] * s
         d = torch.where(r["opacity"] >= OPACITY_SURFACE, d, torch.zeros_like(d))
         src = (scene.images, scene.cameras.to(dtype=torch.float64), d.float())
@@ -320,12 +320,10 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
                  time.perf_counter() - t0)
 
     files, ibr_files, rgb_frames, ibr_frames, secs = [], [], [], [], []
-    it = range(len(names))
-    if progress:
-        from tqdm import tqdm
+    from svolsdf.io.progress import progress_bar
 
-        it = tqdm(it, desc="render", unit="view")
-    for k in it:
+    what = "render" + (" + IBR" if ibr else "") + (" (orbit)" if path == "orbit" else "")
+    for k in progress_bar(range(len(names)), desc=what, show=None if progress else False):
         name = names[k]
         t0 = time.perf_counter()
         r = p.render_views(cams_u[[k]], near_far[[k]].to(p.device), chunk=chunk)
