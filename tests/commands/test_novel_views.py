@@ -129,3 +129,34 @@ def test_box_near_far_and_normals():
     img = camera_normals(n, torch.ones(2, 2), w2c[0])
     assert torch.allclose(img[:, 0, 0], torch.tensor([0.5, 0.5, 0.0]))
 
+
+
+def test_report_and_evaluate_after_a_mesh_only_change_need_no_new_render(tiny_run, tmp_path,
+                                                                         capsys):
+    """A rerun that changes only the mesh's options keeps the field, so the renders are still
+    the run's: report and evaluate take them without a new render; once the field itself is
+    trained again they are refused."""
+    import shutil
+
+    from svolsdf.config import load_config, save_config
+
+    _, src = tiny_run
+    out = tmp_path / "run"
+    shutil.copytree(src, out)
+    render_outputs(out, views=[3], progress=False)
+    cfg = load_config(out / "config.yaml")
+    cfg.mesh.resolution = 40
+    save_config(cfg, out / "config.yaml")
+    cli_main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"),
+              "--no-progress"])
+    capsys.readouterr()
+    cli_main(["report", str(out)])
+    assert "report " in capsys.readouterr().out
+    cli_main(["evaluate", str(out), "--no-report"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["settings"]["provenance"]["renders"].startswith("the current field")
+    assert "3" in m["images"]["psnr"]["per_view"]
+    torch.save({"changed": 1}, out / "field" / "model.pt")  # another field
+    with pytest.raises(SystemExit) as e:
+        cli_main(["report", str(out)])
+    assert e.value.code == 2 and "renders came from an earlier config" in capsys.readouterr().err

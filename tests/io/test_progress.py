@@ -54,14 +54,14 @@ def test_mvs_fusion_rendering_and_tsdf_show_their_bars(tmp_path, capsys):
     assert "ETA" in err
 
 
-def test_no_progress_turns_off_every_stage_bar(capsys):
+def test_no_progress_turns_off_every_stage_bar(tmp_path, capsys):
     """`svolsdf reconstruct --no-progress`: the pipeline's progress flag reaches the bars of
     the components, not only the optimization's."""
     from svolsdf.cli.app import _run_pipeline
 
     class Stand:
         def __init__(self, progress):
-            self.progress = progress
+            self.progress, self.out, self.device = progress, tmp_path, "cpu"
 
         def run(self):
             bar = progress_bar(range(2), desc="MVS stage 1")

@@ -225,7 +225,12 @@ def render_outputs(
     if chunk < 1:
         raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     from svolsdf.io.paths import output_dir
-    from svolsdf.io.runfolder import config_digest, folder_lock, refuse_in_progress
+    from svolsdf.io.runfolder import (
+        config_digest,
+        file_record,
+        folder_lock,
+        refuse_in_progress,
+    )
 
     if out.is_dir():
         refuse_in_progress(out)  # not "stopped before it trained the field" while it trains
@@ -243,7 +248,13 @@ def render_outputs(
     output_dir(out, "run folder")  # renders/ goes there: fail before rendering
     with folder_lock(out, "svolsdf render"):
         res = _render(p, out, views, path, ibr, size, frames, chunk, fps, ibr_config, progress)
-        p.dir.record("render", config_digest(p.dir.config_file))  # evaluate checks it
+        # evaluate and report check it: renders stay the run's while this field does (a
+        # mesh-only change of the config keeps them)
+        model = (p.dir.refined_model if p.cfg.mvs.finer_stage_optimization
+                 and p.dir.refined_model.is_file() else p.dir.model)
+        p.dir.record("render", config_digest(p.dir.config_file),
+                     model=model.relative_to(p.dir.root).as_posix(),
+                     model_record=file_record(model))
     return res
 
 

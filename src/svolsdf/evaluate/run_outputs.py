@@ -140,6 +140,8 @@ def check_provenance(run: RunFolder, found: list[str]) -> dict[str, str]:
             raise InputError(f"{run.root}: {why}; run svolsdf reconstruct -o {run.root} "
                              f"--config {run.config_file} to make it again")
     prov = run.output_provenance(names)
+    if prov.get("renders") == "another config" and _renders_of_the_current_field(run):
+        prov["renders"] = "the current field (config.yaml changed elsewhere)"
     stale = [n for n, v in prov.items() if v == "another config"]
     if stale:
         out = run.root
@@ -150,6 +152,24 @@ def check_provenance(run: RunFolder, found: list[str]) -> dict[str, str]:
                          f"{run.config_file} (a rerun with other options stopped before "
                          f"it made them again); run {again} first")
     return prov
+
+
+def _renders_of_the_current_field(run: RunFolder) -> bool:
+    """Whether renders/ came from the field the run has now: the model file `svolsdf render`
+    recorded is unchanged and no finer-stage field has replaced it since. A config change that
+    left the field alone (the mesh's options) then keeps the renders, with no new render."""
+    from svolsdf.io.runfolder import file_record
+
+    prov = run.stage_state().get("provenance")
+    rec = prov.get("render") if isinstance(prov, dict) else None
+    if not isinstance(rec, dict) or not isinstance(rec.get("model"), str):
+        return False
+    model = run.root / rec["model"]
+    if not model.is_file() or file_record(model) != rec.get("model_record"):
+        return False
+    if run.output_provenance(["field"])["field"] == "another config":
+        return False  # a rerun changed the field's options and stopped before training it
+    return model == run.refined_model or not run.refined_model.is_file()
 
 
 def check_views_rendered(out: str | Path, views: list[int] | None) -> None:
