@@ -30,6 +30,12 @@ from svolsdf.evaluate.report_pictures import (
     novel_section,
     orbit_section,
 )
+from svolsdf.evaluate.report_run import (
+    config_section,
+    loss_curves_section,
+    run_section,
+    stage_time_section,
+)
 from svolsdf.evaluate.run_outputs import protocol_label
 from svolsdf.io.runfolder import RunFolder, atomic_write
 
@@ -152,6 +158,7 @@ h1{font-size:1.4em}h2{font-size:1.15em;border-bottom:1px solid #ccc;margin-top:1
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:3px 8px;
 font-size:.9em;text-align:right}td:first-child,th:first-child{text-align:left}
 td.why{text-align:left;color:#555;font-size:.82em}
+details summary{cursor:pointer;color:#335}.charts figure img{width:560px}
 .grid,.row{display:flex;flex-wrap:wrap;gap:8px;margin-bottom:8px}figure{margin:0}
 figcaption{font-size:.8em;color:#555;max-width:1200px}img{max-width:100%}
 .view3d{width:100%;border:1px solid #ddd}
@@ -170,7 +177,8 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
                  notes: list[str] | None = None, *, cameras=None,
                  gt_points: np.ndarray | None = None, gt_depth: dict | None = None,
                  units: str | None = None, config_text: str | None = None,
-                 masks: dict | None = None,
+                 masks: dict | None = None, run_info: dict | None = None,
+                 losses: dict | None = None,
                  orbit_frames: int = 8, viewer=None) -> Path:
     """Write ``out_dir/report.html``.
 
@@ -189,6 +197,8 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
         gt_points: (M, 3) ground-truth points: the points' distances to them are shown.
         gt_depth: view id -> (H, W) ground-truth z-depth (0 = none): per-view depth error maps.
         masks: view id -> (H, W) object mask of the inputs: depth errors count inside it.
+        run_info: OUT/run.json (command, version, device, date).
+        losses: optimization name -> rows of its losses.csv: the loss curves.
         units: world units ("mm", ...).
         config_text: the run's config.yaml, shown verbatim.
         orbit_frames: pictures of the mesh along the orbit (0: none).
@@ -212,9 +222,12 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
         points = None
     if mesh is not None and not len(mesh[1]):
         mesh = None
-    point_errors = None
+    point_errors = gt_errors = None
     if gt_points is not None and points is not None and len(gt_points):
         point_errors = _point_errors(points[0], gt_points, metrics, viewer)
+        # the ground truth by its distance to the points (completeness), on the same scale
+        gt_errors = _point_errors(gt_points, points[0], metrics, viewer)
+        gt_errors = (gt_errors[0], gt_errors[1], point_errors[2])
     cams3d = None
     if cameras is not None and inputs:
         import torch
@@ -230,7 +243,8 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
         if len(mesh[1]) < nf:
             view_notes.append(f"Mesh decimated for display from {nf:,} to {len(mesh[1]):,} "
                               "faces (vertex clustering); mesh.ply is unchanged.")
-    fig, more = scene_figure(points, mesh, cams3d, point_errors, units_label(units), viewer)
+    fig, more = scene_figure(points, mesh, cams3d, point_errors, units_label(units), viewer,
+                             gt_errors=gt_errors)
     view_notes += more
     t_fig = time.perf_counter()
     view = ""
@@ -245,14 +259,16 @@ def write_report(out_dir: str | Path, metrics: dict, views: list[ViewImages] | N
     parts.append(view)
     parts.append("<h2>Metrics</h2>" + _metrics_table(metrics, units))
     parts.append(_per_view_table(views or []))
+    parts.append(run_section(run_info, config_text))
+    parts.append(loss_curves_section(losses or {}))
+    parts.append(stage_time_section(metrics.get("timing")))
     parts.append(inputs_html)
     parts.append(depth_section(out_dir, [vid for vid, _ in inputs or []]
                                or _depth_ids(out_dir), gt_depth, units, masks))
     parts.append(normals_section(out_dir))
     parts.append(orbit_section(mesh, cameras, orbit_frames))
     parts.append(novel_section(views or []))
-    if config_text:
-        parts.append(f"<h2>Run configuration</h2><pre>{html.escape(config_text)}</pre>")
+    parts.append(config_section(config_text))
     parts.append("<h2>Timing (seconds)</h2>" + _timing_table(metrics.get("timing")))
     t_pics = time.perf_counter()
     script = ""

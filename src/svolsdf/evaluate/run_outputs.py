@@ -300,7 +300,7 @@ none) and are never compared: benchmark tables refuse to mix them in a column.""
 def protocol_label(protocol: str | None) -> str:
     """One line saying which protocol a Chamfer number follows (`PROTOCOLS`)."""
     if protocol is None:
-        return "not computed"
+        return "not recorded (metrics of an older version)"
     return PROTOCOLS.get(protocol, f"protocol {protocol!r}")
 
 

@@ -141,7 +141,18 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
     return write_report(out, metrics, views, inputs, points, mesh,
                         title=f"svolsdf run {out.resolve().name}", notes=notes, cameras=cameras,
                         gt_points=_report_gt_points(metrics, scene_path), gt_depth=gt_depth,
-                        units=units, config_text=config_text, masks=masks)
+                        units=units, config_text=config_text, masks=masks,
+                        run_info=run.run_info(), losses=_losses(run))
+
+
+def _losses(run: RunFolder) -> dict[str, list[dict]]:
+    """The loss logs of the run's optimizations: the field's, and the finer stage's when it
+    ran (`svolsdf.evaluate.report_run.read_losses`)."""
+    from svolsdf.evaluate.report_run import read_losses
+
+    logs = {"field": run.field_dir / "losses.csv",
+            "finer-stage field": run.refined_model.parent / "losses.csv"}
+    return {name: rows for name, f in logs.items() if (rows := read_losses(f))}
 
 
 def _report_gt_points(metrics: dict, scene_path: Path | None) -> np.ndarray | None:
