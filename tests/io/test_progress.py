@@ -67,7 +67,7 @@ def test_no_progress_turns_off_every_stage_bar(tmp_path, capsys):
             bar = progress_bar(range(2), desc="MVS stage 1")
             self.shown = not bar.disable
             bar.close()
-            return {}
+            return {"out": str(self.out)}
 
     with show_progress(True):  # as on a terminal
         off, on = Stand(progress=False), Stand(progress=True)
@@ -76,3 +76,11 @@ def test_no_progress_turns_off_every_stage_bar(tmp_path, capsys):
         Stand.run(on)
         assert on.shown
     assert capsys.readouterr().err.count("MVS stage 1:") == 1
+    # the finished run records what made it, for the report
+    import json
+
+    from svolsdf import __version__
+
+    info = json.loads((tmp_path / "run.json").read_text())
+    assert info["version"] == __version__ and info["device"] == "cpu"
+    assert set(info) == {"command", "version", "device", "torch", "date"}

@@ -30,11 +30,12 @@ def _run_pipeline(pipeline) -> dict:
     from svolsdf.io.progress import show_progress
 
     try:  # --no-progress turns off every stage's bars, not only the optimization's
-        with show_progress(None if pipeline.progress else False):
+        with show_progress(None if getattr(pipeline, "progress", True) else False):
             summary = pipeline.run()
     except RunInterrupted as e:
         raise _Stopped(str(e)) from None
-    _record_run(pipeline.out, pipeline.device)
+    if summary.get("out"):  # the run folder it finished
+        _record_run(Path(summary["out"]), getattr(pipeline, "device", None))
     return summary
 
 
