@@ -25,11 +25,14 @@ def test_a_bar_names_its_stage_and_shows_the_time_left(capsys):
 
 def test_mvs_fusion_rendering_and_tsdf_show_their_bars(tmp_path, capsys):
     """The stages that had no bar: MVS per view (each stage), fusion, the field's rendering of
-    several views (the guide, IBR's inputs) and the TSDF grid."""
+    several views (the guide, IBR's inputs), the TSDF grid and the Poisson mesh's steps."""
     from svolsdf.commands.mvs import MVSJobConfig, run_mvs
+    from svolsdf.fusion.meshing import poisson_mesh
     from svolsdf.fusion.tsdf import tsdf_grid
+    from svolsdf.io.ply import read_ply
     from svolsdf.render.samplers import error_bound_sample
     from svolsdf.render.views import render_field_views
+    from svolsdf.scene.loaders import load_scene
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
     scene = tmp_path / "syn"
@@ -46,10 +49,12 @@ def test_mvs_fusion_rendering_and_tsdf_show_their_bars(tmp_path, capsys):
                            keys=("depth",), desc="guide: render the input views")
         tsdf_grid([torch.full((12, 16), 2.0)], cams[[0]], np.full(3, -1.0), 0.5, (4, 4, 4),
                   trunc=0.5, chunk=16)
+        poisson_mesh(read_ply(scene / "gt_points.ply")["points"], None,
+                     SphereSDF(1.0, beta=0.01), load_scene(scene), depth=5, trim=0.0)
     err = capsys.readouterr().err
     for name in ("MVS stage 1 (plane sweep)", "MVS stage 2 (plane sweep)",
                  "MVS stage 3 (plane sweep)", "fusion", "guide: render the input views",
-                 "mesh: TSDF"):
+                 "mesh: TSDF", "mesh: Poisson"):
         assert f"{name}:" in err, name
     assert "ETA" in err
 
