@@ -294,6 +294,10 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
                 views = list(p.test_view_ids) or list(p.views)
             else:
                 views = run_views.test or run_views.inputs
+                if not run_views.test:
+                    log.warning("%s holds no view out of the run: rendering its input views "
+                                "%s, which evaluate scores as input views, not novel ones",
+                                out, views)
         views = [int(v) for v in views]
         if not views:
             raise InputError(f"{out}: no views to render")
