@@ -108,7 +108,10 @@ def test_demo_ends_with_the_report(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr(pl, "Pipeline", GroundTruthRun)
     main(["demo", "-o", str(tmp_path / "demo"), "--size", "64x48"])
     report = tmp_path / "demo" / "run" / "report.html"
-    assert f"report {report}" in capsys.readouterr().out.splitlines()[-1]
+    printed = capsys.readouterr().out
+    assert f"report {report}" in printed.splitlines()[-1]
+    # its Chamfer says which protocol it follows (not the one --gt-points would give)
+    assert "Chamfer protocol: the synthetic scene's own ground truth, only the part" in printed
     page = report.read_text()
     assert "<h2>3D view" in page and "Chamfer overall (points)" in page
     assert json.loads((report.parent / "metrics.json").read_text())["chamfer"]["overall"] < 1

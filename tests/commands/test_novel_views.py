@@ -184,3 +184,36 @@ def test_ibr_holes_mesh_warps_the_photos_where_the_field_is_empty(tiny_run, tmp_
     with pytest.raises(SystemExit) as e:
         cli_main(["render", str(bare), "--ibr", "--ibr-holes", "mesh"])
     assert e.value.code == 2
+
+
+def test_report_and_evaluate_after_a_mesh_only_change_need_no_new_render(tiny_run, tmp_path,
+                                                                         capsys):
+    """A rerun that changes only the mesh's options keeps the field, so the renders are still
+    the run's: report and evaluate take them without a new render; once the field itself is
+    trained again they are refused."""
+    import shutil
+
+    from svolsdf.config import load_config, save_config
+
+    _, src = tiny_run
+    out = tmp_path / "run"
+    shutil.copytree(src, out)
+    for d in ("renders", "renders_ibr"):  # other tests' renders (other sizes) go
+        shutil.rmtree(out / d, ignore_errors=True)
+    render_outputs(out, views=[3], progress=False)
+    cfg = load_config(out / "config.yaml")
+    cfg.mesh.resolution = 40
+    save_config(cfg, out / "config.yaml")
+    cli_main(["reconstruct", "-o", str(out), "--config", str(out / "config.yaml"),
+              "--no-progress"])
+    capsys.readouterr()
+    cli_main(["report", str(out)])
+    assert "report " in capsys.readouterr().out
+    cli_main(["evaluate", str(out), "--no-report"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["settings"]["provenance"]["renders"].startswith("the current field")
+    assert "3" in m["images"]["psnr"]["per_view"]
+    torch.save({"changed": 1}, out / "field" / "model.pt")  # another field
+    with pytest.raises(SystemExit) as e:
+        cli_main(["report", str(out)])
+    assert e.value.code == 2 and "renders came from an earlier config" in capsys.readouterr().err

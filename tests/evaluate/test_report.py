@@ -61,10 +61,18 @@ def run(tmp_path_factory):
     (out / "config.yaml").write_text(f"scene:\n  path: {scene}\n  views: [0, 1, 2]\n")
     (out / "views.json").write_text(json.dumps({"inputs": [0, 1, 2], "test": [3]}))
     (out / "timing.json").write_text(json.dumps({"field": {"seconds": 12.5}}))
+    (out / "field").mkdir()
+    (out / "field" / "losses.csv").write_text("step,total,rgb,eikonal,beta\n" + "".join(
+        f"{s},{1 / s},{0.5 / s},{0.1},{0.01}\n" for s in range(10, 110, 10)))
+    (out / "run.json").write_text(json.dumps({
+        "command": "svolsdf reconstruct scene -o run", "version": "0.1.0", "device": "cpu",
+        "torch": "2.13.0", "date": "2026-12-07T04:00:00+00:00"}))
     metrics = {"chamfer": {"accuracy": 1.2, "completeness": 1.5, "overall": 1.35},
                "fscore": 0.8, "fscore_threshold": 2.0,
                "images": {"psnr": {"mean": 20.0, "per_view": {"3": 20.0}}},
-               "timing": {"field": {"seconds": 12.5}}, "settings": {}}
+               "timing": {"mvs1": {"seconds": 3.5}, "field": {"seconds": 12.5},
+                          "fusion": {"seconds": 1.25}, "total": {"seconds": 17.5}},
+               "settings": {}}
     (out / "metrics.json").write_text(json.dumps(metrics))
     return out
 
@@ -210,6 +218,7 @@ def test_report_in_headless_chromium(run, tmp_path):
     traces = page.value["traces"]
     assert traces[0].startswith("mesh") and "camera 0" in traces, traces
     assert "points: distance to ground truth" in traces and page.value["hidden"] >= 1
+    assert "ground truth: distance to the points (completeness)" in traces
     assert shot.stat().st_size > 10_000
     img = np.asarray(Image.open(shot).convert("L"))
     assert img.std() > 5, f"blank page; see {shot}"
@@ -227,3 +236,51 @@ def test_metrics_table_says_how_the_mesh_was_scored():
     old = _metrics_table({"chamfer": {}, "chamfer_mesh": block}, "mm")
     assert "<td>mesh scored by</td><td>its vertices (metrics of an older version)</td>" in old
     assert "mesh scored by" not in _metrics_table({"chamfer": {}, "chamfer_mesh": {}}, "mm")
+
+
+def test_depth_error_counts_inside_the_object_mask(run, tmp_path):
+    """The report's depth error of a scene with masks is the object's: a background off by 50
+    and an object off by 1 give a median of 1, and the caption says where it was measured."""
+    import shutil
+
+    from svolsdf.evaluate.report_pictures import depth_error
+
+    out = tmp_path / "copy"
+    shutil.copytree(run, out)
+    scene = run.parent / "scene"
+    g = np.load(scene / "gt_depth" / "000.npy").astype(np.float64)
+    mask = np.asarray(Image.open(scene / "mask" / "000.png").convert("L")) > 127
+    assert (g[~mask] > 0).sum() > mask.sum()  # more background with depth than object
+    np.save(out / "depth" / "0.npy", np.where(mask, g + 1.0, g + 50.0).astype(np.float32))
+    err, valid = depth_error(np.where(mask, g + 1.0, g + 50.0), g, mask)
+    assert valid.sum() == (mask & (g > 0)).sum() and np.allclose(err[valid], 1.0, atol=1e-3)
+    page = write_run_report(out).read_text()
+    assert "view 0: |depth - ground truth| inside the object mask, median 1 mm" in page
+
+
+def test_metrics_table_says_which_protocol_each_chamfer_follows():
+    from svolsdf.evaluate.report import _metrics_table
+
+    block = {"accuracy": 1.0, "completeness": 2.0, "overall": 1.5}
+    page = _metrics_table({"chamfer": {**block, "protocol": "generic"},
+                           "chamfer_mesh": {**block, "protocol": "dtu-mesh",
+                                            "sampled": "surface", "density": 0.2}}, "mm")
+    assert page.count("protocol: generic two-way Chamfer against the whole --gt-points") == 3
+    assert page.count("protocol: DTU protocol on the mesh&#x27;s surface") == 3
+
+
+def test_report_shows_how_the_run_went(run, tmp_path):
+    """The loss curves, a chart of the stage times, the command, version, device and date, and
+    the config collapsed."""
+    page = write_run_report(run).read_text()
+    for section in ("Run", "Loss curves", "Stage times", "Run configuration"):
+        assert f"<h2>{section}</h2>" in page, section
+    for row in ("<td>command</td><td class='val'>svolsdf reconstruct scene -o run</td>",
+                "<td>svolsdf version</td><td class='val'>0.1.0</td>",
+                "<td>device</td><td class='val'>cpu</td>",
+                "<td>date (UTC)</td><td class='val'>2026-12-07T04:00:00+00:00</td>"):
+        assert row in page, row
+    assert 'alt="loss curves: field (10 logged steps)"' in page
+    assert 'alt="time per stage (timing.json); total 17.5 s"' in page
+    assert "<details id='config'><summary>config.yaml" in page
+    assert "ground truth: distance to the points (completeness)" in page

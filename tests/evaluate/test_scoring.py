@@ -79,18 +79,22 @@ def test_evaluate_writes_metrics_and_report(tmp_path):
     assert m["fscore"] == 1.0 and m["fscore_threshold"] == 0.6
     assert m["chamfer_mesh"]["protocol"] == "generic-mesh"
     assert m["chamfer_mesh"]["overall"] < 0.2
-    # Image metrics: per view, against the masked ground truth.
+    # Image metrics: per view, against the masked ground truth; view 1 is an input of the run
+    # (config.yaml: views [0, 1]), scored under its own label, view 2 is the novel one.
     gts = load_scene(scene, views=[1, 2])
-    for k, vid in enumerate((1, 2)):
+    for k, (vid, key) in enumerate(((1, "images_input_views"), (2, "images"))):
         pred = torch.from_numpy(np.array(Image.open(out / "renders" / f"{vid}.png"),
                                          np.float32) / 255).permute(2, 0, 1)
         want = masked_psnr(pred, gts.images[k], gts.masks[k])
-        assert m["images"]["psnr"]["per_view"][str(vid)] == pytest.approx(want, rel=1e-6)
+        assert m[key]["psnr"]["per_view"][str(vid)] == pytest.approx(want, rel=1e-6)
     for key in ("psnr", "ssim", "lpips"):
         blk = m["images"][key]
-        assert set(blk["per_view"]) == {"1", "2"}
-        assert blk["mean"] == pytest.approx(np.mean(list(blk["per_view"].values())))
+        assert set(blk["per_view"]) == {"2"}
+        assert set(m["images_input_views"][key]["per_view"]) == {"1"}
+        assert blk["mean"] == pytest.approx(blk["per_view"]["2"])
         assert m["images_ibr"][key]["mean"] == pytest.approx(blk["mean"])
+    assert m["views"] == {"inputs": [0, 1], "novel_scored": [2], "input_scored": [1]}
+    assert m["settings"]["image_region"].startswith("inside the object mask")
     assert 0 < m["images"]["ssim"]["mean"] < 1 and m["images"]["lpips"]["mean"] > 0
     assert m["timing"]["optimize"] == 12.5 and m["timing"]["evaluate_seconds"] > 0
     page = (out / "report.html").read_text()
@@ -205,9 +209,15 @@ def test_an_mvs_output_folder_is_scored_against_its_synthetic_scene(tmp_path, ca
     run_mvs(MVSJobConfig(scene=scene, out=out, views=[0, 1, 2]))
     assert not (out / "config.yaml").exists() and not (out / "views.json").exists()
     main(["evaluate", str(out), "--no-report"])
-    capsys.readouterr()
+    printed = capsys.readouterr().out
     m = json.loads((out / "metrics.json").read_text())
     assert m["chamfer"]["protocol"] == "synthetic" and m["chamfer"]["overall"] is not None
+    # each number says its protocol; a missing one says why, never a bare None
+    assert "None" not in printed and "points.ply Chamfer [the synthetic scene's own" in printed
+    for key in ("chamfer_mesh", "images.psnr", "images_ibr.ssim"):
+        assert "an svolsdf mvs folder" in m["missing"][key], key
+    assert "not computed: chamfer_mesh: no mesh.ply with faces in the run folder: an svolsdf " \
+           "mvs folder" in printed
     assert m["settings"]["synthetic"]["input_views"] == [0, 1, 2]
     assert "chamfer" not in m["missing"] and m["fscore"] is not None
     # a scene that has no ground truth of its own: said so, with the way out
@@ -388,3 +398,29 @@ def test_evaluate_during_a_running_reconstruct_names_the_lock_not_a_stopped_run(
     # once the run has ended the lock is free: the earlier-config refusal is what remains
     with pytest.raises(InputError, match="earlier config"):
         evaluate_run(EvaluateConfig(out=out, gt_points=gt, report=False))
+
+
+def test_input_views_rendered_back_are_never_scored_as_novel_views(tmp_path, capsys):
+    """Three views, all inputs: `render` falls back to them. Their scores go under their own
+    label, no novel-view mean counts them (null, with the reason), metrics.json says which views
+    were inputs, and neither the terminal nor the report calls them novel views."""
+    out, gt, scene = _run(tmp_path)
+    (out / "config.yaml").write_text(f"scene:\n  path: {scene}\n  views: [0, 1, 2]\n")
+    main(["evaluate", str(out), "--gt-points", str(gt)])
+    printed = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["views"] == {"inputs": [0, 1, 2], "novel_scored": [], "input_scored": [1, 2]}
+    for key in ("images", "images_ibr"):
+        for metric in ("psnr", "ssim", "lpips"):
+            assert m[key][metric]["mean"] is None and m[key][metric]["per_view"] == {}
+            assert "input view" in m["missing"][f"{key}.{metric}"]
+        assert set(m[f"{key}_input_views"]["psnr"]["per_view"]) == {"1", "2"}
+        assert m[f"{key}_input_views"]["psnr"]["mean"] > 20
+    assert "input views (trained on, not novel), volume rendering [1, 2]" in printed
+    assert "novel views," not in printed and "None" not in printed
+    page = (out / "report.html").read_text()
+    assert "<h2>Novel views" not in page and "<h2>Input views rendered back" in page
+    assert "PSNR mean (input views, volume rendering)" in page
+    assert "input view (trained on)" in page and "novel (held out)" not in page
+    assert "[inside the object mask" in printed and "; inside the object mask" in page
+    assert "mean absolute RGB error (inside the object mask)" in page

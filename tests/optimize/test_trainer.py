@@ -163,3 +163,32 @@ def test_resume_into_a_field_built_for_another_box_trains_the_loaded_grids(tmp_p
     before = model.sdf_grid.detach().clone()
     b.fit(progress=False)
     assert b.step == 8 and not torch.equal(before, model.sdf_grid.detach())
+
+
+def test_losses_go_to_tensorboard_when_installed_else_csv_only(tmp_path, monkeypatch):
+    """With the tensorboard extra the logged losses are TensorBoard scalars under
+    OUT/field/tensorboard as they are made; without it, losses.csv alone, as before."""
+    import builtins
+
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    t = _trainer(tmp_path / "tb")
+    t.fit(progress=False, log_every=2)
+    acc = EventAccumulator(str(tmp_path / "tb" / "tensorboard"))
+    acc.Reload()
+    assert {"train/total", "train/rgb", "train/beta"} <= set(acc.Tags()["scalars"])
+    assert [e.step for e in acc.Scalars("train/total")] == [2, 4, 6]
+    assert acc.Scalars("train/total")[-1].value == pytest.approx(t.history[-1]["total"])
+    real = builtins.__import__
+
+    def no_tensorboard(name, *a, **k):
+        if name.startswith(("torch.utils.tensorboard", "tensorboard")):
+            raise ImportError(f"No module named {name!r}")
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_tensorboard)
+    t = _trainer(tmp_path / "csv")
+    t.fit(progress=False, log_every=2)
+    assert not (tmp_path / "csv" / "tensorboard").exists()
+    assert (tmp_path / "csv" / "losses.csv").read_text().startswith("step")

@@ -153,3 +153,23 @@ def test_cameras_from_a_real_scene(tmp_path):
     real = load_scene(dtu, views=[25, 22], image_size=(64, 48), load_images=False)
     assert torch.allclose(s.cameras.K.double(), real.cameras.K.double(), rtol=1e-5, atol=1e-4)
     assert torch.allclose(s.cameras.w2c.double(), real.cameras.w2c.double(), atol=1e-3)
+
+
+def test_info_reads_the_units_scene_json_declares(scene96, capsys):
+    """A synthetic scene's scene.json says "units": "mm": the loader and `svolsdf info` say mm,
+    not "units unknown"; a scene.json that names none leaves them unknown."""
+    import json
+    import shutil
+
+    out, _ = scene96
+    assert json.loads((out / "scene.json").read_text())["units"] == "mm"
+    assert load_scene(out, load_images=False).units == "mm"
+    cli_main(["info", str(out)])
+    printed = capsys.readouterr().out
+    assert "units        mm" in printed and "unknown" not in printed
+    other = out.parent / "no_units"
+    shutil.copytree(out, other)
+    meta = json.loads((other / "scene.json").read_text())
+    meta["units"] = "as in cameras_from"
+    (other / "scene.json").write_text(json.dumps(meta))
+    assert load_scene(other, load_images=False).units == "unknown"

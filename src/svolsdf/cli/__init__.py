@@ -20,7 +20,7 @@ try:
     import typer
 
     from svolsdf.cli import results, runs  # noqa: F401  (registers the commands on the app)
-    from svolsdf.cli.app import _Stopped, app, build_config
+    from svolsdf.cli.app import _STATE, _Stopped, app, build_config
     from svolsdf.errors import InputError, interrupted, note_interrupt, watch_interrupts
 except KeyboardInterrupt:
     print("interrupted", file=sys.stderr)
@@ -131,6 +131,7 @@ def _end_process(code) -> NoReturn:
 def _main(argv: list[str] | None) -> None:
     """`main` without its last guard against Ctrl-C."""
     argv = expand_list_options(list(sys.argv[1:] if argv is None else argv))
+    _STATE["argv"] = argv  # the command a finished run records (OUT/run.json)
     debug = "--debug" in argv
     got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
 

@@ -27,10 +27,36 @@ class _Stopped(Exception):
 
 
 def _run_pipeline(pipeline) -> dict:
-    try:
-        return pipeline.run()
+    from svolsdf.io.progress import show_progress
+
+    try:  # --no-progress turns off every stage's bars, not only the optimization's
+        with show_progress(None if getattr(pipeline, "progress", True) else False):
+            summary = pipeline.run()
     except RunInterrupted as e:
         raise _Stopped(str(e)) from None
+    if summary.get("out"):  # the run folder it finished
+        _record_run(Path(summary["out"]), getattr(pipeline, "device", None))
+    return summary
+
+
+def _record_run(out: Path, device) -> None:
+    """OUT/run.json: the command line, version, device and date of the run that finished (the
+    report shows them)."""
+    import datetime
+    import json
+    import shlex
+
+    import torch
+
+    from svolsdf import __version__
+    from svolsdf.io.runfolder import RunFolder, atomic_write
+
+    argv = _STATE.get("argv")
+    info = {"command": "svolsdf " + shlex.join(argv) if argv is not None else None,
+            "version": __version__, "device": str(device), "torch": torch.__version__,
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    text = json.dumps(info, indent=1) + "\n"
+    atomic_write(RunFolder(out).run_file, lambda tmp: tmp.write_text(text))
 
 
 @app.callback()

@@ -44,7 +44,7 @@ def evaluate(
         "--no-report", help="Write metrics.json only.")] = False,
 ) -> None:
     """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
-    from svolsdf.evaluate.run_outputs import check_views_rendered
+    from svolsdf.evaluate.run_outputs import check_views_rendered, metric_lines
     from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
     from svolsdf.scene.loaders import scene_folder
 
@@ -64,20 +64,8 @@ def evaluate(
                          lpips_weights=lpips_weights, ssim_data_range=ssim_data_range,
                          report=not no_report)
     m = evaluate_run(cfg)
-    c, im = m["chamfer"], m["images"]
-    lp = im["lpips"]
-    typer.echo(f"chamfer acc {c['accuracy']} comp {c['completeness']} overall {c['overall']}; "
-               f"fscore {m['fscore']}; psnr {im['psnr']['mean']} ssim {im['ssim']['mean']} "
-               f"lpips {lp['mean']}")
-    by_reason: dict[str, list[str]] = {}  # each null metric and why, one line per reason
-    for name, why in (m.get("missing") or {}).items():
-        by_reason.setdefault(why, []).append(name)
-    for why, names in by_reason.items():
-        typer.echo(f"not computed: {', '.join(names)}: {why}")
-    cm = m["chamfer_mesh"]
-    if cm.get("overall") is not None:
-        typer.echo(f"mesh chamfer acc {cm['accuracy']} comp {cm['completeness']} overall "
-                   f"{cm['overall']} (its surface, sampled every {cm['density']:.3g})")
+    for line in metric_lines(m):
+        typer.echo(line)
     typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
                                                    f" and {out / 'report.html'}"))
 

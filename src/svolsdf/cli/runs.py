@@ -241,6 +241,9 @@ def demo(
                          f"{r['completeness']:.3f} mm, overall {r['overall']:.3f} mm, F-score "
                          f"{r['fscore']:.3f} at {r['threshold']:.2f} mm")
     (run / "demo_metrics.json").write_text(json.dumps(result, indent=1))
+    from svolsdf.evaluate.run_outputs import protocol_label
+
+    lines.append(f"Chamfer protocol: {protocol_label('synthetic')}")
     typer.echo("\n".join(lines))
     typer.echo(f"total {summary['timing']['total']['seconds']:.0f} s; inputs {views}; "
                f"outputs in {run}")

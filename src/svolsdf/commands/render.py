@@ -226,7 +226,12 @@ def render_outputs(
     if chunk < 1:
         raise InputError(f"--chunk {chunk}: expected a number of rays >= 1")
     from svolsdf.io.paths import output_dir
-    from svolsdf.io.runfolder import config_digest, folder_lock, refuse_in_progress
+    from svolsdf.io.runfolder import (
+        config_digest,
+        file_record,
+        folder_lock,
+        refuse_in_progress,
+    )
 
     if out.is_dir():
         refuse_in_progress(out)  # not "stopped before it trained the field" while it trains
@@ -246,7 +251,13 @@ def render_outputs(
         _hole_mesh(p, out, ibr_config)  # a missing or changed mesh: refused before any work
     with folder_lock(out, "svolsdf render"):
         res = _render(p, out, views, path, ibr, size, frames, chunk, fps, ibr_config, progress)
-        p.dir.record("render", config_digest(p.dir.config_file))  # evaluate checks it
+        # evaluate and report check it: renders stay the run's while this field does (a
+        # mesh-only change of the config keeps them)
+        model = (p.dir.refined_model if p.cfg.mvs.finer_stage_optimization
+                 and p.dir.refined_model.is_file() else p.dir.model)
+        p.dir.record("render", config_digest(p.dir.config_file),
+                     model=model.relative_to(p.dir.root).as_posix(),
+                     model_record=file_record(model))
     return res
 
 
@@ -343,6 +354,10 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
                 views = list(p.test_view_ids) or list(p.views)
             else:
                 views = run_views.test or run_views.inputs
+                if not run_views.test:
+                    log.warning("%s holds no view out of the run: rendering its input views "
+                                "%s, which evaluate scores as input views, not novel ones",
+                                out, views)
         views = [int(v) for v in views]
         if not views:
             raise InputError(f"{out}: no views to render")
@@ -368,7 +383,7 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
         mesh = _hole_mesh(p, out, cfg_ibr)
         t0 = time.perf_counter()
         r = p.render_views(scene.cameras_unit, _scene_range(scene, s).to(p.device), chunk=chunk,
-                           keys=("depth", "opacity"))
+                           keys=("depth", "opacity"), desc="IBR: depth of the input views")
         d = r["depth"] * s
         d = torch.where(r["opacity"] >= OPACITY_SURFACE, d, torch.zeros_like(d))
         if mesh is not None:
@@ -383,12 +398,10 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
                  time.perf_counter() - t0)
 
     files, ibr_files, rgb_frames, ibr_frames, secs = [], [], [], [], []
-    it = range(len(names))
-    if progress:
-        from tqdm import tqdm
+    from svolsdf.io.progress import progress_bar
 
-        it = tqdm(it, desc="render", unit="view")
-    for k in it:
+    what = "render" + (" + IBR" if ibr else "") + (" (orbit)" if path == "orbit" else "")
+    for k in progress_bar(range(len(names)), desc=what, show=None if progress else False):
         name = names[k]
         t0 = time.perf_counter()
         r = p.render_views(cams_u[[k]], near_far[[k]].to(p.device), chunk=chunk)

@@ -19,6 +19,7 @@ __all__ = [
     "benchmark_markdown",
     "benchmark_plot",
     "method_label",
+    "protocol_groups",
 ]
 
 
@@ -81,7 +82,41 @@ def _columns(rows: list[dict]) -> list[tuple[str, str, int]]:
     return cols
 
 
+def protocol_groups(rows: list[dict]) -> list[tuple[str | None, list[dict]]]:
+    """The rows split by the Chamfer protocol they were scored under (``protocol``; see
+    `svolsdf.evaluate.run_outputs.PROTOCOLS`), in order of appearance: numbers of two protocols
+    measure different things (the DTU protocol, the whole --gt-points cloud, the part of a
+    synthetic scene the inputs see) and never share a column or a mean. A row without one (a
+    failed run, no ground truth) joins the group of its scene, else the first group."""
+    order: list[str | None] = []
+    by_scene: dict[str, str] = {}
+    for r in rows:
+        p = r.get("protocol")
+        if p is not None:
+            by_scene.setdefault(r["scene"], p)
+            if p not in order:
+                order.append(p)
+    if not order:
+        return [(None, list(rows))]
+    groups: dict = {p: [] for p in order}
+    for r in rows:
+        p = r.get("protocol")
+        groups[p if p is not None else by_scene.get(r["scene"], order[0])].append(r)
+    return list(groups.items())
+
+
+def _check_one_protocol(rows: list[dict]) -> None:
+    protocols = sorted({str(r["protocol"]) for r in rows if r.get("protocol") is not None})
+    if len(protocols) > 1:
+        which = "; ".join(f"{p}: " + ", ".join(f"{r['scene']} / {r['mode']}" for r in rows
+                                               if r.get("protocol") == p) for p in protocols)
+        raise InputError(f"benchmark table: runs scored under different Chamfer protocols "
+                         f"({which}) cannot share a column or a mean; split the rows with "
+                         "protocol_groups")
+
+
 def _table(rows: list[dict], modes: list[str] | None):
+    _check_one_protocol(rows)
     scenes, modes, cell = _grid(rows, modes)
     cols = _columns(rows)
     body = []
@@ -152,6 +187,21 @@ def benchmark_markdown(rows: list[dict], modes: list[str] | None = None,
     """
     if not rows:
         raise InputError("benchmark table: no runs to tabulate")
+    groups = protocol_groups(rows)
+    if len(groups) > 1:  # one table per protocol: never two protocols in one column
+        from svolsdf.evaluate.run_outputs import protocol_label
+
+        names = _mode_labels(rows, modes or list(dict.fromkeys(r["mode"] for r in rows)))
+        out = [f"# {title}", "", "Methods: " + "; ".join(f"{m} = {n}" for m, n in names.items())
+               + ".", "", "The runs were scored under different Chamfer protocols, which "
+               "measure different things: one table per protocol, no mean across them.", ""]
+        for p, group in groups:
+            text = benchmark_markdown(group, modes, title=f"Chamfer protocol: {p}")
+            body = text.splitlines()[4:]  # without its title and methods line
+            out += [f"## Chamfer protocol: {p} ({protocol_label(p)})", ""] + body + [""]
+        if notes:
+            out += list(notes)
+        return "\n".join(out).rstrip("\n") + "\n"
     scenes, modes, cols, body, means, partial = _table(rows, modes)
     head = ["scene"] + [f"{m} {h}" for m in modes for _, h, _ in cols]
     names = _mode_labels(rows, modes)
@@ -207,6 +257,18 @@ def benchmark_csv(rows: list[dict], modes: list[str] | None = None) -> str:
     values not computed; full precision."""
     if not rows:
         raise InputError("benchmark table: no runs to tabulate")
+    groups = protocol_groups(rows)
+    if len(groups) > 1:  # a leading protocol column, and one mean per protocol
+        modes = modes or list(dict.fromkeys(r["mode"] for r in rows))
+        tables = [list(csv.DictReader(io.StringIO(benchmark_csv(g, modes)))) for _, g in groups]
+        head = list(dict.fromkeys(k for t in tables for line in t for k in line))
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["protocol"] + head)
+        for (p, _), t in zip(groups, tables, strict=True):
+            for line in t:
+                w.writerow([p] + [line.get(k, "") for k in head])
+        return buf.getvalue()
     scenes, modes, cols, body, means, _ = _table(rows, modes)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -236,6 +298,11 @@ def benchmark_plot(rows: list[dict], path: Path, modes: list[str] | None = None)
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
+    groups = protocol_groups(rows)
+    if len(groups) > 1:  # one chart per protocol, beside each other in name
+        for p, group in groups:
+            benchmark_plot(group, Path(path).with_name(f"{Path(path).stem}_{p}.png"), modes)
+        return Path(path).with_name(f"{Path(path).stem}_{groups[0][0]}.png")
     scenes, modes, cols, body, means, _ = _table(rows, modes)
     names = _mode_labels(rows, modes)
     keys = [k for k, _, _ in cols]

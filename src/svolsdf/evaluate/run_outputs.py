@@ -14,13 +14,14 @@ from pathlib import Path
 import numpy as np
 
 from svolsdf.errors import InputError
-from svolsdf.evaluate.report import ViewImages
+from svolsdf.evaluate.report_parts import ViewImages
 from svolsdf.io.paths import input_file
 from svolsdf.io.runfolder import OUTPUT_STAGES, RunFolder
 
-__all__ = ["chamfer_block", "check_provenance", "check_run_folder", "check_views_rendered",
-           "empty_images", "empty_metrics", "finite_or_none", "load_gt_points", "load_renders",
-           "run_scene", "scene_problem", "write_json"]
+__all__ = ["PROTOCOLS", "chamfer_block", "check_provenance", "check_run_folder",
+           "check_views_rendered", "empty_images", "empty_metrics", "finite_or_none",
+           "load_gt_points", "load_renders", "mark_roles", "metric_lines", "protocol_label",
+           "run_kind_note", "run_scene", "scene_problem", "write_json"]
 
 
 def run_scene(run: RunFolder) -> tuple[Path | None, list[int] | None]:
@@ -139,6 +140,8 @@ def check_provenance(run: RunFolder, found: list[str]) -> dict[str, str]:
             raise InputError(f"{run.root}: {why}; run svolsdf reconstruct -o {run.root} "
                              f"--config {run.config_file} to make it again")
     prov = run.output_provenance(names)
+    if prov.get("renders") == "another config" and _renders_of_the_current_field(run):
+        prov["renders"] = "the current field (config.yaml changed elsewhere)"
     stale = [n for n, v in prov.items() if v == "another config"]
     if stale:
         out = run.root
@@ -149,6 +152,24 @@ def check_provenance(run: RunFolder, found: list[str]) -> dict[str, str]:
                          f"{run.config_file} (a rerun with other options stopped before "
                          f"it made them again); run {again} first")
     return prov
+
+
+def _renders_of_the_current_field(run: RunFolder) -> bool:
+    """Whether renders/ came from the field the run has now: the model file `svolsdf render`
+    recorded is unchanged and no finer-stage field has replaced it since. A config change that
+    left the field alone (the mesh's options) then keeps the renders, with no new render."""
+    from svolsdf.io.runfolder import file_record
+
+    prov = run.stage_state().get("provenance")
+    rec = prov.get("render") if isinstance(prov, dict) else None
+    if not isinstance(rec, dict) or not isinstance(rec.get("model"), str):
+        return False
+    model = run.root / rec["model"]
+    if not model.is_file() or file_record(model) != rec.get("model_record"):
+        return False
+    if run.output_provenance(["field"])["field"] == "another config":
+        return False  # a rerun changed the field's options and stopped before training it
+    return model == run.refined_model or not run.refined_model.is_file()
 
 
 def check_views_rendered(out: str | Path, views: list[int] | None) -> None:
@@ -180,11 +201,13 @@ def load_renders(run: RunFolder, scene_path: Path | None, views: list[int] | Non
     missing = {} if missing is None else missing
     sets = {"images": run.render_files(views=views),
             "images_ibr": run.render_files(ibr=True, views=views)}
+    kind = run_kind_note(run)
     for key, files in sets.items():
         if not files:
             folder = "renders" if key == "images" else "renders_ibr"
             missing[key] = f"no {folder}/<view id>.png" + (
-                f" of views {views}" if views is not None else "")
+                f" of views {views}" if views is not None else "") + (
+                f": {kind}" if kind else "")
     if not any(sets.values()):
         notes.append("No renders (renders/<view id>.png): image metrics are null.")
         return {}, None
@@ -226,11 +249,119 @@ def load_renders(run: RunFolder, scene_path: Path | None, views: list[int] | Non
     return loaded, scene
 
 
+def mark_roles(loaded: dict[str, list[ViewImages]], input_views: list[int] | None,
+               metrics: dict | None = None, notes: list[str] | None = None) -> dict[str, str]:
+    """Sets each loaded view's ``role``: "input" when the run used it as an input view (its
+    render is a training view copied back, not a novel view), else "novel". Records in
+    ``metrics["views"]`` the run's input views and which rendered views were scored in each
+    role, and adds a note when input views were rendered or the run names none.
+
+    Returns:
+        {role: why that role has no views}, the reason its metrics are null when it is empty.
+    """
+    inputs = set(input_views or [])
+    for group in loaded.values():
+        for v in group:
+            v.role = "input" if v.view_id in inputs else "novel"
+    ids = {role: sorted({v.view_id for g in loaded.values() for v in g if v.role == role})
+           for role in ("novel", "input")}
+    if metrics is not None:
+        metrics["views"] = {"inputs": None if input_views is None else sorted(inputs),
+                            "novel_scored": ids["novel"], "input_scored": ids["input"]}
+    if notes is not None and ids["input"]:
+        notes.append(f"Views {ids['input']} are input views of the run (it trained on them): "
+                     "their renders are scored under their own label, input views, and left "
+                     "out of every novel-view mean.")
+    if notes is not None and input_views is None and ids["novel"]:
+        notes.append("The run records no input views (config.yaml, views.json): the renders "
+                     "are scored as novel views without that check.")
+    return {"novel": (f"every rendered view ({ids['input']}) is an input view of the run, "
+                      "scored under images_input_views, not as a novel view; render held-out "
+                      "views with svolsdf render OUT --views ID ..."),
+            "input": "no input view of the run was rendered"}
+
+
+PROTOCOLS = {
+    "dtu": "DTU protocol: the official ObsMask, plane and STL points, distances cut at 20 mm "
+           "(docs/method.md 8.1)",
+    "dtu-mesh": "DTU protocol on the mesh's surface (docs/method.md 8.1)",
+    "generic": "generic two-way Chamfer against the whole --gt-points cloud, no cut-off unless "
+               "max_dist",
+    "generic-mesh": "generic two-way Chamfer of the mesh's surface against the whole "
+                    "--gt-points cloud",
+    "synthetic": "the synthetic scene's own ground truth, only the part the input views see, "
+                 "distances clipped at 5 % of its diagonal (the benchmarks' protocol)",
+}
+"""What each Chamfer ``protocol`` of metrics.json measures. Numbers of two protocols differ on
+the same reconstruction (the whole ground truth against the part the inputs see; a cut-off or
+none) and are never compared: benchmark tables refuse to mix them in a column."""
+
+
+def protocol_label(protocol: str | None) -> str:
+    """One line saying which protocol a Chamfer number follows (`PROTOCOLS`)."""
+    if protocol is None:
+        return "not recorded (metrics of an older version)"
+    return PROTOCOLS.get(protocol, f"protocol {protocol!r}")
+
+
+def metric_lines(m: dict) -> list[str]:
+    """What ``svolsdf evaluate`` prints of metrics.json: each number with the protocol it
+    follows (Chamfer) or the views and region it covers (images), then one line per reason a
+    metric is null; never a bare None."""
+
+    def num(x) -> str:
+        return f"{x:.4g}"
+
+    lines = []
+    for key, what in (("chamfer", "points.ply"), ("chamfer_mesh", "mesh.ply")):
+        c = m.get(key) or {}
+        if c.get("overall") is None:
+            continue
+        line = (f"{what} Chamfer [{protocol_label(c.get('protocol'))}]: accuracy "
+                f"{num(c['accuracy'])}, completeness {num(c['completeness'])}, overall "
+                f"{num(c['overall'])}")
+        if key == "chamfer" and m.get("fscore") is not None:
+            line += f"; F-score {num(m['fscore'])} at {num(m['fscore_threshold'])}"
+        if key == "chamfer_mesh" and c.get("density"):
+            line += f" (its surface, sampled every {c['density']:.3g})"
+        lines.append(line)
+    region = (m.get("settings") or {}).get("image_region")
+    views = m.get("views") or {}
+    for key, what, ids in (
+            ("images", "novel views, volume rendering", views.get("novel_scored")),
+            ("images_ibr", "novel views, IBR", views.get("novel_scored")),
+            ("images_input_views", "input views (trained on, not novel), volume rendering",
+             views.get("input_scored")),
+            ("images_ibr_input_views", "input views (trained on, not novel), IBR",
+             views.get("input_scored"))):
+        blk = m.get(key) or {}
+        vals = [f"{k} {num(blk[k]['mean'])}" for k in ("psnr", "ssim", "lpips")
+                if (blk.get(k) or {}).get("mean") is not None]
+        if vals:
+            lines.append(f"{what} {ids or ''} [{region}]: {', '.join(vals)}".replace(" []", ""))
+    by_reason: dict[str, list[str]] = {}  # each null metric and why, one line per reason
+    for name, why in (m.get("missing") or {}).items():
+        by_reason.setdefault(why, []).append(name)
+    lines += [f"not computed: {', '.join(names)}: {why}" for why, names in by_reason.items()]
+    return lines
+
+
+def run_kind_note(run: RunFolder) -> str | None:
+    """Why an output folder of ``svolsdf mvs`` (mvs.json, no config.yaml) lacks renders and a
+    mesh: the MVS job makes neither. None for other folders."""
+    if (run.root / "mvs.json").is_file() and not run.config_file.is_file():
+        return ("an svolsdf mvs folder: the MVS job makes depth maps and points, no field, "
+                "renders or mesh (svolsdf reconstruct, then svolsdf render, make them)")
+    return None
+
+
 def empty_metrics() -> dict:
     return {"chamfer": chamfer_block(None, None, None),
             "chamfer_mesh": mesh_chamfer_block(None, None, None, None),
             "fscore": None, "fscore_threshold": None, "precision": None, "recall": None,
             "images": empty_images(), "images_ibr": empty_images(),
+            "images_input_views": empty_images(), "images_ibr_input_views": empty_images(),
+            "views": {"inputs": None, "novel_scored": [], "input_scored": []},
             "mesh_source": None,
             "mesh_over_points": {"accuracy": None, "completeness": None, "overall": None},
             "missing": {}, "timing": {}, "settings": {}}

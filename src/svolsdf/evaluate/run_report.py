@@ -5,7 +5,6 @@ builds the page).
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 from pathlib import Path
@@ -20,6 +19,7 @@ from svolsdf.evaluate.run_outputs import (
     empty_metrics,
     load_gt_points,
     load_renders,
+    mark_roles,
     run_scene,
     scene_problem,
 )
@@ -108,15 +108,16 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
         except InputError as e:
             notes.append(f"Novel views not shown: {e}")
             loaded = {}
+        mark_roles(loaded, input_views)
         views = []
         for key, group in loaded.items():
-            for v in group:
-                blk = metrics.get(key) or {}
+            for v in group:  # an input view's values are those of its own label
+                blk = metrics.get(key if v.role == "novel" else f"{key}_input_views") or {}
                 v.metrics = {m: (blk.get(m) or {}).get("per_view", {}).get(str(v.view_id))
                              for m in ("psnr", "ssim", "lpips")}
                 v.metrics = {m: x for m, x in v.metrics.items() if x is not None}
                 views.append(v)
-    inputs, cameras, units, gt_depth = [], None, None, None
+    inputs, cameras, units, gt_depth, masks = [], None, None, None, None
     if scene_path is not None:
         ids = input_views or sorted(int(p.stem) for p in run.depth_dir.glob("*.npy")
                                     if re.fullmatch(r"\d+", p.stem))
@@ -124,13 +125,14 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
             try:
                 from svolsdf.scene.loaders import load_scene
 
-                s = load_scene(scene_path, views=ids, masks=False)
+                s = load_scene(scene_path, views=ids)
                 inputs = list(zip(s.view_ids, s.images, strict=True))
                 cameras, units = s.cameras, s.units
+                if s.masks is not None:  # depth errors count inside the object
+                    masks = {v: s.masks[k, 0].numpy() for k, v in enumerate(s.view_ids)}
             except InputError as e:
                 notes.append(f"Inputs not shown: {e}")
             if is_synthetic_scene(scene_path):
-                units = units if units not in (None, "unknown") else _synthetic_units(scene_path)
                 gt_depth = {v: np.load(f) for v in ids
                             if (f := Path(scene_path) / "gt_depth" / f"{v:03d}.npy").is_file()}
     config_text = run.config_file.read_text() if run.config_file.is_file() else None
@@ -139,7 +141,18 @@ def write_run_report_unlocked(out: Path, metrics: dict | None = None,
     return write_report(out, metrics, views, inputs, points, mesh,
                         title=f"svolsdf run {out.resolve().name}", notes=notes, cameras=cameras,
                         gt_points=_report_gt_points(metrics, scene_path), gt_depth=gt_depth,
-                        units=units, config_text=config_text)
+                        units=units, config_text=config_text, masks=masks,
+                        run_info=run.run_info(), losses=_losses(run))
+
+
+def _losses(run: RunFolder) -> dict[str, list[dict]]:
+    """The loss logs of the run's optimizations: the field's, and the finer stage's when it
+    ran (`svolsdf.evaluate.report_run.read_losses`)."""
+    from svolsdf.evaluate.report_run import read_losses
+
+    logs = {"field": run.field_dir / "losses.csv",
+            "finer-stage field": run.refined_model.parent / "losses.csv"}
+    return {name: rows for name, f in logs.items() if (rows := read_losses(f))}
 
 
 def _report_gt_points(metrics: dict, scene_path: Path | None) -> np.ndarray | None:
@@ -159,10 +172,3 @@ def _report_gt_points(metrics: dict, scene_path: Path | None) -> np.ndarray | No
         log.warning("report: ground truth not shown (%s)", e)
     return None
 
-
-def _synthetic_units(scene_path: Path) -> str | None:
-    """The "units" that `svolsdf synth` records in scene.json (millimetres), or None."""
-    try:
-        return json.loads((Path(scene_path) / "scene.json").read_text()).get("units")
-    except (OSError, ValueError, AttributeError):
-        return None

@@ -26,11 +26,17 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
     images:     {psnr: {mean, per_view, missing}, ssim: {...}, lpips: {...}}
                 (missing: why the metric is null, e.g. no renders or no LPIPS weights)
     images_ibr: the same for renders_ibr/
+                (novel views only: a render of one of the run's input views is never in them)
+    images_input_views, images_ibr_input_views: the same for renders of the run's input views
+                (training views rendered back, e.g. by `render` on a run with no held-out view)
+    views:      {inputs: the run's input views, novel_scored, input_scored: the rendered views
+                scored in each role}
     missing:    {metric: why it is null} for every null metric (chamfer, chamfer_mesh, fscore,
                 images.psnr, ...: no points.ply, no ground truth, a scene folder that moved,
                 ...); the Chamfer blocks keep their own reason under ``missing`` too
     timing: {..timing.json.., evaluate_seconds}
-    settings: what was evaluated against what
+    settings: what was evaluated against what; ``image_region`` says where the image errors
+                are computed (inside the object mask where the scene has one)
 
 and OUT/report.html (`svolsdf.evaluate.run_report`).
 
@@ -73,7 +79,9 @@ from svolsdf.evaluate.run_outputs import (
     finite_or_none,
     load_gt_points,
     load_renders,
+    mark_roles,
     mesh_chamfer_block,
+    run_kind_note,
     run_scene,
     write_json,
 )
@@ -191,16 +199,18 @@ def _no_ground_truth(scene_path: Path | None, given: bool, input_views: list[int
             f"which pick the part of scene {scene_path}'s ground truth to score against; {way}")
 
 
-def _missing(metrics: dict, points, mesh, no_gt: str | None) -> None:
+def _missing(metrics: dict, points, mesh, no_gt: str | None, kind: str | None = None) -> None:
     """``missing`` of the Chamfer blocks and the top-level ``missing`` map: for every null
-    metric, why it could not be computed."""
+    metric, why it could not be computed (``kind``: what kind of folder lacks an output,
+    `run_kind_note`)."""
     for key, have, name in (("chamfer", points, "points.ply"), ("chamfer_mesh", mesh, "mesh.ply")):
         blk = metrics[key]
         if blk["overall"] is not None:
             continue
         if have is None:
             blk["missing"] = (f"no {name} in the run folder" if key == "chamfer" else
-                              "no mesh.ply with faces in the run folder")
+                              "no mesh.ply with faces in the run folder") + (
+                                  f": {kind}" if kind else "")
         elif no_gt is not None:
             blk["missing"] = no_gt
         elif blk["protocol"] is None:
@@ -276,11 +286,13 @@ def _diag(p: np.ndarray, source: Path) -> float:
 
 
 def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: list[str],
-            lp=None) -> tuple[list[ViewImages], object]:
+            lp=None, input_views: list[int] | None = None) -> tuple[list[ViewImages], object]:
     """Image metrics for renders/ and renders_ibr/; returns the views and the loaded scene.
     ``lp``: the LPIPS model of ``--lpips-weights`` (loaded before the work); None: the default
     weights, whose absence leaves LPIPS null. A set without images, or a metric that cannot be
-    computed, keeps null values and says why in ``missing``."""
+    computed, keeps null values and says why in ``missing``. A render of one of the run's
+    ``input_views`` is scored under ``images_input_views`` (``images_ibr_input_views``), never in
+    ``images``, whose means are those of novel views only (`mark_roles`)."""
     missing: dict[str, str] = {}
     loaded, scene = load_renders(RunFolder(cfg.out), scene_path, cfg.views, cfg.masks, notes,
                                   missing)
@@ -314,24 +326,42 @@ def _images(cfg: EvaluateConfig, scene_path: Path | None, metrics: dict, notes: 
             notes.append(lp_missing + ".")
     metrics["settings"]["lpips_net"] = cfg.lpips_net
     metrics["settings"]["ssim_data_range"] = cfg.ssim_data_range
+    masked = any(v.mask is not None for g in loaded.values() for v in g)
+    metrics["settings"]["image_region"] = (
+        "inside the object mask (PSNR over its pixels; SSIM and LPIPS of both images "
+        "composited onto white outside it)" if masked else
+        "all pixels: " + ("object masks turned off" if not cfg.masks else
+                          "the scene has no object masks"))
+    roles = mark_roles(loaded, input_views, metrics, notes)
     views: list[ViewImages] = []
     for key, group in loaded.items():
-        block = empty_images()
         for v in group:
             v.metrics = {"psnr": masked_psnr(v.pred, v.gt, v.mask),
                          "ssim": ssim(v.pred, v.gt, v.mask, data_range=cfg.ssim_data_range),
                          "lpips": lpips_distance(v.pred, v.gt, lp, v.mask)
                          if lp is not None else None}
-            for m, x in v.metrics.items():
-                block[m]["per_view"][str(v.view_id)] = finite_or_none(x)
             views.append(v)
-        for m in block:
-            vs = [x for x in block[m]["per_view"].values() if x is not None]
-            block[m]["mean"] = float(np.mean(vs)) if vs else None
-        if lp is None:
-            block["lpips"]["missing"] = lp_missing
-        metrics[key] = block
+        for role, dest in (("novel", key), ("input", f"{key}_input_views")):
+            members = [v for v in group if v.role == role]
+            metrics[dest] = _image_block(members, roles[role] if not members else None,
+                                         lp_missing if lp is None else None)
     return views, scene
+
+
+def _image_block(views: list[ViewImages], why_empty: str | None, lp_missing: str | None
+                 ) -> dict:
+    """The per-view values and means of PSNR, SSIM and LPIPS over ``views`` (one role of one
+    renderer); ``why_empty``: the reason its values are null when ``views`` is empty."""
+    block = empty_images(why_empty)
+    for v in views:
+        for m, x in v.metrics.items():
+            block[m]["per_view"][str(v.view_id)] = finite_or_none(x)
+    for m in block:
+        vs = [x for x in block[m]["per_view"].values() if x is not None]
+        block[m]["mean"] = float(np.mean(vs)) if vs else None
+    if lp_missing is not None and views:
+        block["lpips"]["missing"] = lp_missing
+    return block
 
 
 def evaluate_run(cfg: EvaluateConfig) -> dict:
@@ -407,7 +437,7 @@ def _evaluate_run(cfg: EvaluateConfig, lp=None) -> dict:
         if d["faces"] is not None and len(d["faces"]):
             mesh = (d["points"], d["faces"])
 
-    views, scene = _images(cfg, scene_path, metrics, notes, lp)
+    views, scene = _images(cfg, scene_path, metrics, notes, lp, input_views)
     scan = cfg.scan
     if scan is None and scene is not None and scene.extras.get("scan") is not None:
         scan = int(scene.extras["scan"])
@@ -417,7 +447,7 @@ def _evaluate_run(cfg: EvaluateConfig, lp=None) -> dict:
     t_geo = time.perf_counter()
     no_gt = _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views)
     log.info("geometry metrics in %.1fs", time.perf_counter() - t_geo)
-    _missing(metrics, points, mesh, no_gt)
+    _missing(metrics, points, mesh, no_gt, run_kind_note(run))
 
     timing = run.timing()
     if timing is None:  # the stage timings only: the scores do not need them

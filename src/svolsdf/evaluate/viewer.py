@@ -135,7 +135,9 @@ def scene_figure(points: tuple[np.ndarray, np.ndarray | None] | None = None,
                  mesh: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None,
                  cameras: list[tuple[int, np.ndarray, np.ndarray, int, int]] | None = None,
                  point_errors: tuple[np.ndarray, np.ndarray, float] | None = None,
-                 units: str = "", cfg: ViewerConfig | None = None) -> tuple[dict, list[str]]:
+                 units: str = "", cfg: ViewerConfig | None = None,
+                 gt_errors: tuple[np.ndarray, np.ndarray, float] | None = None
+                 ) -> tuple[dict, list[str]]:
     """The 3D view as a plotly figure dict.
 
     Coordinates are shown relative to the centre of what is drawn (``layout.meta.origin`` holds
@@ -146,7 +148,9 @@ def scene_figure(points: tuple[np.ndarray, np.ndarray | None] | None = None,
         mesh: (V, 3) vertices, (F, 3) faces, optional (V, 3) uint8 vertex colours.
         cameras: (view id, K (3, 3), w2c (4, 4), width, height) of the input views.
         point_errors: (M, 3) points, (M,) distances to the ground truth and the colour-scale
-            maximum, for a layer of points coloured by distance.
+            maximum, for a layer of points coloured by distance (their accuracy).
+        gt_errors: the same of ground-truth points and their distance to the reconstruction
+            (its completeness): a layer beside the accuracy one, on the same colour scale.
         units: world units, for the colour bar's title.
         cfg: `ViewerConfig`.
 
@@ -155,6 +159,7 @@ def scene_figure(points: tuple[np.ndarray, np.ndarray | None] | None = None,
     """
     cfg = cfg or ViewerConfig()
     _check_inputs(points, mesh, point_errors)
+    _check_inputs(None, None, gt_errors)
     notes: list[str] = []
     parts = [a for a in (points[0] if points else None, mesh[0] if mesh else None,
                          point_errors[0] if point_errors else None) if a is not None and len(a)]
@@ -199,6 +204,17 @@ def scene_figure(points: tuple[np.ndarray, np.ndarray | None] | None = None,
                      "visible": "legendonly", "hoverinfo": "skip",
                      "marker": {"size": cfg.point_size, "color": _typed(d[idx]),
                                 "colorscale": "Viridis", "cmin": 0.0, "cmax": float(vmax),
+                                "colorbar": {"title": {"text": f"distance ({units})" if units
+                                                       else "distance"}, "len": 0.6}}})
+    if gt_errors is not None and len(gt_errors[0]):
+        p, d, vmax = gt_errors
+        idx = subsample(len(p), cfg.max_error_points, seed=2)
+        data.append({"type": "scatter3d", "mode": "markers",
+                     "name": "ground truth: distance to the points (completeness)",
+                     **_xyz(p[idx], origin), "visible": "legendonly", "hoverinfo": "skip",
+                     "marker": {"size": cfg.point_size, "color": _typed(d[idx]),
+                                "colorscale": "Viridis", "cmin": 0.0, "cmax": float(vmax),
+                                "showscale": point_errors is None,
                                 "colorbar": {"title": {"text": f"distance ({units})" if units
                                                        else "distance"}, "len": 0.6}}})
     frusta = []

@@ -40,6 +40,7 @@ from svolsdf.geometry.reproject import (
     _check_depth,
     check_geometric_consistency,
 )
+from svolsdf.io.progress import progress_bar
 from svolsdf.scene.cameras import Cameras
 
 __all__ = ["FusionFilterConfig", "FusedPoints", "fuse_depth_maps"]
@@ -278,20 +279,20 @@ def fuse_depth_maps(
 
     all_pts, all_cols, all_nrm = [], [], []
     stats: dict = {}
-    for h, (suffix, radius) in enumerate(sets):
-        for ref in ids:
-            key = ref if h == 0 else f"{ref}{suffix}"
-            r = _fuse_reference(ref, h, hyps, cameras, images, confs, masks, cfg,
-                                surface_depths if use_surface else None, radius)
-            all_pts.append(r["points"])
-            if r["colors"] is not None:
-                all_cols.append(r["colors"])
-            if r["normals"] is not None:
-                all_nrm.append(r["normals"])
-            stats[key] = r["stats"]
-            log.info("fusion: view %s keeps %.1f%% of pixels (valid %.1f%%, geometric %.1f%%)",
-                     key, 100 * r["stats"]["kept"], 100 * r["stats"]["valid"],
-                     100 * r["stats"]["geo"])
+    jobs = [(h, suffix, radius, ref) for h, (suffix, radius) in enumerate(sets) for ref in ids]
+    for h, suffix, radius, ref in progress_bar(jobs, desc="fusion"):
+        key = ref if h == 0 else f"{ref}{suffix}"
+        r = _fuse_reference(ref, h, hyps, cameras, images, confs, masks, cfg,
+                            surface_depths if use_surface else None, radius)
+        all_pts.append(r["points"])
+        if r["colors"] is not None:
+            all_cols.append(r["colors"])
+        if r["normals"] is not None:
+            all_nrm.append(r["normals"])
+        stats[key] = r["stats"]
+        log.info("fusion: view %s keeps %.1f%% of pixels (valid %.1f%%, geometric %.1f%%)",
+                 key, 100 * r["stats"]["kept"], 100 * r["stats"]["valid"],
+                 100 * r["stats"]["geo"])
     points = torch.cat(all_pts, 0).cpu()
     colors = torch.cat(all_cols, 0).cpu() if images is not None else None
     normals = torch.cat(all_nrm, 0).cpu() if cfg.estimate_normals else None

@@ -24,9 +24,9 @@ import torch
 from scipy import sparse
 from skimage import measure
 from torch import Tensor
-from tqdm import tqdm
 
 from svolsdf.io.ply import write_mesh_ply, write_obj
+from svolsdf.io.progress import progress_bar
 from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Normalization
 
@@ -90,7 +90,8 @@ def _dense_grid(sdf_fn, b, n, chunk, device, dtype, progress) -> np.ndarray:
     yy, zz = np.meshgrid(ys, zs, indexing="ij")
     slab_yz = np.stack([yy.ravel(), zz.ravel()], axis=-1)  # (n*n, 2)
     grid = np.empty((n, n, n), dtype=np.float32)
-    for i in tqdm(range(n), desc="marching-cubes grid", disable=not progress, leave=False):
+    for i in progress_bar(range(n), desc="mesh: marching-cubes grid", unit="slab",
+                          show=None if progress else False):
         pts = np.concatenate([np.full((len(slab_yz), 1), xs[i]), slab_yz], axis=1)
         grid[i] = _evaluate(sdf_fn, pts, chunk, device, dtype).reshape(n, n)
     return grid
@@ -144,8 +145,8 @@ def _coarse_to_fine_grid(sdf_fn, b, n, step, margin, chunk, device, dtype, progr
              n_act, n ** 3, 100.0 * n_act / n ** 3)
     xs, ys, zs = _axes(b, n)
     big = max(chunk, 1 << 18)
-    for s in tqdm(range(0, n_act, big), desc="marching-cubes grid", disable=not progress,
-                  leave=False):
+    for s in progress_bar(range(0, n_act, big), desc="mesh: marching-cubes grid", unit="chunk",
+                          show=None if progress else False):
         sl = slice(s, s + big)
         pts = np.stack([xs[idx[0][sl]], ys[idx[1][sl]], zs[idx[2][sl]]], axis=-1)
         grid[idx[0][sl], idx[1][sl], idx[2][sl]] = _evaluate(sdf_fn, pts, chunk, device, dtype)

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from svolsdf.errors import raise_if_interrupted
+from svolsdf.io.progress import progress_bar
 from svolsdf.scene.scene import Scene
 
 __all__ = ["MeshCleanup", "clean_mesh", "field_mesh", "field_mesh_colours", "fill_small_holes",
@@ -136,7 +137,11 @@ def poisson_mesh(
     from svolsdf.fusion.poisson import estimate_normals, orient_normals, poisson_surface
 
     threads = max(1, torch.get_num_threads())
+    bar = progress_bar(desc="mesh: Poisson", total=4, unit="step")  # steps of unequal length
+    bar.set_postfix_str("normals")
     normals = estimate_normals(points, workers=threads)
+    bar.update()
+    bar.set_postfix_str("orientation")
     unit = scene.normalization.to_unit(torch.from_numpy(points)).float()
     grads = []
     for x in unit.split(65536):  # the field's outward direction at each point
@@ -145,10 +150,14 @@ def poisson_mesh(
         grads.append(g.detach().cpu())
     normals = orient_normals(points, normals, scene.cameras.centers.double().numpy(),
                              guide=torch.cat(grads).double().numpy())
+    bar.update()
+    bar.set_postfix_str("surface")
     # PoissonRecon with one thread: with more, its parallel sums make the mesh differ from run
     # to run on the same points, and it was no faster
     # (benchmarks/results/history/poisson_threads.md)
     v, f, c = poisson_surface(points, normals, colours, depth=depth, trim=trim, threads=1)
+    bar.update()
+    bar.set_postfix_str("culling")
     vw, f = torch.from_numpy(v), torch.from_numpy(f)
     c = None if c is None else torch.from_numpy(c)
     masks = scene.masks if use_masks else None
@@ -157,6 +166,8 @@ def poisson_mesh(
     # synthetic object's surface; docs/table1.md, "History of the table")
     vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
                                rel_tol=rel_tol, largest=False)
+    bar.update()
+    bar.close()
     return vw, f, (None if c is None else c[idx])
 
 

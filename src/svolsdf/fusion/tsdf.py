@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from skimage import measure
 from torch import Tensor
 
+from svolsdf.io.progress import progress_bar
 from svolsdf.scene.cameras import Cameras
 
 __all__ = ["near_points", "tsdf_grid", "tsdf_mesh"]
@@ -108,7 +109,7 @@ def tsdf_grid(observed: list[Tensor], cameras: Cameras, lo: np.ndarray, voxel: f
         cams.append((cam.K[0], cam.w2c[0], d.float().reshape(-1), w, h))
     origin = torch.as_tensor(lo, dtype=torch.float32)
     m = n if active is None else len(active)
-    for s in range(0, m, chunk):
+    for s in progress_bar(range(0, m, chunk), desc="mesh: TSDF", unit="chunk"):
         i = torch.arange(s, min(m, s + chunk), dtype=torch.int64)
         if active is not None:
             i = active[i]

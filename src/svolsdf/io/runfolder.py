@@ -42,7 +42,7 @@ RUN_NAMES = frozenset({
     "config.yaml", "views.json", "stages.json", "timing.json", "log", LOCK_NAME,
     "mvs", "depth", "confidence", "field", "normals", "unguided", "network",
     "points.ply", "mesh.ply", "mesh.obj", "renders", "renders_ibr", "metrics.json", "report.html",
-    "demo_metrics.json", "benchmark_row.json"})
+    "demo_metrics.json", "benchmark_row.json", "run.json"})
 """The names at the top of a run folder of ``svolsdf reconstruct`` (the layout of `RunFolder`,
 with what evaluate, report, render, demo and a benchmark job add): a folder that holds others
 is no run."""
@@ -140,6 +140,11 @@ class RunFolder:
     @property
     def log_file(self) -> Path:
         return self.root / "log"
+
+    @property
+    def run_file(self) -> Path:
+        """run.json: the command, version, device and date of the last finished run."""
+        return self.root / "run.json"
 
     @property
     def points(self) -> Path:
@@ -260,6 +265,11 @@ class RunFolder:
         """OUT/timing.json ({stage: {...}}): {} when the file is missing, None when it is
         unreadable."""
         return _json_object(self.timing_file, missing={})
+
+    def run_info(self) -> dict:
+        """OUT/run.json ({command, version, device, torch, date}, the last finished run's); {}
+        when the file is missing or unreadable."""
+        return _json_object(self.run_file, missing={}) or {}
 
     def metrics(self) -> dict | None:
         """OUT/metrics.json (`svolsdf evaluate`); None when the file is missing.

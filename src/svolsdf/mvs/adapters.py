@@ -46,6 +46,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from svolsdf.errors import InputError
+from svolsdf.io.progress import progress_bar
 from svolsdf.mvs.backbone import (
     MAX_SOURCES,
     MVSBackbone,
@@ -280,7 +281,7 @@ class DepthConfidenceAdapter(MVSBackbone):
         Wk, Hk = cams.width, cams.height
         D = self.config.ndepths[k - 1]
         out = []
-        for vid in ref_ids:
+        for vid in progress_bar(ref_ids, desc=f"MVS stage {k} ({self.name})"):
             i = scene.index(vid)
             near, far = (float(x) for x in scene.depth_range[i])
             made = self._made.get(vid)

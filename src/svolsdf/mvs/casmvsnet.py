@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from svolsdf.errors import InputError
+from svolsdf.io.progress import progress_bar
 from svolsdf.mvs.backbone import (
     MAX_SOURCES,
     MVSBackbone,
@@ -199,7 +200,7 @@ class CasMVSNetBackbone(MVSBackbone):
         D = self.config.ndepths[k - 1]
         projs = scams.proj
         out = []
-        for vid in ref_ids:
+        for vid in progress_bar(ref_ids, desc=f"MVS stage {k} (CasMVSNet)"):
             i = scene.index(vid)
             near, far = (float(x) for x in scene.depth_range[i])
             if k == 1:

@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from svolsdf.errors import InputError
+from svolsdf.io.progress import progress_bar
 from svolsdf.mvs.backbone import (
     MAX_SOURCES,
     MVSBackbone,
@@ -454,7 +455,7 @@ class PlaneSweepBackbone(MVSBackbone):
             raise InputError(f"{scene.path}: plane sweep needs at least 2 views, got {len(scene)}")
         chans, gray, cams = self._stage_inputs(scene, k)
         out = []
-        for vid in ref_ids:
+        for vid in progress_bar(ref_ids, desc=f"MVS stage {k} (plane sweep)"):
             r = scene.index(vid)
             near, far = (float(x) for x in scene.depth_range[r])
             if k == 1:

@@ -431,6 +431,7 @@ class Trainer:
         steps = self.cfg.steps + self.cfg.colour_steps if steps is None else steps
         bar = tqdm(total=steps, initial=self.step, disable=not progress, desc="optimize",
                    dynamic_ncols=True)
+        board = self._tensorboard()
         t0 = time.perf_counter()
         s0 = self.step
         stopped = False
@@ -448,6 +449,10 @@ class Trainer:
                     rate = (self.step - s0) / max(time.perf_counter() - t0, 1e-9)
                     row["steps_per_s"] = rate
                     self.history.append(row)
+                    if board is not None:  # live curves: tensorboard --logdir OUT/field
+                        for k, v in row.items():
+                            if k != "step" and math.isfinite(v):
+                                board.add_scalar(f"train/{k}", v, self.step)
                     bar.set_postfix({k: f"{row[k]:.3g}" for k in
                                      ("rgb", "eikonal", "mvs", "sparse", "psnr") if k in row}
                                     | {"it/s": f"{rate:.2f}"})
@@ -463,11 +468,27 @@ class Trainer:
             raise
         finally:
             bar.close()
+            if board is not None:
+                board.close()
             if self._surface_frozen:
                 self._freeze_surface(False)
             if self.out_dir is not None:  # Ctrl-C: the CSV, not seconds of plotting
                 self.write_log(plot=not stopped)
         return self.history
+
+    def _tensorboard(self):
+        """A TensorBoard writer into ``out_dir/tensorboard`` when the ``tensorboard`` package is
+        installed (the ``tensorboard`` extra) and the trainer writes files; else None, and the
+        curves are losses.csv alone (`write_log`)."""
+        if self.out_dir is None:
+            return None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            raise_if_interrupted()  # an import Ctrl-C stopped is no missing package
+            log.debug("tensorboard is not installed: loss curves in losses.csv only")
+            return None
+        return SummaryWriter(log_dir=str(self.out_dir / "tensorboard"), purge_step=self.step)
 
     # ------------------------------------------------------------------ checkpoints
     def checkpoint_path(self) -> Path:

@@ -241,12 +241,14 @@ class Run:
 
     def render_views(self, cameras_unit, near_far=None, chunk: int = 4096,
                      keys=("depth", "opacity", "rgb", "normals"),
-                     pixels: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                     pixels: torch.Tensor | None = None, desc: str = "render the field"
+                     ) -> dict[str, torch.Tensor]:
         """Render every camera of ``cameras_unit`` with the field and the eval-mode sampler
         (`svolsdf.render.views.render_field_views`).
 
         Args:
             pixels: optional (V, H, W) bool; only these pixels are rendered.
+            desc: the name of the progress bar over the cameras.
 
         Returns:
             dict of (V, H, W, ...) tensors: depth (unit-frame z-depth), opacity, rgb, normals.
@@ -256,7 +258,7 @@ class Run:
 
         return render_field_views(self.model(), build_sampler(self.cfg, None, training=False),
                                   cameras_unit, near_far, chunk=chunk, keys=keys,
-                                  pixels=pixels, device=self.device)
+                                  pixels=pixels, device=self.device, desc=desc)
 
     def guide_pixels(self) -> torch.Tensor | None:
         """(V, H, W) bool: the pixels whose guide depth is rendered

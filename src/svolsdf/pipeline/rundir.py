@@ -132,15 +132,16 @@ class RunDir(RunFolder):
             st["outputs"] = rec
         save_json(self.stages_file, st)
 
-    def record(self, output: str, config: str | None) -> None:
+    def record(self, output: str, config: str | None, **extra) -> None:
         """Record that ``output`` (e.g. "render": renders/) was made under the config.yaml of
-        digest ``config`` (`svolsdf.io.runfolder.output_provenance` reads it). An unreadable
-        stages.json is left for the next reconstruct to replace (and to say so)."""
+        digest ``config`` (`svolsdf.io.runfolder.output_provenance` reads it), with ``extra``
+        facts (the renders: the field file they were made from). An unreadable stages.json is
+        left for the next reconstruct to replace (and to say so)."""
         st = self.state()
         if not st and self.stages_file.is_file():
             return
         prov = st.get("provenance") if isinstance(st.get("provenance"), dict) else {}
-        prov[output] = {"config": config}
+        prov[output] = {"config": config, **extra}
         st["provenance"] = prov
         save_json(self.stages_file, st)
 

@@ -365,7 +365,7 @@ class Pipeline(StageRecords, Run):
         scene = self.load()
         pixels = self.guide_pixels()
         r = self.render_views(scene.cameras_unit, self.unit_near_far().to(self.device),
-                              pixels=pixels)
+                              pixels=pixels, desc="guide: render the input views")
         psnr = None
         if previews:
             psnr = field_psnr(scene, self.views, r["rgb"], pixels, self.cfg.scene.use_masks)

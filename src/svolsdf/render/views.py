@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from svolsdf.io.progress import progress_bar
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.scene.cameras import Cameras
 
@@ -21,7 +22,7 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
                        near_far: torch.Tensor | None = None, chunk: int = 4096,
                        keys=("depth", "opacity", "rgb", "normals"),
                        pixels: torch.Tensor | None = None,
-                       device=None) -> dict[str, torch.Tensor]:
+                       device=None, desc: str = "render the field") -> dict[str, torch.Tensor]:
     """Render every camera of ``cameras_unit`` with the field (``sampler``: the eval-mode one).
 
     ``chunk`` rays at a time: 4096 rendered the fast field ~10 % faster than 2048 or 8192
@@ -37,6 +38,7 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
         pixels: optional (V, H, W) bool; only these pixels are rendered, the others get 0
             in every map (depth, opacity, colour and normal).
         device: where the field renders.
+        desc: the name of its progress bar (shown for more than one camera).
 
     Returns:
         dict of (V, H, W, ...) tensors on the CPU: depth (unit-frame z-depth), opacity, rgb,
@@ -50,7 +52,7 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
     cams = cameras_unit.to(device, dtype=torch.float32)
     H, W = cams.height, cams.width
     res = {k: [] for k in keys}
-    for t in range(len(cams)):
+    for t in progress_bar(range(len(cams)), desc=desc, show=None if len(cams) > 1 else False):
         rays = rays_from_cameras(cams, t, radius=float(getattr(model, "radius", 3.0)))
         if near_far is not None:
             rays.near = torch.maximum(rays.near, near_far[t, 0] / rays.cos)

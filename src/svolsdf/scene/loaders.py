@@ -107,6 +107,20 @@ def read_source(path: str | Path, lighting: int | str = 3) -> SceneSource:
     return get_scene_format(name).read(path, lighting=lighting)
 
 
+def _declared_units(folder: Path) -> str | None:
+    """The world units that the scene folder's scene.json declares (``svolsdf synth`` writes
+    ``"units": "mm"``), or None when it has no such file or names none (a scene made with the
+    cameras of another keeps theirs: "as in cameras_from")."""
+    import json
+
+    try:
+        units = json.loads((Path(folder) / "scene.json").read_text()).get("units")
+    except (OSError, ValueError, AttributeError):
+        return None
+    ok = isinstance(units, str) and units.strip() and not units.startswith("as in")
+    return units.strip() if ok else None
+
+
 def _is_dtu(src: SceneSource, size: tuple[int, int]) -> bool:
     # DTU: 49 (or all 64) rig positions of 1600x1200 images.
     return src.format == "dtu_raw" or (
@@ -187,6 +201,8 @@ def load_scene(path: str | Path, views: list[int] | None = None,
     cams_all = Cameras(src.K.double(), src.w2c.double(), size[0], size[1])
     dtu = _is_dtu(src, size)
     units = "mm" if dtu else src.units
+    if units == "unknown":
+        units = _declared_units(path) or units
     extras = dict(src.extras)
     if dtu:
         extras["dtu"] = True
