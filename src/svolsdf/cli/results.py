@@ -249,3 +249,20 @@ def render(
             typer.echo(f"video {res[key]}")
 
 
+
+
+# --------------------------------------------------------------------------- export
+@app.command("export")
+def export(
+    out: Annotated[Path, typer.Argument(help="Finished run folder of svolsdf reconstruct.")],
+    dest: Annotated[Path | None, typer.Option(
+        "--output", "-o", help="Where to write the export (default: OUT/export).")] = None,
+) -> None:
+    """The run for other tools: cameras (nerfstudio transforms.json, a COLMAP model, plain
+    JSON), points with normals, each mesh method's mesh, a mesh coloured from the photos."""
+    from svolsdf.commands.export import export_run
+
+    res = export_run(out, dest, progress=True)
+    for what, why in res.skipped.items():
+        typer.echo(f"not made: {what}: {why}")
+    typer.echo(f"exported {', '.join(res.files)} -> {res.dest}")

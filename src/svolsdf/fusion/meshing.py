@@ -22,7 +22,7 @@ from svolsdf.errors import raise_if_interrupted
 from svolsdf.scene.scene import Scene
 
 __all__ = ["MeshCleanup", "clean_mesh", "field_mesh", "field_mesh_colours", "fill_small_holes",
-           "poisson_mesh", "points_tsdf_mesh"]
+           "oriented_normals", "poisson_mesh", "points_tsdf_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -133,18 +133,9 @@ def poisson_mesh(
         vw (V, 3) world vertices, faces (F, 3), colours (V, 3) or None.
     """
     from svolsdf.fusion.cull import cull_to_views
-    from svolsdf.fusion.poisson import estimate_normals, orient_normals, poisson_surface
+    from svolsdf.fusion.poisson import poisson_surface
 
-    threads = max(1, torch.get_num_threads())
-    normals = estimate_normals(points, workers=threads)
-    unit = scene.normalization.to_unit(torch.from_numpy(points)).float()
-    grads = []
-    for x in unit.split(65536):  # the field's outward direction at each point
-        x = x.to(device).requires_grad_(True)
-        (g,) = torch.autograd.grad(model.sdf(x).sum(), x)
-        grads.append(g.detach().cpu())
-    normals = orient_normals(points, normals, scene.cameras.centers.double().numpy(),
-                             guide=torch.cat(grads).double().numpy())
+    normals = oriented_normals(points, scene, model, device=device)
     # PoissonRecon with one thread: with more, its parallel sums make the mesh differ from run
     # to run on the same points, and it was no faster
     # (benchmarks/results/history/poisson_threads.md)
@@ -158,6 +149,37 @@ def poisson_mesh(
     vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
                                rel_tol=rel_tol, largest=False)
     return vw, f, (None if c is None else c[idx])
+
+
+def oriented_normals(points: np.ndarray, scene: Scene, model=None, device=None) -> np.ndarray:
+    """Outward normals of fused points: PCA of each point's neighbourhood
+    (`svolsdf.fusion.poisson.estimate_normals`), each given the sign that faces the input
+    cameras and, where they straddle its tangent plane, the field's SDF gradient (without a
+    ``model``, the directions to the cameras; `svolsdf.fusion.poisson.orient_normals`).
+
+    Args:
+        points: (N, 3) float64 world points, N > 16.
+        scene: the input views (world cameras, normalization).
+        model: the field (``sdf`` on unit-frame points), or None.
+        device: where the field's gradient is evaluated.
+
+    Returns:
+        (N, 3) float64 unit normals.
+    """
+    from svolsdf.fusion.poisson import estimate_normals, orient_normals
+
+    points = np.asarray(points, np.float64)
+    normals = estimate_normals(points, workers=max(1, torch.get_num_threads()))
+    guide = None
+    if model is not None:
+        unit = scene.normalization.to_unit(torch.from_numpy(points)).float()
+        grads = []
+        for x in unit.split(65536):  # the field's outward direction at each point
+            x = x.to(device).requires_grad_(True)
+            (g,) = torch.autograd.grad(model.sdf(x).sum(), x)
+            grads.append(g.detach().cpu())
+        guide = torch.cat(grads).double().numpy()
+    return orient_normals(points, normals, scene.cameras.centers.double().numpy(), guide=guide)
 
 
 def points_tsdf_mesh(
