@@ -36,8 +36,10 @@ def evaluate(
     lpips_net: Annotated[str, typer.Option(
         "--lpips-net", help="LPIPS backbone: vgg (the paper's) or alex.")] = "vgg",
     lpips_weights: Annotated[Path | None, typer.Option(
-        "--lpips-weights", help="LPIPS weights file or folder (default: shared/weights/lpips)."
-    )] = None,
+        "--lpips-weights", help="LPIPS weights: a whole LPIPS file or folder, or torchvision's "
+                                "backbone file (vgg16-397923af.pth) on a machine without "
+                                "internet (default: downloaded once into the torch cache).")
+    ] = None,
     ssim_data_range: Annotated[float, typer.Option(
         "--ssim-data-range", help="SSIM data range; 2.0 reproduces the released code.")] = 1.0,
     no_report: Annotated[bool, typer.Option(
