@@ -5,17 +5,17 @@ is served here by a file server on localhost from a backbone the test makes (the
 
 from __future__ import annotations
 
-import functools
-import http.server
-import threading
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
+from tests.io.file_server import serve
 
 from conftest import shared_path
 from svolsdf.errors import InputError
 from svolsdf.evaluate import lpips as lp
+from svolsdf.io.weights import PublishedWeights, sha256
 
 
 @pytest.fixture
@@ -29,23 +29,13 @@ def served(tmp_path, monkeypatch):
     root.mkdir()
     f = root / "alexnet-test.pth"
     torch.save({k: v for k, v in full.items() if k.startswith("features.")}, f)
-    asked: list[str] = []
-
-    class Handler(http.server.SimpleHTTPRequestHandler):
-        def log_message(self, *args):
-            asked.append(self.path)
-
-    server = http.server.ThreadingHTTPServer(
-        ("127.0.0.1", 0), functools.partial(Handler, directory=str(root)))
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    url = f"http://127.0.0.1:{server.server_address[1]}/{f.name}"
-    monkeypatch.setitem(lp.BACKBONES, "alex", lp.TorchvisionBackbone(
-        "alexnet-test.pth", url, lp.sha256(f), f.stat().st_size))
-    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
-    monkeypatch.delenv(lp.BACKBONE_ENV, raising=False)
-    yield f, asked
-    server.shutdown()
-    server.server_close()
+    with serve(root) as (base, asked):
+        monkeypatch.setitem(lp.BACKBONES, "alex", PublishedWeights(
+            "LPIPS-alex test backbone", "alexnet-test.pth", f"{base}/{f.name}", sha256(f),
+            f.stat().st_size))
+        monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+        monkeypatch.delenv(lp.BACKBONE_ENV, raising=False)
+        yield f, asked
 
 
 def _pair():
@@ -65,7 +55,7 @@ def test_backbone_fetched_once_into_the_torch_cache_gives_the_shared_distances(s
     monkeypatch.setattr(lp, "default_lpips_dir", no_shared_folder)
     model = lp.LPIPS("alex")  # no weights, no shared folder: the heads + the fetched backbone
     cached = tmp_path / "torch" / "hub" / "checkpoints" / "alexnet-test.pth"
-    assert cached.is_file() and lp.sha256(cached) == lp.sha256(f)
+    assert cached.is_file() and sha256(cached) == sha256(f)
     assert len([a for a in asked if "alexnet-test" in a]) == 1
     lp.LPIPS("alex")  # the second time from the cache: no request
     assert len([a for a in asked if "alexnet-test" in a]) == 1
@@ -76,8 +66,7 @@ def test_backbone_fetched_once_into_the_torch_cache_gives_the_shared_distances(s
 
 def test_download_with_another_checksum_is_refused_and_not_kept(served, monkeypatch, tmp_path):
     spec = lp.BACKBONES["alex"]
-    monkeypatch.setitem(lp.BACKBONES, "alex", lp.TorchvisionBackbone(
-        spec.file, spec.url, "0" * 64, spec.size))
+    monkeypatch.setitem(lp.BACKBONES, "alex", replace(spec, sha256="0" * 64))
     with pytest.raises(InputError, match="SHA-256 .* not the published 0{64}; nothing was kept"):
         lp.backbone_file("alex", progress=False)
     folder = tmp_path / "torch" / "hub" / "checkpoints"
@@ -86,8 +75,8 @@ def test_download_with_another_checksum_is_refused_and_not_kept(served, monkeypa
 
 def test_no_network_names_the_url_and_the_offline_ways(served, monkeypatch):
     spec = lp.BACKBONES["alex"]
-    monkeypatch.setitem(lp.BACKBONES, "alex", lp.TorchvisionBackbone(
-        spec.file, "http://127.0.0.1:9/alexnet-test.pth", spec.sha256, spec.size))
+    monkeypatch.setitem(lp.BACKBONES, "alex", replace(
+        spec, url="http://127.0.0.1:9/alexnet-test.pth"))
     with pytest.raises(InputError, match=r"cannot download http://127.0.0.1:9/.*--lpips-weights"):
         lp.backbone_file("alex", progress=False)
 
@@ -106,7 +95,7 @@ def test_offline_backbone_file_by_option_or_environment_checked_by_sha256(served
     sd = torch.load(str(f), weights_only=True)
     sd["features.0.bias"] = sd["features.0.bias"] + 1
     torch.save(sd, other)
-    with pytest.raises(InputError, match="is not that of torchvision's alexnet-test.pth"):
+    with pytest.raises(InputError, match="not torchvision's alexnet-test.pth"):
         lp.LPIPS("alex", other)
 
 

@@ -9,9 +9,10 @@ The weights are what the ``lpips`` package uses: its v0.1 linear heads (``lin0..
 files, shipped in ``lpips_heads/`` with their license, their SHA-256 checked on load) and
 torchvision's ImageNet backbone (``features.N.weight/bias``), which torchvision fetches into the
 torch cache (``torch.hub.get_dir()/checkpoints``, ``$TORCH_HOME``) on first use. So does
-`backbone_file`: once, with a message, its SHA-256 checked against the published one (a file
-that differs is removed, nothing is kept). The backbones below reproduce torchvision's layer
-indices, so its state dicts load unchanged without torchvision. Where, in order:
+`backbone_file` (`svolsdf.io.weights.cached_weights`): once, with a message, its SHA-256
+checked against the published one (a file that differs is not kept). The backbones below
+reproduce torchvision's layer indices, so its state dicts load unchanged without torchvision.
+Where, in order:
 
 1. ``weights`` (``svolsdf evaluate --lpips-weights``): a whole LPIPS state dict (heads and
    backbone: ``{alexnet,vgg16}_lpips_v0.1.pth``, or a folder of them), or torchvision's backbone
@@ -24,10 +25,7 @@ indices, so its state dicts load unchanged without torchvision. Where, in order:
 
 from __future__ import annotations
 
-import hashlib
-import logging
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -35,11 +33,10 @@ import torch.nn as nn
 from torch import Tensor
 
 from svolsdf.errors import InputError
+from svolsdf.io.weights import PublishedWeights, cached_weights, is_published, sha256
 
-__all__ = ["BACKBONES", "BACKBONE_ENV", "HEADS", "LPIPS", "TorchvisionBackbone", "backbone_file",
-           "default_lpips_dir", "lpips_distance", "sha256"]
-
-log = logging.getLogger(__name__)
+__all__ = ["BACKBONES", "BACKBONE_ENV", "HEADS", "LPIPS", "backbone_file", "default_lpips_dir",
+           "lpips_distance"]
 
 _FILES = {"alex": "alexnet_lpips_v0.1.pth", "vgg": "vgg16_lpips_v0.1.pth"}
 # Slice ends into `features` after each tapped ReLU (torchvision layer indices).
@@ -50,26 +47,14 @@ _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
 
 
-@dataclass(frozen=True)
-class TorchvisionBackbone:
-    """torchvision's published ImageNet weights of one backbone."""
-
-    file: str
-    """Its file name (the first 8 hex digits of its SHA-256 after the dash)."""
-    url: str
-    """Where torchvision downloads it from."""
-    sha256: str
-    """SHA-256 of the file."""
-    size: int
-    """Bytes."""
-
-
 BACKBONES = {
-    "alex": TorchvisionBackbone(
-        "alexnet-owt-7be5be79.pth", "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
+    "alex": PublishedWeights(
+        "LPIPS-alex: torchvision's alexnet", "alexnet-owt-7be5be79.pth",
+        "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
         "7be5be791159472b1fbf3c69796f7cb30dca7ad8466c2df70058c37116cdee02", 244_408_911),
-    "vgg": TorchvisionBackbone(
-        "vgg16-397923af.pth", "https://download.pytorch.org/models/vgg16-397923af.pth",
+    "vgg": PublishedWeights(
+        "LPIPS-vgg: torchvision's vgg16", "vgg16-397923af.pth",
+        "https://download.pytorch.org/models/vgg16-397923af.pth",
         "397923af8e79cdbb6a7127f12361acd7a2f83e06b05044ddf496e83de57a5bf0", 553_433_881),
 }
 """The backbones LPIPS v0.1 uses (torchvision's ``alexnet`` and ``vgg16`` IMAGENET1K_V1)."""
@@ -80,15 +65,6 @@ HEADS = {"alex": ("alex.pth", "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e
 
 BACKBONE_ENV = "SVOLSDF_LPIPS_BACKBONE"
 """Environment variable naming a local copy of the backbone file (no download)."""
-
-
-def sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _heads(net: str) -> dict[str, Tensor]:
@@ -104,54 +80,20 @@ def _heads(net: str) -> dict[str, Tensor]:
 def _check_backbone(path: Path, net: str) -> None:
     """Refuse a backbone file that is not torchvision's published one."""
     spec = BACKBONES[net]
-    got = sha256(path)
-    if got != spec.sha256:
-        raise InputError(f"{path}: SHA-256 {got} is not that of torchvision's {spec.file} "
-                         f"({spec.sha256}, {spec.url}); give that file")
+    if not is_published(path, spec):
+        raise InputError(f"{path}: not torchvision's {spec.file} (SHA-256 {sha256(path)}, the "
+                         f"published one {spec.sha256}, {spec.url}); give that file")
 
 
 def backbone_file(net: str, progress: bool = True) -> Path:
     """torchvision's backbone file of ``net`` in the torch cache, downloaded there the first
-    time (with a message) and checked by SHA-256; a cached file of another size is refused.
+    time (`svolsdf.io.weights.cached_weights`: a message, the SHA-256 checked).
 
     Raises:
-        InputError: the download failed (no network: the message names the URL and the offline
-            ways), or gave a file whose SHA-256 is not the published one (it is removed).
+        InputError: the download failed or is not the published file.
     """
-    spec = BACKBONES[net]
-    folder = Path(torch.hub.get_dir()) / "checkpoints"
-    dst = folder / spec.file
-    if dst.is_file():
-        if dst.stat().st_size != spec.size:
-            raise InputError(f"{dst}: {dst.stat().st_size} bytes, but torchvision's {spec.file} "
-                             f"has {spec.size}; remove it to download it again")
-        return dst
-    log.warning("LPIPS-%s: downloading torchvision's %s (%d MB, once) from %s into %s; "
-                "offline, pass --lpips-weights FILE or set %s", net, spec.file,
-                spec.size // 2**20, spec.url, folder, BACKBONE_ENV)
-    from svolsdf.io.runfolder import unique_temp
-
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = unique_temp(dst)
-    except OSError as e:
-        raise InputError(f"{folder}: cannot write the torch cache ({e.strerror or e}); set "
-                         "TORCH_HOME to a writable folder") from None
-    try:
-        try:
-            torch.hub.download_url_to_file(spec.url, str(tmp), progress=progress)
-        except OSError as e:  # URLError, refused, no space
-            raise InputError(f"LPIPS-{net}: cannot download {spec.url} ({e}); download it "
-                             f"elsewhere and pass it with --lpips-weights FILE or "
-                             f"{BACKBONE_ENV}=FILE") from None
-        got = sha256(tmp)
-        if got != spec.sha256:
-            raise InputError(f"{spec.url}: the download's SHA-256 is {got}, not the published "
-                             f"{spec.sha256}; nothing was kept")
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return dst
+    return cached_weights(BACKBONES[net], f"pass it with --lpips-weights FILE or "
+                                          f"{BACKBONE_ENV}=FILE", progress=progress)
 
 
 def _alexnet_features() -> nn.Sequential:
