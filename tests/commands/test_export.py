@@ -51,7 +51,7 @@ def test_export_writes_every_output_and_leaves_the_run_as_it_was(exported):
     out, _, dest, before = exported
     assert {p.name for p in dest.iterdir()} >= {
         "images", "transforms.json", "sparse", "cameras.json", "points.ply", "meshes",
-        "mesh_coloured.ply"}
+        "mesh_coloured.ply", "mesh_textured.obj", "mesh_textured.mtl", "mesh_textured.png"}
     after = _listing(out)
     assert {k: v for k, v in after.items() if not k.startswith("export/")} == before
 
@@ -170,6 +170,19 @@ def test_coloured_mesh_has_vertex_colours_from_the_photos(exported):
     cols = np.asarray(m.visual.vertex_colors)[:, :3]
     assert cols.shape == (len(ref.vertices), 3)
     assert (np.abs(cols.astype(int) - 128).max(1) > 3).mean() > 0.3  # not all "unseen" grey
+
+
+def test_textured_obj_opens_with_its_atlas(exported):
+    import trimesh
+
+    out, _, dest, _ = exported
+    m = trimesh.load(dest / "mesh_textured.obj", process=False)
+    ref = trimesh.load(out / "mesh.ply", process=False)
+    assert isinstance(m.visual, trimesh.visual.TextureVisuals)
+    assert len(m.faces) == len(ref.faces)
+    np.testing.assert_allclose(m.vertices[m.faces], ref.vertices[ref.faces], atol=1e-5)
+    tex = np.asarray(m.visual.material.image.convert("RGB"))
+    assert (np.abs(tex.astype(int) - 128).max(-1) > 3).mean() > 0.2  # photo colours, not grey
 
 
 def test_export_again_replaces_the_earlier_export_and_reconstruct_accepts_it(exported,

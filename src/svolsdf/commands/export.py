@@ -17,7 +17,9 @@ folder inside DEST, swapped in at the end; a failure or Ctrl-C leaves DEST as it
   method's, the others made from the run's field, points and depth as the mesh stage makes
   them; a method that gives no surface is left out and named);
 - ``mesh_coloured.ply``: OUT/mesh.ply with vertex colours from the input photos, each vertex
-  averaged over the views that see it (its depth agrees with the view's rasterized mesh).
+  averaged over the views that see it (its depth agrees with the view's rasterized mesh);
+- ``mesh_textured.obj`` (+ ``.mtl``, ``.png``): OUT/mesh.ply with a texture atlas baked from
+  the photos the same way (`svolsdf.fusion.texture`).
 
 The run folder itself is only read. Runs without a field (mvs-only) have no mesh: DEST then
 holds the cameras and the points.
@@ -39,14 +41,16 @@ from svolsdf.errors import InputError
 from svolsdf.io.replace import OutputSpec, replace_outputs
 from svolsdf.io.runfolder import RunFolder, refuse_in_progress
 
-__all__ = ["EXPORT_OUTPUT", "ExportResult", "check_finished_run", "export_run", "points_seen"]
+__all__ = ["EXPORT_OUTPUT", "ExportResult", "check_finished_run", "export_run", "mesh_depths",
+           "mesh_photo_colours", "points_seen"]
 
 log = logging.getLogger(__name__)
 
 EXPORT_OUTPUT = OutputSpec(
     command="svolsdf export",
     names=frozenset({"images", "transforms.json", "sparse", "cameras.json", "points.ply",
-                     "meshes", "mesh_coloured.ply"}),
+                     "meshes", "mesh_coloured.ply", "mesh_textured.obj", "mesh_textured.mtl",
+                     "mesh_textured.png"}),
     what="export folder", earlier="an earlier svolsdf export")
 """What ``svolsdf export`` writes into its folder."""
 
@@ -137,7 +141,7 @@ def export_run(out: str | Path, dest: str | Path | None = None,
         _write_points(run, stage)
         if run.has_field():
             _write_meshes(run, stage, res)
-            _write_coloured_mesh(run, stage)
+            _write_coloured_mesh(run, stage, res)
         res.files = sorted(p.name for p in stage.iterdir())
     res.meshes = {m: dest / "meshes" / f"{m}.ply" for m in res.meshes}
     return res
@@ -303,37 +307,56 @@ def _write_meshes(run, stage: Path, res: ExportResult) -> None:
         res.meshes[name] = folder / f"{name}.ply"
 
 
-def _write_coloured_mesh(run, stage: Path) -> None:
-    """OUT/mesh.ply with vertex colours from the input photos (`mesh_photo_colours`)."""
-    from svolsdf.io.ply import read_ply, write_mesh_ply
+def _write_coloured_mesh(run, stage: Path, res: ExportResult) -> None:
+    """OUT/mesh.ply with vertex colours from the input photos (`mesh_photo_colours`), and as
+    an OBJ with a texture atlas baked from them (`svolsdf.fusion.texture.bake_atlas`)."""
+    from svolsdf.fusion.texture import bake_atlas
+    from svolsdf.io.ply import read_ply, write_mesh_ply, write_textured_obj
 
     m = read_ply(run.dir.mesh())
-    cols = mesh_photo_colours(m["points"], m["faces"], run.load())
+    scene = run.load()
+    depths = mesh_depths(m["points"], m["faces"], scene.cameras)
+    cols = mesh_photo_colours(m["points"], m["faces"], scene, depths)
     write_mesh_ply(stage / "mesh_coloured.ply", m["points"], m["faces"], cols)
+    try:
+        uv, texture = bake_atlas(m["points"], m["faces"], scene.images, scene.cameras, depths)
+    except ValueError as e:  # more faces than an atlas holds
+        res.skipped["mesh_textured.obj"] = str(e)
+        return
+    write_textured_obj(stage / "mesh_textured.obj", m["points"], m["faces"], uv, texture)
+
+
+def mesh_depths(vertices: np.ndarray, faces: np.ndarray, cameras) -> torch.Tensor:
+    """(N, H, W) each camera's z-depth of the mesh (0 where it shows none), by its z-buffer
+    (`svolsdf.evaluate.raster.rasterize_mesh`)."""
+    from svolsdf.evaluate.raster import rasterize_mesh
+
+    K, w2c = cameras.K.double().numpy(), cameras.w2c.double().numpy()
+    return torch.stack([torch.from_numpy(rasterize_mesh(vertices, faces, K[v], w2c[v],
+                                                        cameras.width, cameras.height).depth)
+                        for v in range(len(cameras))])
 
 
 def mesh_photo_colours(vertices: np.ndarray, faces: np.ndarray, scene,
-                       rel_tol: float = 0.01) -> np.ndarray:
+                       depths: torch.Tensor | None = None, rel_tol: float = 0.01) -> np.ndarray:
     """Vertex colours from the scene's photos: the mean over the views that see each vertex,
     a view seeing it when the vertex's z-depth agrees (within ``rel_tol``) with the view's
-    z-buffer of the mesh itself (`svolsdf.evaluate.raster.rasterize_mesh`); grey where none
-    does (`svolsdf.fusion.mesh_ops.colors_from_images`).
+    z-buffer of the mesh itself (`mesh_depths`); grey where none does
+    (`svolsdf.fusion.mesh_ops.colors_from_images`).
 
     Args:
         vertices: (V, 3) world points; faces: (F, 3).
         scene: `Scene` with images (N, 3, H, W) and world cameras.
+        depths: `mesh_depths` of the mesh, or None to compute them.
 
     Returns:
         (V, 3) uint8.
     """
-    from svolsdf.evaluate.raster import rasterize_mesh
     from svolsdf.fusion.mesh_ops import colors_from_images, vertex_normals
 
     cams = scene.cameras
-    K, w2c = cams.K.double().numpy(), cams.w2c.double().numpy()
-    depths = torch.stack([torch.from_numpy(rasterize_mesh(vertices, faces, K[v], w2c[v],
-                                                          cams.width, cams.height).depth)
-                          for v in range(len(cams))])
+    if depths is None:
+        depths = mesh_depths(vertices, faces, cams)
     vt, ft = torch.from_numpy(np.asarray(vertices)), torch.from_numpy(np.asarray(faces))
     return colors_from_images(vt, vertex_normals(vt, ft), scene.images, cams, depths=depths,
                               depth_rel_tol=rel_tol).numpy()
