@@ -269,3 +269,18 @@ def test_mesh_colours_come_from_the_views_that_see_each_vertex():
     assert cols[hidden].tolist() == [128, 128, 128]  # no view sees it: grey, not the red
     assert cols[seen].tolist() == [255, 0, 0]
     assert cols[len(front) // 2].tolist() == [255, 0, 0]  # the front square's centre
+
+
+def test_run_without_field_exports_cameras_and_points(exported, tmp_path):
+    from plyfile import PlyData
+
+    _, scene, _, _ = exported
+    out = tmp_path / "mvs_only"
+    cli(["reconstruct", scene, "-o", out, "--views", "0", "1", "2", "--mode", "mvs-only",
+         "--no-progress"])
+    cli(["export", out])
+    names = {p.name for p in (out / "export").iterdir()}
+    assert {"transforms.json", "sparse", "cameras.json", "points.ply", "images"} <= names
+    assert not names & {"meshes", "mesh_coloured.ply", "mesh_textured.obj"}
+    v = PlyData.read(str(out / "export" / "points.ply"))["vertex"].data
+    assert {"nx", "ny", "nz"} <= set(v.dtype.names)
