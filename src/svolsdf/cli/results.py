@@ -261,7 +261,8 @@ def export(
         "--output", "-o", help="Where to write the export (default: OUT/export).")] = None,
 ) -> None:
     """The run for other tools: cameras (nerfstudio transforms.json, a COLMAP model, plain
-    JSON), points with normals, each mesh method's mesh, a mesh coloured from the photos."""
+    JSON), points with normals, each mesh method's mesh, the mesh coloured from the photos
+    (PLY vertex colours, OBJ with a texture)."""
     from svolsdf.commands.export import export_run
 
     res = export_run(out, dest, progress=True)
