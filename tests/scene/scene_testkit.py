@@ -112,7 +112,9 @@ def _visible(K, w2c, pts):
 
 
 def write_colmap(root: Path, K, w2c, pts, binary: bool) -> Path:
-    """COLMAP model (PINHOLE, one camera per image; COLMAP's +0.5 pixel convention)."""
+    """COLMAP model (PINHOLE, one camera per image; COLMAP's +0.5 pixel convention), written
+    by hand as COLMAP's documented formats lay it out: each point's track names, per image, the
+    index of its observation among that image's 2D points."""
     sp = root / "sparse" / "0"
     sp.mkdir(parents=True, exist_ok=True)
     names = [f"img_{i:02d}.png" for i in range(len(K))]
@@ -127,6 +129,15 @@ def write_colmap(root: Path, K, w2c, pts, binary: bool) -> Path:
         quats.append((w, x, y, z))
     # images listed in reverse name order to check the reader sorts by name
     order = list(range(len(K)))[::-1]
+    # each image's 2D points: its visible points' projections; obs[k][j] = the index there
+    obs = np.full(vis.shape, -1)
+    uvs = []
+    for j in range(len(K)):
+        seen = np.nonzero(vis[:, j])[0]
+        obs[seen, j] = np.arange(len(seen))
+        pc = pts[seen] @ w2c[j][:3, :3].T + w2c[j][:3, 3]
+        uv = pc @ K[j].T
+        uvs.append((seen, uv[:, :2] / uv[:, 2:] + 0.5))
     if not binary:
         (sp / "cameras.txt").write_text("# Camera list\n" + "".join(
             f"{c} PINHOLE {W} {H} {fx:.17g} {fy:.17g} {cx:.17g} {cy:.17g}\n"
@@ -136,11 +147,13 @@ def write_colmap(root: Path, K, w2c, pts, binary: bool) -> Path:
             q, t = quats[i], w2c[i][:3, 3]
             lines.append(f"{ids[i]} {q[0]:.17g} {q[1]:.17g} {q[2]:.17g} {q[3]:.17g} "
                          f"{t[0]:.17g} {t[1]:.17g} {t[2]:.17g} {i + 1} {names[i]}")
-            lines.append("")  # no 2D points listed
+            seen, uv = uvs[i]
+            lines.append(" ".join(f"{x:.17g} {y:.17g} {k + 1}"
+                                  for k, (x, y) in zip(seen, uv, strict=True)))
         (sp / "images.txt").write_text("\n".join(lines) + "\n")
         pl = ["# 3D point list"]
         for k, p in enumerate(pts):
-            track = " ".join(f"{ids[j]} {k}" for j in np.nonzero(vis[k])[0])
+            track = " ".join(f"{ids[j]} {obs[k, j]}" for j in np.nonzero(vis[k])[0])
             pl.append(f"{k + 1} {p[0]:.17g} {p[1]:.17g} {p[2]:.17g} 128 128 128 0.5 {track}")
         (sp / "points3D.txt").write_text("\n".join(pl) + "\n")
     else:
@@ -153,14 +166,16 @@ def write_colmap(root: Path, K, w2c, pts, binary: bool) -> Path:
             b += struct.pack("<i", ids[i]) + struct.pack("<4d", *quats[i])
             b += struct.pack("<3d", *w2c[i][:3, 3]) + struct.pack("<i", i + 1)
             b += names[i].encode() + b"\x00"
-            b += struct.pack("<Q", 2) + struct.pack("<ddq", 1.0, 2.0, -1) * 2
+            seen, uv = uvs[i]
+            b += struct.pack("<Q", len(seen)) + b"".join(
+                struct.pack("<ddq", x, y, k + 1) for k, (x, y) in zip(seen, uv, strict=True))
         (sp / "images.bin").write_bytes(b)
         b = struct.pack("<Q", len(pts))
         for k, p in enumerate(pts):
             js = np.nonzero(vis[k])[0]
             b += struct.pack("<Q3d3BdQ", k + 1, *p, 128, 128, 128, 0.5, len(js))
             for j in js:
-                b += struct.pack("<ii", ids[j], k)
+                b += struct.pack("<ii", ids[j], obs[k, j])
         (sp / "points3D.bin").write_bytes(b)
     return root
 

@@ -15,9 +15,9 @@ from scene_testkit import (
     write_mvsnet,
     write_nerf,
 )
+from scipy.spatial.transform import Rotation
 
 from svolsdf.scene import load_scene
-from svolsdf.scene.formats.colmap import qvec_to_rotmat, rotmat_to_qvec
 from svolsdf.scene.loaders import detect_format
 
 
@@ -142,12 +142,18 @@ def test_colmap_text_and_binary_agree(tmp_path):
 
 
 def test_quaternion_roundtrip():
+    # COLMAP's files hold (w, x, y, z); pycolmap, which reads them, takes (x, y, z, w): the
+    # reader's rotations are scipy's of the same quaternion
+    import pycolmap
+
     rng = np.random.default_rng(3)
     for _ in range(20):
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         q = q if q[0] >= 0 else -q
-        np.testing.assert_allclose(rotmat_to_qvec(qvec_to_rotmat(q)), q, atol=1e-10)
+        R = pycolmap.Rotation3d(np.r_[q[1:], q[0]]).matrix()
+        np.testing.assert_allclose(R, Rotation.from_quat(np.r_[q[1:], q[0]]).as_matrix(),
+                                   atol=1e-10)
 
 
 def test_nerf_roundtrip_explicit_intrinsics(tmp_path):

@@ -297,17 +297,24 @@ def _mean_reprojection_error(model: Path) -> float | None:
 
 
 def _colmap_log_files(pycolmap, folder: Path | None) -> None:
-    """Send COLMAP's log files (glog: one per severity) to ``folder``; None writes none (glog
-    would start new ones in /tmp)."""
+    """Send COLMAP's log (glog) to files in ``folder`` and not to the terminal, where it would
+    interleave with the progress bars; None writes no file (glog would start new ones in /tmp)
+    and gives the terminal back its copy (pycolmap's default).
+
+    glog names a file BASE + date + pid, one file per severity: each severity gets its own
+    base (``colmap.WARNING.``), since one base for all made the second file's name the first's
+    ("Could not create log file: File exists", "COULD NOT CREATE LOGFILE" in the terminal).
+    """
     logging_ = pycolmap.logging
     if not hasattr(logging_, "set_log_destination"):  # pragma: no cover - older pycolmap
         return
-    base = ""
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
-        base = str(folder / "colmap.")
-    for level in (logging_.INFO, logging_.WARNING, logging_.ERROR):
-        logging_.set_log_destination(level, base)
+    for level, name in ((logging_.INFO, "INFO"), (logging_.WARNING, "WARNING"),
+                        (logging_.ERROR, "ERROR")):
+        logging_.set_log_destination(level, "" if folder is None
+                                     else str(folder / f"colmap.{name}."))
+    logging_.alsologtostderr = folder is None
 
 
 # --------------------------------------------------------------------------- entry point

@@ -59,10 +59,21 @@ def _record_run(out: Path, device) -> None:
     atomic_write(RunFolder(out).run_file, lambda tmp: tmp.write_text(text))
 
 
+def _print_version(given: bool) -> None:
+    if given:
+        from svolsdf import __version__
+
+        typer.echo(f"svolsdf {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
 def _root(
     debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="More log output.")] = False,
+    version: Annotated[bool, typer.Option(
+        "--version", callback=_print_version, is_eager=True,
+        help="Print the version and exit.")] = False,
 ) -> None:
     _STATE["debug"] = debug
     logging.basicConfig(

@@ -36,8 +36,10 @@ def evaluate(
     lpips_net: Annotated[str, typer.Option(
         "--lpips-net", help="LPIPS backbone: vgg (the paper's) or alex.")] = "vgg",
     lpips_weights: Annotated[Path | None, typer.Option(
-        "--lpips-weights", help="LPIPS weights file or folder (default: shared/weights/lpips)."
-    )] = None,
+        "--lpips-weights", help="LPIPS weights: a whole LPIPS file or folder, or torchvision's "
+                                "backbone file (vgg16-397923af.pth) on a machine without "
+                                "internet (default: downloaded once into the torch cache).")
+    ] = None,
     ssim_data_range: Annotated[float, typer.Option(
         "--ssim-data-range", help="SSIM data range; 2.0 reproduces the released code.")] = 1.0,
     no_report: Annotated[bool, typer.Option(
@@ -244,3 +246,21 @@ def render(
             typer.echo(f"video {res[key]}")
 
 
+
+
+# --------------------------------------------------------------------------- export
+@app.command("export")
+def export(
+    out: Annotated[Path, typer.Argument(help="Finished run folder of svolsdf reconstruct.")],
+    dest: Annotated[Path | None, typer.Option(
+        "--output", "-o", help="Where to write the export (default: OUT/export).")] = None,
+) -> None:
+    """The run for other tools: cameras (nerfstudio transforms.json, a COLMAP model, plain
+    JSON), points with normals, each mesh method's mesh, the mesh coloured from the photos
+    (PLY vertex colours, OBJ with a texture)."""
+    from svolsdf.commands.export import export_run
+
+    res = export_run(out, dest, progress=True)
+    for what, why in res.skipped.items():
+        typer.echo(f"not made: {what}: {why}")
+    typer.echo(f"exported {', '.join(res.files)} -> {res.dest}")

@@ -143,9 +143,10 @@ def write_video(frames: list[np.ndarray], stem: Path, fps: int = 20) -> Path:
     try:
         import imageio_ffmpeg  # noqa: F401  (the backend of imageio's mp4 writer)
 
+        # H.264 players want sizes in 16-pixel macro blocks: pad with the edge pixels, else
+        # imageio-ffmpeg stretches every frame to fit (and warns on the terminal)
         h, w = arr.shape[1:3]
-        if h % 2 or w % 2:  # yuv420p needs even sizes
-            arr = arr[:, : h - h % 2, : w - w % 2]
+        arr = np.pad(arr, ((0, 0), (0, -h % 16), (0, -w % 16), (0, 0)), mode="edge")
         path = stem.with_suffix(".mp4")
         iio.imwrite(path, arr, extension=".mp4", fps=fps, codec="libx264")
         log.info("orbit video %s (mp4, %d frames)", path, len(arr))

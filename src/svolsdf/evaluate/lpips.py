@@ -5,10 +5,22 @@ backbone's ReLU activations at five depths, normalized to unit length over chann
 learned non-negative 1x1 "linear" heads. Inputs are RGB in [-1, 1], shifted and scaled by the
 LPIPS ScalingLayer constants first. The paper's novel-view metric uses VGG (docs/method.md 8.3).
 
-Weights are the LPIPS v0.1 state dicts in ``shared/weights/lpips``
-(``{alexnet,vgg16}_lpips_v0.1.pth``) with torchvision-style backbone keys
-``features.N.weight/bias`` and heads ``linK.model.1.weight``.
-The backbones below reproduce torchvision's layer indices so those keys load unchanged.
+The weights are what the ``lpips`` package uses: its v0.1 linear heads (``lin0..4``; the same
+files, shipped in ``lpips_heads/`` with their license, their SHA-256 checked on load) and
+torchvision's ImageNet backbone (``features.N.weight/bias``), which torchvision fetches into the
+torch cache (``torch.hub.get_dir()/checkpoints``, ``$TORCH_HOME``) on first use. So does
+`backbone_file` (`svolsdf.io.weights.cached_weights`): once, with a message, its SHA-256
+checked against the published one (a file that differs is not kept). The backbones below
+reproduce torchvision's layer indices, so its state dicts load unchanged without torchvision.
+Where, in order:
+
+1. ``weights`` (``svolsdf evaluate --lpips-weights``): a whole LPIPS state dict (heads and
+   backbone: ``{alexnet,vgg16}_lpips_v0.1.pth``, or a folder of them), or torchvision's backbone
+   file alone (``vgg16-397923af.pth``, checked by SHA-256) for a machine without internet;
+2. ``$SVOLSDF_LPIPS_BACKBONE``: such a backbone file;
+3. ``$SVOLSDF_LPIPS_DIR`` or a ``shared/weights/lpips`` folder beside the checkout
+   (`default_lpips_dir`): whole state dicts;
+4. the torch cache, downloading the backbone there the first time (`BACKBONES`).
 """
 
 from __future__ import annotations
@@ -21,8 +33,10 @@ import torch.nn as nn
 from torch import Tensor
 
 from svolsdf.errors import InputError
+from svolsdf.io.weights import PublishedWeights, cached_weights, is_published, sha256
 
-__all__ = ["LPIPS", "default_lpips_dir", "lpips_distance"]
+__all__ = ["BACKBONES", "BACKBONE_ENV", "HEADS", "LPIPS", "backbone_file", "default_lpips_dir",
+           "lpips_distance"]
 
 _FILES = {"alex": "alexnet_lpips_v0.1.pth", "vgg": "vgg16_lpips_v0.1.pth"}
 # Slice ends into `features` after each tapped ReLU (torchvision layer indices).
@@ -31,6 +45,55 @@ _CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}
 # LPIPS ScalingLayer: x' = (x - shift) / scale, on inputs in [-1, 1].
 _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
+
+
+BACKBONES = {
+    "alex": PublishedWeights(
+        "LPIPS-alex: torchvision's alexnet", "alexnet-owt-7be5be79.pth",
+        "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
+        "7be5be791159472b1fbf3c69796f7cb30dca7ad8466c2df70058c37116cdee02", 244_408_911),
+    "vgg": PublishedWeights(
+        "LPIPS-vgg: torchvision's vgg16", "vgg16-397923af.pth",
+        "https://download.pytorch.org/models/vgg16-397923af.pth",
+        "397923af8e79cdbb6a7127f12361acd7a2f83e06b05044ddf496e83de57a5bf0", 553_433_881),
+}
+"""The backbones LPIPS v0.1 uses (torchvision's ``alexnet`` and ``vgg16`` IMAGENET1K_V1)."""
+
+HEADS = {"alex": ("alex.pth", "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0"),
+         "vgg": ("vgg.pth", "a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868")}
+"""net -> (file in ``lpips_heads/``, SHA-256): the ``lpips`` package's v0.1 linear heads."""
+
+BACKBONE_ENV = "SVOLSDF_LPIPS_BACKBONE"
+"""Environment variable naming a local copy of the backbone file (no download)."""
+
+
+def _heads(net: str) -> dict[str, Tensor]:
+    """The lpips package's v0.1 linear heads of ``net``, checked by SHA-256."""
+    name, digest = HEADS[net]
+    path = Path(__file__).with_name("lpips_heads") / name
+    if not path.is_file() or sha256(path) != digest:
+        raise InputError(f"{path}: the LPIPS {net} heads are missing or changed (expected "
+                         f"SHA-256 {digest}); reinstall svolsdf")
+    return torch.load(str(path), map_location="cpu", weights_only=True)
+
+
+def _check_backbone(path: Path, net: str) -> None:
+    """Refuse a backbone file that is not torchvision's published one."""
+    spec = BACKBONES[net]
+    if not is_published(path, spec):
+        raise InputError(f"{path}: not torchvision's {spec.file} (SHA-256 {sha256(path)}, the "
+                         f"published one {spec.sha256}, {spec.url}); give that file")
+
+
+def backbone_file(net: str, progress: bool = True) -> Path:
+    """torchvision's backbone file of ``net`` in the torch cache, downloaded there the first
+    time (`svolsdf.io.weights.cached_weights`: a message, the SHA-256 checked).
+
+    Raises:
+        InputError: the download failed or is not the published file.
+    """
+    return cached_weights(BACKBONES[net], f"pass it with --lpips-weights FILE or "
+                                          f"{BACKBONE_ENV}=FILE", progress=progress)
 
 
 def _alexnet_features() -> nn.Sequential:
@@ -115,10 +178,15 @@ class LPIPS(nn.Module):
         self.net = net
         from svolsdf.io.paths import input_file, input_path
 
+        if weights is None and os.environ.get(BACKBONE_ENV):
+            weights = input_file(os.environ[BACKBONE_ENV], "LPIPS backbone file", BACKBONE_ENV)
         if weights is not None:
             path = input_path(weights, "LPIPS weights file or folder")
         else:
-            path = default_lpips_dir()
+            try:
+                path = default_lpips_dir()
+            except InputError:  # no whole state dicts: the heads with torchvision's backbone
+                path = backbone_file(net)
         if path.is_dir():
             path = path / _FILES[net]
         path = input_file(path, f"LPIPS {net} weights file")
@@ -131,6 +199,10 @@ class LPIPS(nn.Module):
             sd = torch.load(str(path), map_location="cpu", weights_only=True)
         except Exception as e:
             raise InputError(f"{path}: cannot load LPIPS weights ({e})") from None
+        if isinstance(sd, dict) and "features.0.weight" in sd and "lin0.model.1.weight" not in sd:
+            # torchvision's backbone alone (its classifier unused): with the lpips heads
+            _check_backbone(path, net)
+            sd = {**{k: v for k, v in sd.items() if k.startswith("features.")}, **_heads(net)}
         missing, unexpected = self.load_state_dict(sd, strict=False)
         if missing or unexpected:
             raise InputError(f"{path}: not an LPIPS {net} v0.1 state dict (missing {missing}, "

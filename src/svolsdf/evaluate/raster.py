@@ -172,14 +172,15 @@ def rasterize_mesh_reference(vertices: np.ndarray, faces: np.ndarray, K: np.ndar
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit vertex normals: area-weighted sums of the adjacent face normals."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 x area
-    n = np.zeros_like(v)
-    for k in range(3):
-        n[:, k] = np.bincount(f.ravel(), weights=np.repeat(fn[:, k], 3), minlength=len(v))
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    """(V, 3) float64 unit vertex normals, area-weighted: `svolsdf.fusion.mesh_ops.vertex_normals`
+    on numpy arrays."""
+    import torch
+
+    from svolsdf.fusion.mesh_ops import vertex_normals as mesh_vertex_normals
+
+    v = torch.from_numpy(np.asarray(vertices, np.float64))
+    f = torch.from_numpy(np.asarray(faces, np.int64))
+    return mesh_vertex_normals(v, f).numpy()
 
 
 def shade(raster: Raster, faces: np.ndarray, normals: np.ndarray, w2c: np.ndarray,

@@ -23,7 +23,7 @@ from svolsdf.io.progress import progress_bar
 from svolsdf.scene.scene import Scene
 
 __all__ = ["MeshCleanup", "clean_mesh", "field_mesh", "field_mesh_colours", "fill_small_holes",
-           "poisson_mesh", "points_tsdf_mesh"]
+           "oriented_normals", "poisson_mesh", "points_tsdf_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -134,23 +134,12 @@ def poisson_mesh(
         vw (V, 3) world vertices, faces (F, 3), colours (V, 3) or None.
     """
     from svolsdf.fusion.cull import cull_to_views
-    from svolsdf.fusion.poisson import estimate_normals, orient_normals, poisson_surface
+    from svolsdf.fusion.poisson import poisson_surface
 
-    threads = max(1, torch.get_num_threads())
     bar = progress_bar(desc="mesh: Poisson", total=4, unit="step")  # steps of unequal length
-    bar.set_postfix_str("normals")
-    normals = estimate_normals(points, workers=threads)
-    bar.update()
-    bar.set_postfix_str("orientation")
-    unit = scene.normalization.to_unit(torch.from_numpy(points)).float()
-    grads = []
-    for x in unit.split(65536):  # the field's outward direction at each point
-        x = x.to(device).requires_grad_(True)
-        (g,) = torch.autograd.grad(model.sdf(x).sum(), x)
-        grads.append(g.detach().cpu())
-    normals = orient_normals(points, normals, scene.cameras.centers.double().numpy(),
-                             guide=torch.cat(grads).double().numpy())
-    bar.update()
+    bar.set_postfix_str("normals and orientation")
+    normals = oriented_normals(points, scene, model, device=device)
+    bar.update(2)
     bar.set_postfix_str("surface")
     # PoissonRecon with one thread: with more, its parallel sums make the mesh differ from run
     # to run on the same points, and it was no faster
@@ -169,6 +158,37 @@ def poisson_mesh(
     bar.update()
     bar.close()
     return vw, f, (None if c is None else c[idx])
+
+
+def oriented_normals(points: np.ndarray, scene: Scene, model=None, device=None) -> np.ndarray:
+    """Outward normals of fused points: PCA of each point's neighbourhood
+    (`svolsdf.fusion.poisson.estimate_normals`), each given the sign that faces the input
+    cameras and, where they straddle its tangent plane, the field's SDF gradient (without a
+    ``model``, the directions to the cameras; `svolsdf.fusion.poisson.orient_normals`).
+
+    Args:
+        points: (N, 3) float64 world points, N > 16.
+        scene: the input views (world cameras, normalization).
+        model: the field (``sdf`` on unit-frame points), or None.
+        device: where the field's gradient is evaluated.
+
+    Returns:
+        (N, 3) float64 unit normals.
+    """
+    from svolsdf.fusion.poisson import estimate_normals, orient_normals
+
+    points = np.asarray(points, np.float64)
+    normals = estimate_normals(points, workers=max(1, torch.get_num_threads()))
+    guide = None
+    if model is not None:
+        unit = scene.normalization.to_unit(torch.from_numpy(points)).float()
+        grads = []
+        for x in unit.split(65536):  # the field's outward direction at each point
+            x = x.to(device).requires_grad_(True)
+            (g,) = torch.autograd.grad(model.sdf(x).sum(), x)
+            grads.append(g.detach().cpu())
+        guide = torch.cat(grads).double().numpy()
+    return orient_normals(points, normals, scene.cameras.centers.double().numpy(), guide=guide)
 
 
 def points_tsdf_mesh(

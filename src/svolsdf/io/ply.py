@@ -20,7 +20,8 @@ from plyfile import PlyData, PlyElement
 
 from svolsdf.errors import InputError, raise_if_interrupted
 
-__all__ = ["atomic_path", "read_ply", "write_mesh_ply", "write_obj", "write_points_ply"]
+__all__ = ["atomic_path", "read_ply", "write_mesh_ply", "write_obj", "write_points_ply",
+           "write_textured_obj"]
 
 
 @contextmanager
@@ -171,6 +172,46 @@ def write_obj(path, vertices, faces, vertex_colors=None) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     return path
+
+
+def write_textured_obj(path, vertices, faces, uv, texture) -> list[Path]:
+    """Write a mesh with a texture as Wavefront OBJ: ``path`` (.obj), its material
+    (``path`` with .mtl) and the texture (.png) beside it, each atomically.
+
+    Args:
+        path: the .obj file.
+        vertices: (V, 3) float positions; faces: (F, 3) 0-based vertex indices.
+        uv: (F, 3, 2) texture coordinates of each face's corners (OBJ's: v up from the
+            image's bottom row).
+        texture: (H, W, 3) uint8 image.
+
+    Returns:
+        the three written paths.
+    """
+    from svolsdf.io.images import write_image
+
+    path = Path(path)
+    v = _as_array("vertices", vertices).astype(np.float64)
+    f = _as_array("faces", faces).astype(np.int64)
+    t = np.asarray(uv, np.float64)
+    if t.shape != (len(f), 3, 2):
+        raise ValueError(f"uv must be ({len(f)}, 3, 2), got {t.shape}")
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"faces index vertices outside [0, {len(v)})")
+    mtl, png = path.with_suffix(".mtl"), path.with_suffix(".png")
+    fi = np.concatenate([f + 1, np.arange(1, 3 * len(f) + 1).reshape(-1, 3)], 1)
+    lines = [f"mtllib {mtl.name}"]
+    lines += [f"v {a:.6f} {b:.6f} {c:.6f}" for a, b, c in v]
+    lines += [f"vt {a:.6f} {b:.6f}" for a, b in t.reshape(-1, 2)]
+    lines += ["usemtl atlas"]
+    lines += [f"f {a}/{d} {b}/{e} {c}/{g}" for a, b, c, d, e, g in fi]
+    write_image(png, np.ascontiguousarray(np.asarray(texture, np.uint8).transpose(2, 0, 1)))
+    with atomic_path(mtl) as tmp:
+        tmp.write_text(f"newmtl atlas\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
+                       f"map_Kd {png.name}\n")
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    return [path, mtl, png]
 
 
 def _read_plydata(path: Path) -> PlyData:

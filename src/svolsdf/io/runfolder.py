@@ -42,10 +42,10 @@ RUN_NAMES = frozenset({
     "config.yaml", "views.json", "stages.json", "timing.json", "log", LOCK_NAME,
     "mvs", "depth", "confidence", "field", "normals", "unguided", "network",
     "points.ply", "mesh.ply", "mesh.obj", "renders", "renders_ibr", "metrics.json", "report.html",
-    "demo_metrics.json", "benchmark_row.json", "run.json"})
+    "demo_metrics.json", "benchmark_row.json", "run.json", "export"})
 """The names at the top of a run folder of ``svolsdf reconstruct`` (the layout of `RunFolder`,
-with what evaluate, report, render, demo and a benchmark job add): a folder that holds others
-is no run."""
+with what evaluate, report, render, export, demo and a benchmark job add): a folder that holds
+others is no run."""
 
 MVS_NAMES = frozenset({"mvs", "depth", "confidence", "points.ply", "mvs.json", LOCK_NAME})
 """The names at the top of an output folder of ``svolsdf mvs`` (`svolsdf.commands.mvs`)."""

@@ -47,6 +47,7 @@ from torch import Tensor
 
 from svolsdf.errors import InputError
 from svolsdf.io.progress import progress_bar
+from svolsdf.io.weights import PublishedWeights, cached_weights, is_published
 from svolsdf.mvs.backbone import (
     MAX_SOURCES,
     MVSBackbone,
@@ -73,6 +74,7 @@ __all__ = [
     "confidence_scale",
     "AdapterConfig",
     "DepthConfidenceAdapter",
+    "PATCHMATCHNET",
     "PatchmatchNetBackbone",
     "default_patchmatchnet_weights",
 ]
@@ -80,6 +82,14 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 PATCHMATCHNET_FILE = Path("weights") / "patchmatchnet" / "patchmatchnet_dtu_module.pt"
+
+PATCHMATCHNET = PublishedWeights(
+    "PatchmatchNet (DTU, TorchScript)", "patchmatchnet_module_000007-ce053605.pt",
+    "https://raw.githubusercontent.com/FangjinhuaWang/PatchmatchNet/"
+    "8dc6cb40bdb7053e856598b378425c76a9dcf5e0/checkpoints/module_000007.pt",
+    "ce053605b4f22e1478dcc82e844a567e0aabe8415bb7f89c49382ef2e21dd44e", 1_123_557)
+"""The authors' DTU-trained TorchScript module (MIT license), fetched into the torch cache
+when no ``--weights`` is given (`svolsdf.io.weights.cached_weights`)."""
 
 
 # --------------------------------------------------------------------------- the distribution
@@ -362,13 +372,14 @@ class PatchmatchNetBackbone(DepthConfidenceAdapter):
     def create(cls, weights=None, **cfg) -> PatchmatchNetBackbone:
         from svolsdf.io.paths import input_file, user_path
 
+
         path = user_path(weights) if weights is not None else default_patchmatchnet_weights()
-        if path is None:
-            raise InputError(
-                "the 'patchmatchnet' backbone needs --weights PATH (a TorchScript PatchmatchNet, "
-                f"e.g. ../shared/{PATCHMATCHNET_FILE.as_posix()}), and none was found there"
-            )
+        if path is None:  # the published module, once into the torch cache
+            path = cached_weights(PATCHMATCHNET, "pass it with --weights FILE")
         path = input_file(path, "PatchmatchNet weights file")
+        if weights is not None and not is_published(path, PATCHMATCHNET):
+            log.info("%s is not the published PatchmatchNet module (%s); used as given", path,
+                     PATCHMATCHNET.url)
         config = AdapterConfig(**cfg)
         load = getattr(getattr(torch, "jit", None), "load", None)
         if load is None:  # TorchScript is deprecated; docs/dependencies.md
