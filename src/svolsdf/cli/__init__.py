@@ -131,6 +131,9 @@ def _end_process(code) -> NoReturn:
 def _main(argv: list[str] | None) -> None:
     """`main` without its last guard against Ctrl-C."""
     argv = expand_list_options(list(sys.argv[1:] if argv is None else argv))
+    from svolsdf.cli.app import _STATE
+
+    _STATE["argv"] = list(argv)  # the command line, for the records that name it
     debug = "--debug" in argv
     got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
 
