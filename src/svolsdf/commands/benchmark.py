@@ -392,6 +392,10 @@ def job_config(job: BenchmarkJob):
         c.mesh.method = "poisson"
     c = apply_overrides(c, dict(job.overrides), labels=_OPTION_LABELS)
     given = parse_set(job.sets)
+    if job.config is None:  # the released preset's per-scan constants (not over given values)
+        from svolsdf.config.presets import scene_overrides
+
+        scene_overrides(c, {k for k, v in job.overrides.items() if v is not None} | set(given))
     if given:
         where = f"variant {job.variant}: set" if job.variant else "--set"
         c = apply_overrides(c, given, labels={k: f"{where} {k}" for k in given},

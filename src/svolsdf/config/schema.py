@@ -89,9 +89,10 @@ class MVSConfig:
     """Weights file for learned backbones."""
     ndepths: list[int] = _limited(factory=lambda: [192, 32, 8], len=3, min=2)
     """Hypotheses per cascade stage (docs/method.md 0)."""
-    width: Literal["paper", "released"] = "paper"
-    """Finer-stage search width: paper (half the default CasMVSNet width) | released
-    (docs/method.md 2.5)."""
+    width: Literal["paper", "released", "half-default"] = "paper"
+    """Finer-stage interval ratios: paper (1, 0.5, 0.5, the paper's explicit numbers) |
+    released (the same, the released code's) | half-default (1, 1, 0.5: half CasMVSNet's
+    default width, a reading of the paper's method section; docs/method.md 2.5)."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (unbounded scenes; docs/method.md 2.5, 9.1)."""
     max_sources: int = _limited(4, min=0)
@@ -407,10 +408,11 @@ class MeshConfig:
 
 @dataclass
 class Config:
-    preset: Literal["fast", "draft", "paper"] = "fast"
+    preset: Literal["fast", "draft", "paper", "released"] = "fast"
     """fast (default; minutes on a CPU) | draft (fast in about half the time: half the field
     steps, the plane sweep at 1.5x, other backbones at their own size; docs/presets.md) | paper
-    (docs/method.md constants; a GPU)."""
+    (docs/method.md constants; a GPU) | released (paper with the released code's settings and
+    per-scan constants, docs/method.md 9)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto | cpu | cuda."""
     threads: int = _limited(0, min=0)

@@ -92,8 +92,8 @@ class CasMVSNetConfig:
     """Hypotheses per stage (docs/method.md 0: 192, 32, 8). Each must be divisible by 8."""
     width_mode: str = "released"
     """Finer-stage search width: "released" (r = 0.5, 0.5, what the checkpoint was run with in
-    the released S-VolSDF code) or "paper" ("half the default width"); see
-    `svolsdf.mvs.hypotheses`."""
+    the released S-VolSDF code), "paper" (the same, the paper's explicit numbers) or
+    "half-default" (r = 1, 0.5); see `svolsdf.mvs.hypotheses`."""
     x2_mvsres: bool = True
     """Run the network on the working-size images upsampled 2x (docs/method.md 1.3, 9.2 item 2); the
     stage-3 volume is then at twice the working size."""

@@ -186,6 +186,12 @@ class Pipeline(StageRecords, Run):
         self.input_keys = input_keys(self.cfg, manifest)
         self._input_changes = describe_changes(before, manifest)
         save_config(self.cfg, self.dir.config_file)
+        if self.cfg.preset in ("paper", "released"):
+            from svolsdf.config.presets import backbone_provenance
+
+            prov = backbone_provenance(self.cfg)
+            (log.info if prov["papers"] else log.warning)("%s preset: %s", self.cfg.preset,
+                                                          prov["note"])
         self._config_digest = config_digest(self.dir.config_file)
         self.dir.write_views(self.views, self.test_view_ids, (scene.width, scene.height),
                              str(self.cfg.scene.path))
