@@ -17,8 +17,8 @@ log = logging.getLogger(__name__)
 MVS_SCALE_BY_BACKBONE: dict[str, dict[str, float]] = {"draft": {"planesweep": 1.5}}
 """The ``mvs.scale`` a preset gives each backbone, for the presets that set one: the draft runs
 the plane sweep at 1.5x the working size. A backbone not listed keeps its own size (``mvs.scale``
-unset: CasMVSNet at 2x, the adapters at the working size), since 1.5 is no size CasMVSNet runs
-at (1 or 2) and only the plane sweep's was measured (docs/presets.md)."""
+unset: CasMVSNet at 2x, the adapters at the working size), since only the plane sweep's 1.5 was
+measured (docs/presets.md) and the adapters run at the working size only."""
 
 
 def _paper() -> Config:

@@ -103,7 +103,8 @@ class MVSConfig:
     scale: float | None = _limited(None, gt=0)
     """The cascade runs at ``scale`` x the working size (stage 3 at scale x; images upsampled
     bicubically, as the released code's x2_mvsres, docs/method.md 9.2.2), the field at the working
-    size. planesweep: any scale > 0; casmvsnet: 1 or 2 (its x2_mvsres); the patchmatchnet
+    size. planesweep and casmvsnet: any scale > 0 (casmvsnet's input rounded to multiples of
+    32; 1 and 2 are its x2_mvsres; 4/3 the paper's mid resolution); the patchmatchnet
     adapter runs at the working size. None = the backbone's own default."""
     native_images: bool = False
     """A cascade larger than the working size reads its images from the files when they are

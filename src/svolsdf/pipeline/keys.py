@@ -81,6 +81,9 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # keys run folders had before the option existed
     if not sig["config"].get("native_images", True):
         del sig["config"]["native_images"]
+    # ditto CasMVSNet's scale (mvs.scale other than 1 and 2): unset, its runs keep their keys
+    if sig["config"].get("scale", 0) is None:
+        del sig["config"]["scale"]
     # mvs.width "paper" meant r = (1, 1, 0.5) until it became the paper's explicit (1, 0.5,
     # 0.5): that reading, now "half-default", keeps every key "paper" gave it, and "paper"
     # keeps its name in the keys but marks stages 2-3 (`_WIDTH_MARK`): run folders of the old
