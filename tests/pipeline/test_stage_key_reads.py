@@ -140,6 +140,9 @@ SETUP_READS = {
     "threads": "torch's thread count: how fast, not what is computed",
     "scene.path": "views.json records it (the scene is read by Run.load)",
     "scene.use_masks": "check_scene's refusal of empty masks; the stages read it themselves",
+    "mvs.backbone": "the paper and released presets' log line naming the MVS backbone "
+                    "(backbone_provenance); the MVS stages read it themselves",
+    "mvs.weights": "ditto: the weights file's name in that line",
 }
 
 #: options no recorded run takes another value of: {option: why}.

@@ -203,14 +203,16 @@ def benchmark(
         given = [o for o, v in (("--scenes", scenes), ("--modes", modes != list(_ALL_MODES)),
                                 ("--views", views),
                                 ("--preset", preset_name), ("--config", config),
-                                ("--set", sets), ("--dtu-gt", dtu_gt)) if v]
+                                ("--set", sets)) if v]
         if given:
             raise InputError(f"--experiment {experiment}: {', '.join(given)} would contradict "
                              "the experiment file; put them in the file (scenes, views, "
-                             "variants, dtu_gt)")
+                             "variants)")
         cfg = experiment_config(
             experiment, data=data, steps=steps, size=None if size is None else parse_size(size),
-            command=public_command(["svolsdf", *_STATE.get("argv", sys.argv[1:])]), **common)
+            command=public_command(["svolsdf", *_STATE.get("argv", sys.argv[1:])]),
+            dtu_gt=None if dtu_gt is None else input_dir(dtu_gt, "DTU ground-truth folder",
+                                                         "--dtu-gt"), **common)
     else:
         if data is not None:
             raise InputError("--data: only with --experiment (the file's scenes are relative "

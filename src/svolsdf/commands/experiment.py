@@ -239,17 +239,19 @@ def _variant_config(v: Variant):
 
 
 def experiment_config(path: str | Path, out: Path, data: str | Path | None = None,
-                      command: str | None = None, **options) -> BenchmarkConfig:
+                      command: str | None = None, check_scenes: bool = True,
+                      **options) -> BenchmarkConfig:
     """The `BenchmarkConfig` of an experiment file (`load_experiment`); ``options`` are further
-    `BenchmarkConfig` fields from the command line (device, executor, lpips_net, ...), and the
-    file's ``steps`` and ``size`` give way to given ones."""
-    spec = load_experiment(path, data)
+    `BenchmarkConfig` fields from the command line (device, executor, lpips_net, dtu_gt, ...),
+    and the file's ``steps``, ``size`` and ``dtu_gt`` give way to given ones."""
+    spec = load_experiment(path, data, check_scenes=check_scenes)
     steps = options.pop("steps", None)
     size = options.pop("size", None)
+    dtu_gt = options.pop("dtu_gt", None)
     return BenchmarkConfig(
         scenes=spec["scenes"], out=out, variants=spec["variants"],
         views=None, view_sets=spec["view_sets"], size=size or spec["size"],
-        steps=steps if steps is not None else spec["steps"], dtu_gt=spec["dtu_gt"],
+        steps=steps if steps is not None else spec["steps"], dtu_gt=dtu_gt or spec["dtu_gt"],
         experiment={"name": spec["name"], "description": spec["description"],
                     "paper": spec["paper"], "file": Path(path).name, "plot": spec["plot"],
                     "command": command}, **options)

@@ -115,6 +115,11 @@ class MVSConfig:
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
     its depth again and centre stage 3 on it (svolsdf mode;
     `svolsdf.pipeline.finer.finer_stage_cascade`)."""
+    third_stage_optimization: bool = False
+    """With ``finer_stage_optimization``: after stage 3 too, optimize the field for steps/5
+    more steps against the stage-3 volumes' prior (the paper's stages 1, 2, 3 of its
+    limitations paragraph, docs/method.md 9.2.13); the mesh is that field's and fusion's
+    surface hypothesis its rendered depth."""
     crop_to_masks: int | None = _limited(None, min=0)
     """planesweep: stages 2-3 run only in the box around each reference's object mask dilated by
     this many pixels (working size); outside it those stages give no depth (fusion keeps depth

@@ -95,7 +95,8 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     width_mark = [_WIDTH_MARK] if cfg.mvs.width in _WIDTH_MARKED else []
     # mvs.save_volumes only says which files are kept, not what they hold
     c["mvs"] = {**{k: v for k, v in c["mvs"].items()
-                   if k not in ("guide_network", "save_volumes", "crop_to_masks")},
+                   if k not in ("guide_network", "save_volumes", "crop_to_masks",
+                                "third_stage_optimization")},
                 "signature": sig}
     # how the views were picked does not matter once they are known (views), and run
     # folders from before the option keep their keys
@@ -144,7 +145,9 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                     *([gmd, *(no_masks if has_field(cfg) else [])] if gmd is not None else []))
     cropped = [("crop", crop)] if crop is not None else []
     k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
-                    *([guide_init] if guide_init is not None else []), *cropped, *width_mark)
+                    *([guide_init] if guide_init is not None else []), *cropped, *width_mark,
+                    # the optimization after stage 3 enters only when set (newer than runs)
+                    *(["stage-3 optimization"] if cfg.mvs.third_stage_optimization else []))
     k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3", *cropped, *width_mark)
     # options added after runs existed enter only when set: those runs keep their keys
     fo = {k: v for k, v in c["output"].items() if (k.startswith("fusion") or k == "use_masks")
