@@ -82,6 +82,9 @@ INERT_READS: dict[str, Rule] = {
     "mesh.fit_points": (
         "read to ask whether the fit applies (options.wants_mesh_fit); it does not here",
         lambda c: not opt.wants_mesh_fit(c)),
+    "train.snapshot_every": (
+        "pictures of the surface as the field trains (OUT/field/snapshots/), not what it "
+        "computes; keys.py leaves it out", always),
     "mvs.save_volumes": (
         "which files the stages 2-3 keep (their volumes), not what they compute; keys.py leaves "
         "it out", always),

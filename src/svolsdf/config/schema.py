@@ -278,6 +278,11 @@ class TrainConfig:
     sharpen). 0: learnable beta (docs/method.md 5.4, the paper)."""
     beta_end: float = _limited(0.0025, gt=0)
     """Final beta of the anneal (unit frame; ~0.5 mm on DTU-scale scenes)."""
+    snapshot_every: int = _limited(0, min=0)
+    """Every this many field steps (and at the start), write the field's surface, its zero
+    level at a coarse 96^3 grid in world units, to OUT/field/snapshots/step_NNNNNN.ply, and at
+    the end OUT/field/snapshots/snapshots.png, the surface over the optimization from the first
+    input view (`svolsdf.pipeline.snapshots`). Only while the field stage runs; 0 = none."""
     checkpoint_every: int = _limited(100, min=0)
     """Save a checkpoint every N steps (resume after a kill); 0 = never."""
     seed: int = _limited(0, min=0)

@@ -126,6 +126,8 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     if not c["train"].get("colour_steps"):
         for k in ("colour_steps", "colour_rays", "colour_object_fraction"):
             c["train"].pop(k, None)
+    # train.snapshot_every only writes pictures of the surface as it trains: in no key
+    c["train"].pop("snapshot_every", None)
     # ditto train.prior_sources: only "selected", with a field
     if not (c["train"].get("prior_sources") == "selected" and has_field(cfg)):
         c["train"].pop("prior_sources", None)

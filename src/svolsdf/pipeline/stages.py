@@ -285,8 +285,13 @@ class Pipeline(StageRecords, Run):
         else:
             self.dir.mark("field_partial", self.keys["field"], **self._provenance("field"))
         self._trainer = trainer  # its step, for the message of an interrupt
-        trainer.fit(progress=self.progress)
+        from svolsdf.pipeline.snapshots import snapshot_writer, write_snapshot_figure
+
+        snap = snapshot_writer(self, model, trainer.step)
+        trainer.fit(progress=self.progress, on_step=snap)
         self._trainer = None
+        if snap is not None:
+            write_snapshot_figure(self)
         final.parent.mkdir(parents=True, exist_ok=True)
         save_torch(final, {"model_state_dict": model.state_dict(),
                            "grid_resolution": getattr(model, "resolution", None),
