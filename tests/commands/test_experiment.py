@@ -165,3 +165,22 @@ def test_experiment_contradicting_options_are_refused(tmp_path, capsys, data):
 def test_public_command_names_no_machine_path():
     assert public_command(["svolsdf", "benchmark", "--data", "/a/b/data", "x=/c/d"]) == \
         "svolsdf benchmark --data DATA/data x=DATA/d"
+
+
+def test_record_renders_the_field_alone_table():
+    """A record with ``field_alone`` (benchmarks/experiment_results.py --field-alone) renders
+    it as a second table, one column per variant, from the record alone."""
+    rec = {"experiment": "x", "description": None, "paper": None, "file": "x.yaml",
+           "command": "svolsdf benchmark", "commit": "abc1234", "version": "0",
+           "machine": {"cpu": "cpu", "cores": 2, "torch": "2"}, "date": "2026-12-07",
+           "scenes": ["s"], "view_sets": [[0, 1, 2]], "size": [96, 72], "steps": 5,
+           "variants": [{"name": n, "preset": "fast", "set": [], "config": None,
+                         "mode": "svolsdf", "tuned_on": "t"} for n in ("full", "mse")],
+           "plot": {"kind": "bars", "metric": "overall"},
+           "rows": [{"scene": "s", "mode": n, "status": "ok", "accuracy": 1.0,
+                     "completeness": 2.0, "overall": 1.5, "time_s": 3.0} for n in ("full", "mse")],
+           "field_alone": {"what": "Guide depth.", "rows": [
+               {"scene": "s", "variant": "full", "median_mm": 1.58, "within_2mm": 0.55},
+               {"scene": "s", "variant": "mse", "median_mm": 1.84, "within_2mm": 0.52}]}}
+    md = experiment_markdown(rec)
+    assert "## The field alone" in md and "| s | 1.58 (55 %) | 1.84 (52 %) |" in md

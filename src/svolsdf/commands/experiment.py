@@ -252,7 +252,9 @@ def experiment_config(path: str | Path, out: Path, data: str | Path | None = Non
         scenes=spec["scenes"], out=out, variants=spec["variants"],
         views=None, view_sets=spec["view_sets"], size=size or spec["size"],
         steps=steps if steps is not None else spec["steps"], dtu_gt=dtu_gt or spec["dtu_gt"],
+        # the commit the jobs run from: taken now, since the checkout may move while they run
         experiment={"name": spec["name"], "description": spec["description"],
+                    "commit": git_commit(),
                     "paper": spec["paper"], "file": Path(path).name, "plot": spec["plot"],
                     "command": command}, **options)
 
@@ -310,7 +312,8 @@ def write_experiment(cfg: BenchmarkConfig, rows: list[dict]) -> Path:
         "experiment": exp.get("name"), "description": exp.get("description"),
         "paper": exp.get("paper"), "file": exp.get("file"),
         "command": exp.get("command") or public_command(["svolsdf", *sys.argv[1:]]),
-        "commit": git_commit(), "version": __version__, "machine": machine(),
+        "commit": exp.get("commit") or git_commit(), "version": __version__,
+        "machine": machine(),
         "date": time.strftime("%Y-%m-%d", time.gmtime()),
         "scenes": list(dict.fromkeys(r["scene"] for r in rows)),
         "view_sets": cfg.view_sets or ([cfg.views] if cfg.views else None),
@@ -366,6 +369,15 @@ def experiment_markdown(record: dict) -> str:
               + (f", {m['gpu']}" if m.get("gpu") else "") + f", torch {m.get('torch', '?')}.",
               "", f"Command: `{record['command']}`"
               + (f" (experiment file `{record['file']}`)." if record.get("file") else ".")]
+    field = record.get("field_alone")
+    if field:  # the guide depth against the ground truth, before stages 2-3 and fusion
+        notes += ["", "## The field alone", "", field["what"], "",
+                  "| scene | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+        for scene in dict.fromkeys(r["scene"] for r in field["rows"]):
+            cell = {r["variant"]: r for r in field["rows"] if r["scene"] == scene}
+            notes.append(f"| {scene} | " + " | ".join(
+                f"{cell[n]['median_mm']:.2f} ({100 * cell[n]['within_2mm']:.0f} %)"
+                if n in cell else "-" for n in names) + " |")
     title = f"Experiment {record['experiment']}"
     text = benchmark_markdown(record["rows"], names, title=title, notes=notes)
     if record.get("description"):
