@@ -31,7 +31,8 @@ def test_reconstruct_help_names_the_schema_choices(flag, option):
 
 
 def test_benchmark_modes_are_the_schema_choices(tmp_path):
-    from svolsdf.commands.benchmark import BenchmarkConfig, _validate
+    from svolsdf.commands.benchmark import BenchmarkConfig
+    from svolsdf.commands.benchmark_checks import validate_benchmark as _validate
 
     opt = _option("benchmark", "--modes")
     assert list(opt.default) == list(choices("train.mode"))

@@ -223,16 +223,17 @@ def test_draft_with_casmvsnet_runs_casmvsnet_at_its_own_size():
     # a scale the user gives stays theirs: accepted where it runs, refused where not
     cfg = apply_overrides(preset("draft"), {"mvs.backbone": "casmvsnet", "mvs.scale": 1.0})
     assert backbone_options("casmvsnet", cfg.mvs)["x2_mvsres"] is False
-    with pytest.raises(InputError, match=r"^--set mvs\.scale=1\.5 with --backbone casmvsnet "
-                                         r"\(mvs\.backbone\): casmvsnet runs at 1 or 2 x "):
-        apply_overrides(preset("draft"), {"mvs.backbone": "casmvsnet", "mvs.scale": 1.5},
+    cfg = apply_overrides(preset("draft"), {"mvs.backbone": "casmvsnet", "mvs.scale": 1.5})
+    assert backbone_options("casmvsnet", cfg.mvs)["scale"] == 1.5  # CasMVSNet runs at any scale
+    with pytest.raises(InputError, match=r"^--set mvs\.scale=1\.5 with --backbone patchmatchnet "
+                                         r"\(mvs\.backbone\): the patchmatchnet backbone runs "):
+        apply_overrides(preset("draft"), {"mvs.backbone": "patchmatchnet", "mvs.scale": 1.5},
                         labels={**labels, "mvs.scale": "--set mvs.scale"})
     # the other presets have no per-backbone scale: nothing changes
     assert apply_overrides(preset("fast"), {"mvs.backbone": "casmvsnet"}).mvs.scale is None
 
 
 @pytest.mark.parametrize("backbone, why", [
-    ("casmvsnet", "casmvsnet runs at 1 or 2 x the working size"),
     ("patchmatchnet", "the patchmatchnet backbone runs at the working size only"),
 ])
 def test_a_scale_the_backbone_cannot_run_at_is_refused_by_validation(backbone, why):
@@ -251,7 +252,8 @@ def test_a_scale_the_backbone_cannot_run_at_is_refused_by_validation(backbone, w
 
 def test_cli_draft_with_casmvsnet(seen, tmp_path, capsys):
     """`reconstruct --preset draft --backbone casmvsnet` reaches the pipeline with CasMVSNet at
-    its own size; with `--set mvs.scale=1.5` it exits 2 in one line before any folder is made."""
+    its own size; `--backbone patchmatchnet --set mvs.scale=1.5` exits 2 in one line before any
+    folder is made."""
     from svolsdf.cli import main
 
     out = tmp_path / "out"
@@ -262,10 +264,10 @@ def test_cli_draft_with_casmvsnet(seen, tmp_path, capsys):
         "draft", "casmvsnet", None, 500)
     with pytest.raises(SystemExit) as e:
         main(["reconstruct", str(tmp_path), "-o", str(out), "--preset", "draft",
-              "--backbone", "casmvsnet", "--set", "mvs.scale=1.5"])
+              "--backbone", "patchmatchnet", "--set", "mvs.scale=1.5"])
     err = capsys.readouterr().err.strip()
     assert e.value.code == 2 and len(err.splitlines()) == 1, err
-    assert "mvs.scale=1.5" in err and "casmvsnet" in err, err
+    assert "mvs.scale=1.5" in err and "patchmatchnet" in err, err
     assert not out.exists()
 
 

@@ -275,3 +275,23 @@ def test_bad_depth_range_names_the_view(model, scene):
     bad.depth_range[2] = torch.tensor([5.0, 5.0], dtype=torch.float64)
     with pytest.raises(InputError, match="view 2"):
         _backbone(model).stage(1, bad)
+
+
+def test_casmvsnet_runs_at_the_mid_resolutions_scale(model, scene):
+    """``mvs.scale`` 4/3 (the paper's mid resolution: the field at 864x1152, the network at
+    1152x1536) is accepted and runs the network at that size; 1 and 2 stay x2_mvsres."""
+    from svolsdf.config import preset
+    from svolsdf.mvs.backbone import backbone_options, backbone_scale_problem
+
+    assert mvs_input_size(1152, 864, scale=4 / 3) == (1536, 1152)
+    assert backbone_scale_problem("casmvsnet", 4 / 3) is None
+    c = preset("fast")
+    c.mvs.backbone, c.mvs.scale = "casmvsnet", 4 / 3
+    kw = backbone_options("casmvsnet", c.mvs)
+    assert kw["scale"] == pytest.approx(4 / 3) and kw["x2_mvsres"] is False
+    c.mvs.scale = 2.0
+    assert "scale" not in backbone_options("casmvsnet", c.mvs)
+    bb = _backbone(model, scale=4 / 3)  # 96x64 -> 128x85, rounded to 128x96
+    v3 = bb.stage(3, scene, ref_ids=[1], prev={1: bb.stage(2, scene, ref_ids=[1], prev={
+        1: bb.stage(1, scene, ref_ids=[1])[0]})[0]})[0]
+    assert (v3.cameras.width, v3.cameras.height) == (128, 96)

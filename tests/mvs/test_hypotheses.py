@@ -54,18 +54,31 @@ def test_widths_dtu_millimetres():
     # released: r = 0.5 -> 42.2 mm and 10.5 mm
     assert stage_width(2, *DTU, width="released") == pytest.approx(42.18, abs=0.01)
     assert stage_width(3, *DTU, width="released") == pytest.approx(10.54, abs=0.01)
-    # paper: half of the default CasMVSNet widths 32*2*dbar and 8*1*dbar
-    assert stage_width(2, *DTU, width="paper") == pytest.approx(0.5 * 32 * 2 * dbar)
-    assert stage_width(3, *DTU, width="paper") == pytest.approx(0.5 * 8 * 1 * dbar)
+    # paper: the implementation details' explicit intervals 1, 0.5, 0.5 (as released)
+    for stage in (2, 3):
+        assert stage_width(stage, *DTU, width="paper") == stage_width(stage, *DTU,
+                                                                       width="released")
+    # half-default: half of the default CasMVSNet widths 32*2*dbar and 8*1*dbar
+    assert stage_width(2, *DTU, width="half-default") == pytest.approx(0.5 * 32 * 2 * dbar)
+    assert stage_width(3, *DTU, width="half-default") == pytest.approx(0.5 * 8 * 1 * dbar)
     assert stage_width(1, *DTU) == pytest.approx(506.15)
-    assert interval_ratio(2, "paper") == 1.0 and interval_ratio(2, "released") == 0.5
+    assert [interval_ratio(k, "paper") for k in (1, 2, 3)] == [1.0, 0.5, 0.5]
+    assert interval_ratio(2, "half-default") == 1.0 and interval_ratio(2, "released") == 0.5
+
+
+def test_default_width_is_the_papers_explicit_numbers():
+    """The config's default mvs.width runs the paper's intervals 1, 0.5, 0.5."""
+    from svolsdf.config import Config, preset
+
+    for c in (Config(), preset("paper"), preset("fast")):
+        assert [interval_ratio(k, c.mvs.width) for k in (1, 2, 3)] == [1.0, 0.5, 0.5]
     assert STAGE_DEPTHS == (192, 32, 8)
 
 
 def test_stage_hypotheses_total_width():
     guide = torch.full((2, 3), 700.0)
     for stage in (2, 3):
-        for mode in ("paper", "released"):
+        for mode in ("paper", "released", "half-default"):
             h = stage_hypotheses(stage, *DTU, 2, 3, guide=guide, width_mode=mode)
             D = STAGE_DEPTHS[stage - 1]
             # the D values span (D - 1) spacings of width/(D - 1): total width D r dbar

@@ -98,7 +98,8 @@ def test_volume_shapes_and_hypotheses(sphere_run):
     assert torch.allclose(planes, torch.linspace(d_min, d_max, 192), atol=1e-5)
     assert torch.allclose(res[1][0].depths, planes[:, None, None].expand(-1, 36, 48))
     # stages 2-3: per-pixel, centred on the previous stage's upsampled depth, width D r Δ̄
-    for k, (D, r) in {2: (32, 1.0), 3: (8, 0.5)}.items():
+    # (the default width, the paper's intervals 1, 0.5, 0.5)
+    for k, (D, r) in {2: (32, 0.5), 3: (8, 0.5)}.items():
         for v, p in zip(res[k], res[k - 1], strict=True):
             H, W = v.depth.shape
             centre = F.interpolate(p.depth[None, None], size=(H, W), mode="bilinear",

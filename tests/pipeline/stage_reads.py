@@ -103,7 +103,8 @@ def base_configs(scene: Path) -> dict[str, Config]:
         c = _tiny(preset("fast"), scene)
         c.mesh.method = method
         cfgs[f"svolsdf-{method}"] = c
-    # the other options the fast preset leaves off: finer-stage optimization, unseen culling
+    # the other options the fast preset leaves off: finer-stage optimization (after stages 2
+    # and 3), unseen culling
     # off, support trimming, the object-ray share, the MLP field
     c = _tiny(preset("fast"), scene)
     c.mesh.method = "field"
@@ -111,6 +112,7 @@ def base_configs(scene: Path) -> dict[str, Config]:
     c.mesh.cull_unseen = False
     c.mesh.support = 3.0
     c.mvs.finer_stage_optimization = True
+    c.mvs.third_stage_optimization = True  # and once more after stage 3 (stages 1, 2, 3)
     c.train.object_ray_fraction = 0.5
     cfgs["svolsdf-finer"] = c
     # the paper preset: the MLP field from the sphere, the guide on every pixel, no unguided

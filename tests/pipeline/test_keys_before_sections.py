@@ -42,6 +42,15 @@ def test_an_old_run_folder_keeps_its_stage_keys(run, monkeypatch, caplog):
     # 2-3 on every pixel), whose change in the preset means to rerun those stages
     cfg.train.colour_min_weight = cfg.train.prior_floor = 0.0
     cfg.mvs.crop_to_masks = None
+    # mvs.width "paper" meant r = (1, 1, 0.5) then, which is "half-default" now; read as today's
+    # paper (1, 0.5, 0.5) the finer stages rerun and stage 1, the field and the guide stay
+    assert cfg.mvs.width == "paper"
+    now = stage_keys(cfg, rec["views"])
+    early = [s for s in ("mvs1", "field", "guide") if s in rec["keys"]]
+    assert {s: now[s] for s in early} == {s: rec["keys"][s] for s in early}
+    if "mvs23" in rec["keys"]:
+        assert now["mvs23"] != rec["keys"]["mvs23"]
+    cfg.mvs.width = "half-default"
     keys = stage_keys(cfg, rec["views"])
     remade = REMADE.get(run, set())
     assert {s: keys[s] for s in rec["keys"] if s not in remade} == \

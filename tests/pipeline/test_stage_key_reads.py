@@ -82,12 +82,22 @@ INERT_READS: dict[str, Rule] = {
     "mesh.fit_points": (
         "read to ask whether the fit applies (options.wants_mesh_fit); it does not here",
         lambda c: not opt.wants_mesh_fit(c)),
+    "train.snapshot_every": (
+        "pictures of the surface as the field trains (OUT/field/snapshots/), not what it "
+        "computes; keys.py leaves it out", always),
     "mvs.save_volumes": (
         "which files the stages 2-3 keep (their volumes), not what they compute; keys.py leaves "
         "it out", always),
     "mvs1:mvs.crop_to_masks": (
         "the backbone is built with it (backbone_kwargs) for stage 1, which it does not crop: "
         "only stages 2-3 are cropped, and their keys hold it", always),
+    "mvs1:mvs.width": (
+        "the backbone is built with it for stage 1, which spans the whole depth range at r = 1 "
+        "under every width (mvs.hypotheses.WIDTHS); keys.py keeps half-default under the name "
+        "its ratios had, paper, and marks today's paper in the stages 2-3 keys", always),
+    "mesh:mvs.width": (
+        "the mesh reads the final stage's depth step (fusion.observe.final_depth_step), r = "
+        "0.5 at stage 3 under every width", always),
     "mvs1:scene.use_masks": (
         "ditto: backbone_kwargs reads it to leave the crop out when the run ignores the masks",
         always),
@@ -133,6 +143,9 @@ SETUP_READS = {
     "threads": "torch's thread count: how fast, not what is computed",
     "scene.path": "views.json records it (the scene is read by Run.load)",
     "scene.use_masks": "check_scene's refusal of empty masks; the stages read it themselves",
+    "mvs.backbone": "the paper and released presets' log line naming the MVS backbone "
+                    "(backbone_provenance); the MVS stages read it themselves",
+    "mvs.weights": "ditto: the weights file's name in that line",
 }
 
 #: options no recorded run takes another value of: {option: why}.
@@ -323,15 +336,18 @@ def test_the_table_covers_every_stage_and_the_setup_reads_are_known():
 #: the keys of existing run folders must not change (issue 40: keys.py's fixes enter only when
 #: set). Change them only with a change that means to rerun those stages (a backbone default).
 PINNED = {
-    "defaults": "d260427d8ce9 16dbf7e854f9 d9476149c525 f3d8359a7d80 877dddc38d85 1d3f62cc08d1 "
+    # every preset: the stages 2-3 keys (and those chained on them) changed when mvs.width
+    # "paper" became the paper's explicit intervals 1, 0.5, 0.5 (the old reading is
+    # "half-default", with the old keys: test_width_half_default_keeps_the_keys_paper_had)
+    "defaults": "d260427d8ce9 16dbf7e854f9 d9476149c525 e566642d357a 4176f0fee367 570ed9a7dc69 "
                 "5fa6188dcc53",
     # the mesh key changed with mesh.support = 4 in the fast preset (issue 47); the field key
     # (and the keys chained on it) with train.colour_min_weight and train.prior_floor in the
     # fast preset (issue 48): an earlier fast run reruns from its field on (stage 1 is reused);
     # the stages 2-3 keys with mvs.crop_to_masks = 16 (issue 48)
-    "fast": "d260427d8ce9 11eef0e27282 1c56f9684c56 9c11a82f4ef8 987678c973a6 3672cb32d438 "
-            "b4e5c5d19855",
-    "paper": "d260427d8ce9 407d7e6ab236 70cdfa8b5213 cfee6f54c244 877dddc38d85 9db389992f52 "
+    "fast": "d260427d8ce9 11eef0e27282 1c56f9684c56 ddd6930391aa db6ed3132a8b def80ccacd2a "
+            "c045e97438aa",
+    "paper": "d260427d8ce9 407d7e6ab236 70cdfa8b5213 ca48d7438d86 4176f0fee367 39f7eb1fcecf "
              "595955346277",
 }
 
@@ -394,3 +410,26 @@ def test_the_recorded_table_is_what_the_stages_read(tmp_path):
                     diff.append(f"{name} {part} {stage}: now also {sorted(new)}, no longer "
                                 f"{sorted(gone)}")
     assert not diff, "stage_reads.json is stale (regenerate it):\n" + "\n".join(diff)
+
+
+def test_width_half_default_keeps_the_keys_paper_had(monkeypatch):
+    """``mvs.width = half-default`` is the ratios ``paper`` meant before it became the paper's
+    explicit numbers: its stage keys are those the old ``paper`` had (run folders of that
+    reading keep their stages), and today's ``paper`` has others (its stages rerun)."""
+    import svolsdf.pipeline.keys as keys
+    from svolsdf.config import preset
+
+    def keyed(width: str) -> dict:
+        c = preset("fast")
+        c.scene.path = "scene"
+        c.mvs.width = width
+        return keys.stage_keys(c, [0, 1, 2])
+
+    new_paper, half = keyed("paper"), keyed("half-default")
+    monkeypatch.setattr(keys, "_WIDTH_KEYS", {})  # the keys before the rename
+    monkeypatch.setattr(keys, "_WIDTH_MARKED", ())
+    old_paper = keyed("paper")
+    assert half == old_paper
+    # stage 1 and the field do not depend on the finer stages' width: kept; the rest reruns
+    assert [s for s in keys.STAGES if new_paper[s] != old_paper[s]] == [
+        "mvs23", "unguided", "fusion", "mesh"]

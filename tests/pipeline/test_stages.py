@@ -11,7 +11,7 @@ import pytest
 import torch
 from tiny_pipeline import make_tiny_scene, rerun_on_copy, tiny_cfg
 
-from svolsdf.config import load_config, preset
+from svolsdf.config import load_config, preset, validate_config
 from svolsdf.errors import InputError
 from svolsdf.evaluate.synthetic import observed_gt_points, synthetic_chamfer
 from svolsdf.io.ply import read_ply
@@ -326,6 +326,23 @@ def test_finer_stage_optimization(tiny_run, tmp_path):
     d = np.load(out2 / "depth" / f"{v}.npy")
     assert d.shape == (240, 320) and np.isfinite(d).all()  # the MVS size
     assert not np.array_equal(d, np.load(out / "depth" / f"{v}.npy"))
+
+
+def test_third_stage_optimization(tiny_run, tmp_path):
+    """Stages 1, 2, 3 (the paper's limitations paragraph): after stage 3 the field is optimized
+    once more, against the stage-3 volumes; the refined surface (mesh, fusion's surface check)
+    is that field's. Without the stage-2 optimization the option is refused."""
+    out, _, p = tiny_run
+    out2 = tmp_path / "third"
+    p2 = rerun_on_copy(out, out2, mvs__finer_stage_optimization=True,
+                       mvs__third_stage_optimization=True)
+    assert "field" not in p2.timing and "mvs23" in p2.timing
+    for stage in (2, 3):
+        assert (out2 / "field" / f"stage{stage}" / "losses.csv").is_file()
+    with pytest.raises(InputError, match="mvs.third_stage_optimization"):
+        cfg = load_config(out / "config.yaml")
+        cfg.mvs.third_stage_optimization = True
+        validate_config(cfg)
 
 
 def test_unguided_set_is_the_backbone_alone_and_adds_points(tiny_run, tmp_path):

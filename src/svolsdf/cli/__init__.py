@@ -131,7 +131,7 @@ def _end_process(code) -> NoReturn:
 def _main(argv: list[str] | None) -> None:
     """`main` without its last guard against Ctrl-C."""
     argv = expand_list_options(list(sys.argv[1:] if argv is None else argv))
-    _STATE["argv"] = argv  # the command a finished run records (OUT/run.json)
+    _STATE["argv"] = list(argv)  # the command line, for the records that name it (OUT/run.json)
     debug = "--debug" in argv
     got = []  # SIGTERM (a scheduler's or `kill`'s stop) is answered as Ctrl-C is, status 143
 

@@ -162,11 +162,16 @@ def build_config(scene: Path | None, config: Path | None, preset_name: str | Non
         sets: ``--set section.option=value`` items (`svolsdf.config.parse_set`).
     """
     from svolsdf.config import apply_overrides, parse_set
+    from svolsdf.config.presets import scene_overrides
 
     cfg = base_config(config, preset_name)
     apply_overrides(cfg, {"scene.path": None if scene is None else str(scene), **overrides},
                     labels={"scene.path": "SCENE", **(labels or {})})
     given = parse_set(sets)
+    # the released preset's per-scan constants, unless an option or --set gives the value;
+    # from a --config file they are already in it
+    if config is None:
+        scene_overrides(cfg, {k for k, v in overrides.items() if v is not None} | set(given))
     if given:
         apply_overrides(cfg, given, labels={k: f"--set {k}" for k in given}, skip_none=False)
     if not cfg.scene.path:

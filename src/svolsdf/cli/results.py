@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
+from svolsdf.cli.app import _STATE, _parse_size, _parse_views, _Stopped, app
 from svolsdf.errors import RunInterrupted
 from svolsdf.io.paths import input_dir, input_file, input_path, output_dir
 
@@ -91,19 +91,36 @@ def report(
 
 
 # --------------------------------------------------------------------------- benchmark
+_ALL_MODES = ("svolsdf", "mvs-only", "volsdf")
+
+
 @app.command("benchmark")
 def benchmark(
-    scenes: Annotated[list[Path], typer.Option(
+    scenes: Annotated[list[Path] | None, typer.Option(
         "--scenes", help="Scene folders, one argument each: --scenes A B ... or --scenes A "
-                         "--scenes B (a quoted path with spaces is one folder).")],
+                         "--scenes B (a quoted path with spaces is one folder).")] = None,
     modes: Annotated[list[str], typer.Option(
         "--modes", help="Pipeline modes: --modes svolsdf mvs-only volsdf (one argument each, "
-                        "or comma-separated).")] = ["svolsdf", "mvs-only", "volsdf"],  # noqa: B006
+                        "or comma-separated).")] = list(_ALL_MODES),  # noqa: B006, B008
     out: Annotated[Path, typer.Option(
         "--out", "-o", help="Output folder: OUT/<scene>/<mode>/ runs and "
                             "OUT/benchmark.{md,csv,json}.")] = Path("benchmark"),
-    preset_name: Annotated[str, typer.Option("--preset", help="Config preset: fast or paper.")
-                           ] = "fast",
+    experiment: Annotated[Path | None, typer.Option(
+        "--experiment", help="Experiment file (YAML: scenes, views, size, variants NAME: "
+                             "{preset, set, config}): scenes x view sets x variants, with "
+                             "OUT/experiment.{json,md,png} (instead of --scenes and --modes).")
+    ] = None,
+    data: Annotated[Path | None, typer.Option(
+        "--data", help="Folder the experiment file's scenes are relative to (default: the "
+                       "current folder).")] = None,
+    preset_name: Annotated[str | None, typer.Option(
+        "--preset", help="Config preset of every run: fast, draft, paper or released "
+                         "(default fast).")] = None,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="Config file every run starts from (instead of --preset).")] = None,
+    sets: Annotated[list[str] | None, typer.Option(
+        "--set", help="section.option=value for every run, after the other options (repeat "
+                      "for several).")] = None,
     steps: Annotated[int | None, typer.Option(
         "--steps", help="Optimization steps (default: the preset's).")] = None,
     views: Annotated[str | None, typer.Option(
@@ -156,28 +173,56 @@ def benchmark(
     finished jobs and resumes interrupted ones. Writes OUT/benchmark.md, .csv, .json and .png.
     Exit status 1 when a job failed (each named on the last line), 2 for bad input.
     """
+    import sys
+
     from svolsdf.commands.benchmark import BenchmarkConfig, run_benchmark
     from svolsdf.commands.executors import ExecutorConfig
+    from svolsdf.errors import InputError
     from svolsdf.scene.loaders import scene_folder
     from svolsdf.scene.size import parse_size
 
-    # each scene is one argument as the shell gave it (`svolsdf.cli.expand_list_options`)
-    scenes = [scene_folder(s, "--scenes") for s in scenes]
     out = output_dir(out, "output folder", "-o", create=False)
-    if dtu_gt is not None:
-        dtu_gt = input_dir(dtu_gt, "DTU ground-truth folder", "--dtu-gt")
-    sets = [_parse_views(t) for t in views.split(";")] if views is not None else [None]
-    # mode names have no spaces, so a quoted "svolsdf volsdf" still names two
-    names = [m for v in modes for m in v.replace(",", " ").split()]
-    cfg = BenchmarkConfig(
-        scenes=scenes, modes=names, out=out, preset=preset_name, steps=steps,
-        views=sets[0] if len(sets) == 1 else None, view_sets=sets if len(sets) > 1 else None,
-        size=None if size is None else parse_size(size),
-        device=device, dtu_gt=dtu_gt, scan=scan, lpips_net=lpips_net, report=report,
-        render=render, render_size=None if render_size is None else parse_size(render_size,
-                                                                               "--render-size"),
+    common = dict(
+        out=out, device=device, scan=scan, lpips_net=lpips_net, report=report, render=render,
+        render_size=None if render_size is None else parse_size(render_size, "--render-size"),
         executor=ExecutorConfig(name=executor, address=address, cpus_per_job=cpus_per_job,
                                 gpus_per_job=gpus_per_job), threads=threads)
+    if experiment is not None:
+        from svolsdf.commands.experiment import experiment_config, public_command
+
+        given = [o for o, v in (("--scenes", scenes), ("--modes", modes != list(_ALL_MODES)),
+                                ("--views", views),
+                                ("--preset", preset_name), ("--config", config),
+                                ("--set", sets)) if v]
+        if given:
+            raise InputError(f"--experiment {experiment}: {', '.join(given)} would contradict "
+                             "the experiment file; put them in the file (scenes, views, "
+                             "variants)")
+        cfg = experiment_config(
+            experiment, data=data, steps=steps, size=None if size is None else parse_size(size),
+            command=public_command(["svolsdf", *_STATE.get("argv", sys.argv[1:])]),
+            dtu_gt=None if dtu_gt is None else input_dir(dtu_gt, "DTU ground-truth folder",
+                                                         "--dtu-gt"), **common)
+    else:
+        if data is not None:
+            raise InputError("--data: only with --experiment (the file's scenes are relative "
+                             "to it)")
+        if not scenes:
+            raise InputError("benchmark: give scenes (--scenes A B ...) or an experiment file "
+                             "(--experiment FILE)")
+        # each scene is one argument as the shell gave it (`svolsdf.cli.expand_list_options`)
+        scenes = [scene_folder(s, "--scenes") for s in scenes]
+        if dtu_gt is not None:
+            dtu_gt = input_dir(dtu_gt, "DTU ground-truth folder", "--dtu-gt")
+        vsets = [_parse_views(t) for t in views.split(";")] if views is not None else [None]
+        # mode names have no spaces, so a quoted "svolsdf volsdf" still names two
+        names = [m for v in modes for m in v.replace(",", " ").split()]
+        cfg = BenchmarkConfig(
+            scenes=scenes, modes=names, preset=preset_name or "fast", steps=steps,
+            views=vsets[0] if len(vsets) == 1 else None,
+            view_sets=vsets if len(vsets) > 1 else None,
+            size=None if size is None else parse_size(size), dtu_gt=dtu_gt,
+            sets=list(sets or []), config=config, **common)
     try:
         rows = run_benchmark(cfg)
     except RunInterrupted as e:  # the stage that stopped, not a bare status 130
@@ -187,6 +232,9 @@ def benchmark(
     typer.echo(f"wrote {out / 'benchmark.md'}, {out / 'benchmark.csv'}, "
                f"{out / 'benchmark.png'} and {out / 'benchmark.json'} ({len(rows)} runs" +
                (f", {len(failed)} failed)" if failed else ")"))
+    if cfg.experiment is not None:
+        typer.echo(f"experiment record {out / 'experiment.json'}, rendered as "
+                   f"{out / 'experiment.md'} and {out / 'experiment.png'}")
     if failed:  # the tables keep the other jobs' rows; the status says the benchmark is not whole
         jobs = "; ".join(f"{r['scene']} / {r['mode']} ({r['status']})" for r in failed)
         typer.echo(f"error: {len(failed)} of {len(rows)} job(s) failed: {jobs}; a rerun runs "

@@ -55,8 +55,8 @@ def info(
 @app.command("config")
 def config_cmd(
     preset_name: Annotated[str | None, typer.Option(
-        "--preset", help="fast (default) or paper; with --config, the preset the file must "
-                         "name (as reconstruct).")] = None,
+        "--preset", help="fast (default), draft, paper or released; with --config, the preset "
+                         "the file must name (as reconstruct).")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="Show this config.yaml (e.g. OUT/config.yaml) instead of a preset.")
     ] = None,
@@ -92,8 +92,8 @@ def reconstruct(
     size: Annotated[str | None, typer.Option(
         "--size", help="Working size WxH (default: 768 wide, never upsampled).")] = None,
     preset_name: Annotated[str | None, typer.Option(
-        "--preset", help="fast (default: minutes on a CPU) or paper (docs/method.md constants).")
-    ] = None,
+        "--preset", help="fast (default: minutes on a CPU), draft, paper (docs/method.md "
+                         "constants) or released (the released code's settings).")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="A config.yaml (e.g. from an earlier OUT) to start from.")] = None,
     fusion_network: Annotated[Path | None, typer.Option(

@@ -41,9 +41,8 @@ from svolsdf.commands.executors import ExecutorConfig, job_threads
 from svolsdf.config import choices
 from svolsdf.errors import InputError, raise_if_interrupted
 from svolsdf.evaluate.benchmark_tables import benchmark_csv, benchmark_markdown, benchmark_plot
-from svolsdf.io.paths import input_dir, output_dir
+from svolsdf.io.paths import output_dir
 from svolsdf.io.runfolder import RunFolder
-from svolsdf.scene.checks import check_outside_scenes
 
 __all__ = [
     "MODES",
@@ -51,6 +50,7 @@ __all__ = [
     "ROW_FILE",
     "BenchmarkConfig",
     "BenchmarkJob",
+    "Variant",
     "benchmark_csv",
     "benchmark_jobs",
     "benchmark_markdown",
@@ -73,6 +73,24 @@ METRIC_KEYS = ("accuracy", "completeness", "overall", "overall_dtu_rule", "fscor
                "ssim", "lpips", "psnr_ibr", "ssim_ibr", "lpips_ibr", "mesh_accuracy",
                "mesh_completeness", "mesh_overall", "mesh_overall_dtu_rule", "time_s")
 """Numeric keys of a per-run metrics dict (None when not computed)."""
+
+
+@dataclass
+class Variant:
+    """One configuration of an experiment (``svolsdf benchmark --experiment``): a preset or a
+    config file, then ``--set`` items; its runs are a column of the table."""
+
+    name: str
+    """The column's name (the experiment file's key)."""
+    preset: str = "fast"
+    """Config preset (ignored with ``config``, whose own preset counts)."""
+    sets: list[str] = field(default_factory=list)
+    """``section.option=value`` items, as ``--set`` (`svolsdf.config.parse_set`)."""
+    config: Path | None = None
+    """A config.yaml to start from instead of the preset."""
+    tuned_on: str | None = None
+    """The scenes this configuration's choices were tuned on (None: its preset's,
+    `svolsdf.commands.experiment.PRESET_TUNED_ON`)."""
 
 
 @dataclass
@@ -115,6 +133,17 @@ class BenchmarkConfig:
     """(W, H) of those renders; None: the working size. Ground-truth images are resized to it."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     """Where the jobs run: in this process (local) or as Ray tasks (`ExecutorConfig`)."""
+    sets: list[str] = field(default_factory=list)
+    """``--set section.option=value`` items applied to every run (after the options above)."""
+    config: Path | None = None
+    """``--config FILE``: every run starts from this config instead of ``preset``."""
+    variants: list[Variant] | None = None
+    """An experiment's configurations: each one runs on every scene and view set and is a
+    column of the table (its mode from its config); replaces ``modes``, ``preset``, ``sets``
+    and ``config``."""
+    experiment: dict | None = None
+    """What the experiment's record says beside its rows (`svolsdf.commands.experiment`):
+    name, file, command, plot; None: no experiment record."""
     threads: int | None = None
     """torch intra-op threads of every job, under either executor; None: the executor's
     (`svolsdf.commands.executors.job_threads`). A job's floating-point sums, hence the last
@@ -231,18 +260,41 @@ class BenchmarkJob:
     render: dict | None = None
     """Held-out views to render before scoring: ``{"size": [W, H] or None}`` (volume
     rendering and IBR of the run's test views); None: none."""
+    variant: str | None = None
+    """The experiment variant the job runs (its table column); None: the column is ``mode``."""
+    sets: list[str] = field(default_factory=list)
+    """``--set`` items applied last (`svolsdf.config.parse_set`)."""
+    config: Path | None = None
+    """Config file the run starts from instead of ``preset``."""
+
+    @property
+    def column(self) -> str:
+        """The job's column in the table: its variant, else its mode."""
+        return self.variant or self.mode
 
     def key(self) -> str:
         """What decides the job's row (not where, on what device or with how many threads it
         runs): a finished run with the same key is not run again."""
         over = {k: v for k, v in self.overrides.items() if k not in ("device", "threads")}
+        # variants, --set and --config enter only when given: earlier benchmarks keep their rows
+        extra = {k: v for k, v in (("variant", self.variant), ("sets", self.sets),
+                                   ("config", self._config_text())) if v}
         text = json.dumps({"scene": str(Path(self.scene).resolve()), "mode": self.mode,
                            "views": self.views, "preset": self.preset, "overrides": over,
                            "evaluate": self.evaluate, "label": self.label,
                            # rows before the held-out renders and the synthetic protocol
-                           "render": self.render, "rows": ROW_VERSION},
+                           "render": self.render, "rows": ROW_VERSION, **extra},
                           sort_keys=True, default=str)
         return hashlib.sha1(text.encode()).hexdigest()[:16]
+
+    def _config_text(self) -> str | None:
+        """The config file's contents (a changed file is another job), None without one."""
+        if self.config is None:
+            return None
+        try:
+            return Path(self.config).read_text()
+        except OSError:
+            return str(self.config)
 
 
 ROW_VERSION = 3
@@ -260,11 +312,36 @@ def _view_sets(cfg: BenchmarkConfig) -> list[list[int] | None]:
     return [list(cfg.views) if cfg.views else None]
 
 
+def _columns(cfg: BenchmarkConfig) -> list[tuple[str, str | None, Variant | None]]:
+    """(mode, variant name, variant) of each column: the modes, or an experiment's variants
+    with the mode each one's config names."""
+    if cfg.variants:
+        return [(variant_mode(v), v.name, v) for v in cfg.variants]
+    return [(m, None, None) for m in cfg.modes]
+
+
+def variant_mode(v: Variant) -> str:
+    """The ``train.mode`` a variant's config names (its ``--set`` items included)."""
+    from svolsdf.config import parse_set
+
+    mode = parse_set(v.sets).get("train.mode")
+    if mode is None:
+        mode = _base_config(v.preset, v.config).train.mode
+    return mode
+
+
+def _base_config(preset_name: str, config: Path | None):
+    from svolsdf.config import load_config, preset
+
+    return load_config(config) if config is not None else preset(preset_name)
+
+
 def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
-    """The jobs of a benchmark, scene-major, then view set, then mode.
+    """The jobs of a benchmark, scene-major, then view set, then mode (or variant).
 
     Run folders: ``OUT/<scene>/<mode>/``, or with several view sets
-    ``OUT/<scene>/views-<a>-<b>-<c>/<mode>/`` (row label ``<scene> [a,b,c]``).
+    ``OUT/<scene>/views-<a>-<b>-<c>/<mode>/`` (row label ``<scene> [a,b,c]``); an experiment's
+    ``OUT/<scene>/<variant>/``.
     """
     sets = _view_sets(cfg)
     threads = cfg.threads if cfg.threads is not None else job_threads(cfg.executor)
@@ -281,15 +358,18 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
             if len(sets) > 1:
                 base = base / ("views-" + "-".join(map(str, views)))
                 row = f"{label} [{','.join(map(str, views))}]"
-            for mode in cfg.modes:
+            for mode, name, v in _columns(cfg):
+                config = v.config if v is not None else cfg.config
                 jobs.append(BenchmarkJob(
-                    scene=scene, label=row, mode=mode, views=views, out=base / mode,
-                    preset=cfg.preset, evaluate=ev,
+                    scene=scene, label=row, mode=mode, views=views, out=base / (name or mode),
+                    preset=v.preset if v is not None else cfg.preset, evaluate=ev,
                     render={"size": list(cfg.render_size) if cfg.render_size else None}
                     if cfg.render and mode != "mvs-only" else None,
                     overrides={"train.steps": cfg.steps, "scene.views": views,
                                "scene.image_size": list(cfg.size) if cfg.size else None,
-                               "device": cfg.device, "threads": threads}))
+                               "device": cfg.device, "threads": threads},
+                    variant=name, sets=list(v.sets if v is not None else cfg.sets),
+                    config=None if config is None else Path(config).absolute()))
     return jobs
 
 
@@ -299,17 +379,28 @@ _OPTION_LABELS = {"train.steps": "--steps", "scene.views": "--views",
 
 
 def job_config(job: BenchmarkJob):
-    """The pipeline `Config` of a job."""
-    from svolsdf.config import apply_overrides, preset
+    """The pipeline `Config` of a job: its preset (or config file), the benchmark's options,
+    then its ``--set`` items."""
+    from svolsdf.config import apply_overrides, parse_set
 
-    c = preset(job.preset)
+    c = _base_config(job.preset, job.config)
     c.scene.path = str(job.scene)
     c.train.mode = job.mode
     if job.mode == "mvs-only" and c.mesh.method == "field":
         # mvs-only fits no field and makes points only; the preset's field mesh (paper) is
         # refused there (validate_config), and no mesh option changes an mvs-only run
         c.mesh.method = "poisson"
-    return apply_overrides(c, dict(job.overrides), labels=_OPTION_LABELS)
+    c = apply_overrides(c, dict(job.overrides), labels=_OPTION_LABELS)
+    given = parse_set(job.sets)
+    if job.config is None:  # the released preset's per-scan constants (not over given values)
+        from svolsdf.config.presets import scene_overrides
+
+        scene_overrides(c, {k for k, v in job.overrides.items() if v is not None} | set(given))
+    if given:
+        where = f"variant {job.variant}: set" if job.variant else "--set"
+        c = apply_overrides(c, given, labels={k: f"{where} {k}" for k in given},
+                            skip_none=False)
+    return c
 
 
 def _field_kind(job: BenchmarkJob) -> str | None:
@@ -324,8 +415,13 @@ def _field_kind(job: BenchmarkJob) -> str | None:
 def failed_row(job: BenchmarkJob, error: BaseException) -> dict:
     """The row of a job that raised ``error``: no metrics, status "failed: <type>: <message>"."""
     msg = f"failed: {type(error).__name__}: {error}".strip().splitlines()[0]
-    return {**run_metrics({}, job.label, job.mode, None, status=msg), "views": job.views,
-            "field": _field_kind(job), "threads": None}
+    return {**run_metrics({}, job.label, job.column, None, status=msg), "views": job.views,
+            "field": _field_kind(job), "threads": None, **_variant_keys(job)}
+
+
+def _variant_keys(job: BenchmarkJob) -> dict:
+    """What an experiment's row adds: the pipeline mode its variant ran (``run_mode``)."""
+    return {"run_mode": job.mode} if job.variant else {}
 
 
 def finished_row(job: BenchmarkJob) -> dict | None:
@@ -366,16 +462,19 @@ def run_job(job: BenchmarkJob) -> dict:
                            progress=False)
         metrics = evaluate_run(EvaluateConfig(
             out=out, scene=Path(job.scene), views=test,
-            extra={"benchmark": {"scene": job.label, "mode": job.mode}}, **job.evaluate))
+            extra={"benchmark": {"scene": job.label, "mode": job.mode,
+                                 **({"variant": job.variant} if job.variant else {})}},
+            **job.evaluate))
         t = _stage_seconds(out)
         import torch
 
-        row = {**run_metrics(metrics, job.label, job.mode, t if t is not None else elapsed),
+        row = {**run_metrics(metrics, job.label, job.column, t if t is not None else elapsed),
                "views": job.views, "field": _field_kind(job),
-               "threads": torch.get_num_threads()}  # what the job's sums ran on
+               "threads": torch.get_num_threads(),  # what the job's sums ran on
+               **_variant_keys(job)}
     except Exception as e:  # one failed run must not lose the others
         raise_if_interrupted()  # but a Ctrl-C that a library made an error stops them all
-        log.error("%s / %s failed: %s", job.label, job.mode, e,
+        log.error("%s / %s failed: %s", job.label, job.column, e,
                   exc_info=not isinstance(e, InputError))
         row = failed_row(job, e)
     try:
@@ -391,86 +490,35 @@ def run_job(job: BenchmarkJob) -> dict:
 # --------------------------------------------------------------------------- driver
 def _write_tables(cfg: BenchmarkConfig, rows: list[dict]) -> None:
     out = Path(cfg.out)
+    cols = [name or mode for mode, name, _ in _columns(cfg)]
     views = (f", input views {cfg.views}" if cfg.views and not cfg.view_sets else
              f", input view sets {cfg.view_sets}" if cfg.view_sets else "")
-    notes = [f"Preset {cfg.preset}" + (f", {cfg.steps} steps" if cfg.steps else "") + views
+    what = ("Variants " + "; ".join(f"{v.name} = {_variant_text(v)}" for v in cfg.variants)
+            if cfg.variants else _variant_text(Variant("", cfg.preset, cfg.sets, cfg.config)))
+    notes = [what + (f", {cfg.steps} steps" if cfg.steps else "") + views
              + (f", size {cfg.size[0]}x{cfg.size[1]}" if cfg.size else "") + "."]
     for path, text in ((out / "benchmark.md", benchmark_markdown(
-            rows, cfg.modes, title=f"svolsdf benchmark ({len({r['scene'] for r in rows})} "
-                                   f"scenes)", notes=notes)),
-                       (out / "benchmark.csv", benchmark_csv(rows, cfg.modes)),
+            rows, cols, title=f"svolsdf benchmark ({len({r['scene'] for r in rows})} "
+                              f"scenes)", notes=notes)),
+                       (out / "benchmark.csv", benchmark_csv(rows, cols)),
                        (out / "benchmark.json", json.dumps(rows, indent=1, allow_nan=False))):
         tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(text)
         tmp.replace(path)
     try:
-        benchmark_plot(rows, out / "benchmark.png", cfg.modes)
+        benchmark_plot(rows, out / "benchmark.png", cols)
     except Exception as e:  # the tables matter; the picture is a convenience
         log.warning("benchmark plot failed: %s", e)
+    if cfg.experiment is not None:
+        from svolsdf.commands.experiment import write_experiment
+
+        write_experiment(cfg, rows)
 
 
-def _validate(cfg: BenchmarkConfig) -> None:
-    if not cfg.scenes:
-        raise InputError("benchmark: give at least one scene (--scenes A B ...)")
-    if not cfg.modes:
-        raise InputError(f"benchmark: give at least one mode (--modes {' '.join(MODES)})")
-    bad = [m for m in cfg.modes if m not in MODES]
-    if bad:
-        raise InputError(f"benchmark: unknown mode(s) {bad} (choose from {', '.join(MODES)})")
-    for vs in cfg.view_sets or []:
-        if not vs:
-            raise InputError("benchmark: an empty input view set (give view ids, e.g. "
-                             "--views '25 22 28; 23 24 33')")
-    if cfg.scan is not None and cfg.dtu_gt is None:
-        raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
-    cfg.scenes = [input_dir(s, "scene folder", "--scenes") for s in cfg.scenes]
-    if cfg.dtu_gt is not None:
-        cfg.dtu_gt = input_dir(cfg.dtu_gt, "DTU ground-truth folder", "--dtu-gt")
-        if cfg.scan is None:
-            missing = [str(s) for s in cfg.scenes
-                       if scan_number(s) is None and not (Path(s) / "gt_points.ply").is_file()]
-            if missing:
-                raise InputError(f"--dtu-gt: no DTU scan number in the name of {missing[0]} "
-                                 "(name it like scan65 or pass --scan N)")
-        _check_dtu_files(cfg)
-    cfg.out = output_dir(cfg.out, "output folder", "-o", create=False)
-    # the job folders OUT/<scene>/<mode>/ go neither into a scene nor among its files
-    check_outside_scenes(cfg.out, cfg.scenes, "the benchmark")
-    for job in benchmark_jobs(cfg):  # every run config is valid
-        job_config(job)
-    _check_view_sets(cfg)
-
-
-def _check_dtu_files(cfg: BenchmarkConfig) -> None:
-    """Each DTU scene's evaluation files exist under --dtu-gt (ObsMask, Plane, STL of its scan):
-    a wrong --scan fails here, not after every job's reconstruction."""
-    from svolsdf.evaluate.chamfer import find_dtu_files
-
-    for scene in cfg.scenes:
-        gt = _ground_truth(cfg, scene)
-        if "dtu_gt" in gt:
-            scan = scan_number(scene)
-            how = f"scan {scan} from its name" if scan is not None else f"--scan {cfg.scan}"
-            try:
-                find_dtu_files(gt["dtu_gt"], gt["scan"])
-            except InputError as e:
-                raise InputError(f"--dtu-gt for {scene} ({how}): {e}") from None
-
-
-def _check_view_sets(cfg: BenchmarkConfig) -> None:
-    """Every input view set exists in every scene (the scene's view ids, read without its
-    images), before any job starts; how many a set holds is the config's check."""
-    from svolsdf.scene.loaders import load_scene
-
-    for views in _view_sets(cfg):
-        if views is None:
-            continue
-        label = "--views " + " ".join(map(str, views))
-        for scene in cfg.scenes:
-            try:
-                load_scene(scene, views=views, load_images=False)
-            except InputError as e:
-                raise InputError(f"{label}: {e}") from None
+def _variant_text(v: Variant) -> str:
+    """``preset fast, --set a=1 b=2`` (or ``config FILE``) for the table's notes."""
+    base = f"config {Path(v.config).name}" if v.config is not None else f"preset {v.preset}"
+    return base + (", --set " + " ".join(v.sets) if v.sets else "")
 
 
 def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
@@ -497,11 +545,12 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
             set that a scene does not have, or Ray options without Ray; raised before any job
             starts.
     """
+    from svolsdf.commands.benchmark_checks import validate_benchmark
     from svolsdf.commands.executors import check_executor, run_jobs
 
     cfg.scenes = [Path(s) for s in cfg.scenes]
     cfg.out = Path(cfg.out)
-    _validate(cfg)
+    validate_benchmark(cfg)
     check_executor(cfg.executor)
     if cfg.executor.name == "ray" and cfg.device == "cuda" and cfg.executor.gpus_per_job <= 0:
         # Ray hides the GPUs from tasks that reserve none
@@ -519,12 +568,12 @@ def run_benchmark(cfg: BenchmarkConfig, progress: bool = True) -> list[dict]:
         log.info("%d of %d job(s) finished before (%s): not run again",
                  len(jobs) - len(todo), len(jobs), ROW_FILE)
     for i in todo:
-        log.info("job %s / %s -> %s", jobs[i].label, jobs[i].mode, jobs[i].out)
+        log.info("job %s / %s -> %s", jobs[i].label, jobs[i].column, jobs[i].out)
 
     def on_row(k: int, row: dict) -> None:
         i = todo[k]
         rows[i] = row
-        log.info("finished %s / %s: %s", jobs[i].label, jobs[i].mode, row["status"])
+        log.info("finished %s / %s: %s", jobs[i].label, jobs[i].column, row["status"])
         _write_tables(cfg, [r for r in rows if r is not None])
 
     if len(todo) < len(jobs):

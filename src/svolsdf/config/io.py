@@ -199,11 +199,17 @@ def load_config(path: str | Path) -> Config:
 
 
 def save_config(cfg: Config, path: str | Path) -> None:
-    """Write ``cfg`` as YAML atomically."""
+    """Write ``cfg`` as YAML atomically; the paper and released presets' file starts with a
+    comment naming the MVS backbone and whether it is the paper's (`backbone_provenance`)."""
 
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
+    head = ""
+    if cfg.preset in ("paper", "released"):  # which MVS backbone ran, and whether the paper's
+        from svolsdf.config.presets import backbone_provenance
+
+        head = f"# {cfg.preset} preset: {backbone_provenance(cfg)['note']}\n"
+    tmp.write_text(head + yaml.safe_dump(asdict(cfg), sort_keys=False))
     os.replace(tmp, path)
 
 

@@ -8,15 +8,17 @@ import logging
 from svolsdf.config.schema import Config, FieldConfig, MeshConfig, MVSConfig, TrainConfig
 from svolsdf.errors import InputError
 
-__all__ = ["MVS_SCALE_BY_BACKBONE", "PRESETS", "follow_backbone", "preset", "preset_mvs_scale"]
+__all__ = ["MVS_SCALE_BY_BACKBONE", "PAPER_BACKBONE", "PRESETS", "RELEASED_SCAN_OVERRIDES",
+           "backbone_provenance", "follow_backbone", "preset", "preset_mvs_scale",
+           "scene_overrides"]
 
 log = logging.getLogger(__name__)
 
 MVS_SCALE_BY_BACKBONE: dict[str, dict[str, float]] = {"draft": {"planesweep": 1.5}}
 """The ``mvs.scale`` a preset gives each backbone, for the presets that set one: the draft runs
 the plane sweep at 1.5x the working size. A backbone not listed keeps its own size (``mvs.scale``
-unset: CasMVSNet at 2x, the adapters at the working size), since 1.5 is no size CasMVSNet runs
-at (1 or 2) and only the plane sweep's was measured (docs/presets.md)."""
+unset: CasMVSNet at 2x, the adapters at the working size), since only the plane sweep's 1.5 was
+measured (docs/presets.md) and the adapters run at the working size only."""
 
 
 def _paper() -> Config:
@@ -25,6 +27,19 @@ def _paper() -> Config:
     c.train = TrainConfig(steps=100_000, sampler="error_bounded", lr=5e-4, checkpoint_every=5000)
     c.mvs = MVSConfig(backbone="planesweep", width="paper")
     c.mesh = MeshConfig(resolution=512)
+    return c
+
+
+def _released() -> Config:
+    # the released code's settings where they differ from the paper's text (docs/method.md 9.2);
+    # its per-scan constants are `RELEASED_SCAN_OVERRIDES`, applied by `scene_overrides`
+    c = _paper()
+    c.preset = "released"
+    c.mvs.width = "released"  # r = 1, 0.5, 0.5 (9.2.1)
+    c.train.gce_form = "released"  # -P' sg(w)^q log w (9.2.4)
+    c.train.sparse_norm = "all"  # the sparsity loss over all rays (9.2.5)
+    c.train.sparse_decay = True  # its linear decay over the warm-up (4.3)
+    c.train.warmup_mask_supervised = True  # no RGB loss on supervised rays in it (9.2.6)
     return c
 
 
@@ -61,7 +76,85 @@ def _draft() -> Config:
     return c
 
 
-PRESETS = {"fast": _fast, "draft": _draft, "paper": _paper}
+PRESETS = {"fast": _fast, "draft": _draft, "paper": _paper, "released": _released}
+
+RELEASED_SCAN_OVERRIDES: dict[str, dict[int, dict[str, object]]] = {
+    "dtu": {24: {"train.sparse_weight": 0.0}, 37: {"train.sparse_weight": 0.1}},
+    "blendedmvs": {
+        1: {"mvs.inverse_depth": True},
+        2: {"train.sparse_weight": 0.0, "mvs.inverse_depth": True},
+        3: {"train.sparse_weight": 0.0},
+        5: {"mvs.inverse_depth": True},
+        6: {"mvs.inverse_depth": True},
+        7: {"train.sparse_weight": 0.0},
+        8: {"mvs.inverse_depth": True},
+        9: {"train.sparse_weight": 0.0, "mvs.inverse_depth": True},
+    },
+}
+"""The constants the released code's runner changes for particular scans (docs/method.md 9.1),
+which the ``released`` preset applies to a scene whose folder names the scan (`scene_overrides`):
+DTU scan 24's sparsity weight 0 (which also drops the warm-up) and scan 37's 0.1; BlendedMVS
+scans 2, 3, 7, 9 without sparsity and 1, 2, 5, 6, 8, 9 with stage-1 planes uniform in inverse
+depth. Not reproduced: the far-depth cap of BlendedMVS scans 4 and 5 (2.197 x the near depth),
+which is no option (the depth range comes from the scene's files)."""
+
+PAPER_BACKBONE = "casmvsnet"
+"""The paper's MVS backbone: CasMVSNet with the DTU-trained cascade-stereo checkpoint."""
+
+
+def _scan_of(scene_path: str) -> tuple[str, int] | None:
+    """(dataset, scan) from a scene folder's name: ``bmvs_scan2`` or ``blendedmvs_scan2`` ->
+    ("blendedmvs", 2); ``scan24`` or ``dtu_scan24`` -> ("dtu", 24); else None."""
+    import re
+    from pathlib import Path
+
+    name = Path(str(scene_path)).name.lower()
+    m = re.search(r"scan_?(\d+)", name)
+    if not name or m is None:
+        return None
+    return ("blendedmvs" if "bmvs" in name or "blended" in name else "dtu", int(m.group(1)))
+
+
+def scene_overrides(cfg: Config, given: set[str] | frozenset = frozenset()) -> dict:
+    """Apply, in place, the per-scan constants of ``cfg``'s preset to its scene
+    (`RELEASED_SCAN_OVERRIDES`, the ``released`` preset only), except the keys in ``given``
+    (options the user set, which win). Returns {dotted key: value} of what it set."""
+    if cfg.preset != "released" or not cfg.scene.path:
+        return {}
+    scan = _scan_of(cfg.scene.path)
+    if scan is None:
+        return {}
+    out = {k: v for k, v in RELEASED_SCAN_OVERRIDES.get(scan[0], {}).get(scan[1], {}).items()
+           if k not in given}
+    for key, value in out.items():
+        section, option = key.split(".")
+        setattr(getattr(cfg, section), option, value)
+    if out:
+        log.info("released preset, %s scan %d: %s (the released code's per-scan constants)",
+                 scan[0], scan[1], ", ".join(f"{k} = {v}" for k, v in out.items()))
+    return out
+
+
+def backbone_provenance(cfg: Config) -> dict:
+    """Which MVS backbone a run of ``cfg`` uses and whether it is the paper's:
+    ``{"backbone", "weights" (file name or None), "papers" (bool), "note"}``; the note says, for
+    the paper and released presets, when the run is not what the paper ran (the plane sweep
+    without weights), so that the fallback is never silent."""
+    from pathlib import Path
+
+    name, weights = cfg.mvs.backbone, cfg.mvs.weights
+    papers = name == PAPER_BACKBONE
+    if papers:
+        note = (f"mvs.backbone {name} (the paper's architecture) with weights "
+                f"{Path(weights).name if weights else 'none'}; the paper's are the DTU-trained "
+                "cascade-stereo checkpoint")
+    else:
+        note = (f"mvs.backbone {name}, not the paper's DTU-trained CasMVSNet"
+                + (" (the training-free plane sweep: no CasMVSNet weights were given; "
+                   "--backbone casmvsnet --weights FILE runs the paper's)"
+                   if name == "planesweep" else ""))
+    return {"backbone": name, "weights": Path(weights).name if weights else None,
+            "papers": papers, "note": note}
 
 
 def preset(name: str) -> Config:

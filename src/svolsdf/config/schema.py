@@ -89,9 +89,10 @@ class MVSConfig:
     """Weights file for learned backbones."""
     ndepths: list[int] = _limited(factory=lambda: [192, 32, 8], len=3, min=2)
     """Hypotheses per cascade stage (docs/method.md 0)."""
-    width: Literal["paper", "released"] = "paper"
-    """Finer-stage search width: paper (half the default CasMVSNet width) | released
-    (docs/method.md 2.5)."""
+    width: Literal["paper", "released", "half-default"] = "paper"
+    """Finer-stage interval ratios: paper (1, 0.5, 0.5, the paper's explicit numbers) |
+    released (the same, the released code's) | half-default (1, 1, 0.5: half CasMVSNet's
+    default width, a reading of the paper's method section; docs/method.md 2.5)."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (unbounded scenes; docs/method.md 2.5, 9.1)."""
     max_sources: int = _limited(4, min=0)
@@ -102,7 +103,8 @@ class MVSConfig:
     scale: float | None = _limited(None, gt=0)
     """The cascade runs at ``scale`` x the working size (stage 3 at scale x; images upsampled
     bicubically, as the released code's x2_mvsres, docs/method.md 9.2.2), the field at the working
-    size. planesweep: any scale > 0; casmvsnet: 1 or 2 (its x2_mvsres); the patchmatchnet
+    size. planesweep and casmvsnet: any scale > 0 (casmvsnet's input rounded to multiples of
+    32; 1 and 2 are its x2_mvsres; 4/3 the paper's mid resolution); the patchmatchnet
     adapter runs at the working size. None = the backbone's own default."""
     native_images: bool = False
     """A cascade larger than the working size reads its images from the files when they are
@@ -113,6 +115,11 @@ class MVSConfig:
     the field for steps/5 more steps against the stage-2 volumes' soft-consistency prior, render
     its depth again and centre stage 3 on it (svolsdf mode;
     `svolsdf.pipeline.finer.finer_stage_cascade`)."""
+    third_stage_optimization: bool = False
+    """With ``finer_stage_optimization``: after stage 3 too, optimize the field for steps/5
+    more steps against the stage-3 volumes' prior (the paper's stages 1, 2, 3 of its
+    limitations paragraph, docs/method.md 9.2.13); the mesh is that field's and fusion's
+    surface hypothesis its rendered depth."""
     crop_to_masks: int | None = _limited(None, min=0)
     """planesweep: stages 2-3 run only in the box around each reference's object mask dilated by
     this many pixels (working size); outside it those stages give no depth (fusion keeps depth
@@ -271,6 +278,11 @@ class TrainConfig:
     sharpen). 0: learnable beta (docs/method.md 5.4, the paper)."""
     beta_end: float = _limited(0.0025, gt=0)
     """Final beta of the anneal (unit frame; ~0.5 mm on DTU-scale scenes)."""
+    snapshot_every: int = _limited(0, min=0)
+    """Every this many field steps (and at the start), write the field's surface, its zero
+    level at a coarse 96^3 grid in world units, to OUT/field/snapshots/step_NNNNNN.ply, and at
+    the end OUT/field/snapshots/snapshots.png, the surface over the optimization from the first
+    input view (`svolsdf.pipeline.snapshots`). Only while the field stage runs; 0 = none."""
     checkpoint_every: int = _limited(100, min=0)
     """Save a checkpoint every N steps (resume after a kill); 0 = never."""
     seed: int = _limited(0, min=0)
@@ -407,10 +419,11 @@ class MeshConfig:
 
 @dataclass
 class Config:
-    preset: Literal["fast", "draft", "paper"] = "fast"
+    preset: Literal["fast", "draft", "paper", "released"] = "fast"
     """fast (default; minutes on a CPU) | draft (fast in about half the time: half the field
     steps, the plane sweep at 1.5x, other backbones at their own size; docs/presets.md) | paper
-    (docs/method.md constants; a GPU)."""
+    (docs/method.md constants; a GPU) | released (paper with the released code's settings and
+    per-scan constants, docs/method.md 9)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto | cpu | cuda."""
     threads: int = _limited(0, min=0)

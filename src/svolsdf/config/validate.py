@@ -329,6 +329,10 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
         refuse("mvs.finer_stage_optimization", True, *which,
                "the finer-stage optimization needs train.mode svolsdf without train.ablation "
                "(it optimizes the field against the stage-2 volumes)")
+    if cfg.mvs.third_stage_optimization and not cfg.mvs.finer_stage_optimization:
+        refuse("mvs.third_stage_optimization", True, "mvs.finer_stage_optimization", False,
+               "the optimization after stage 3 follows the one after stage 2 (stages 1, 2, 3); "
+               "set mvs.finer_stage_optimization=true too")
     # a baseline never sees MVS (issue 38): the ablations run stage-1 MVS, and the mvs rule
     # reads its depth into the guide
     if t.ablation is not None and t.mode != "svolsdf":

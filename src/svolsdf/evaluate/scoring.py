@@ -426,6 +426,7 @@ def _evaluate_run(cfg: EvaluateConfig, lp=None) -> dict:
     notes: list[str] = []
     metrics = empty_metrics()
     metrics["settings"] = dict(cfg.extra)
+    _backbone_provenance(run, metrics, notes)
     points = mesh = None
     if run.points.is_file():
         d = read_ply(run.points)
@@ -465,6 +466,25 @@ def _evaluate_run(cfg: EvaluateConfig, lp=None) -> dict:
         metrics["timing"]["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
         write_json(run.metrics_file, metrics)
     return metrics
+
+
+def _backbone_provenance(run: RunFolder, metrics: dict, notes: list[str]) -> None:
+    """``settings.mvs_backbone``: which MVS backbone made the run and whether it is the paper's
+    (`svolsdf.config.presets.backbone_provenance`), from its config.yaml; with the paper or
+    released preset and another backbone, a note says so (the report shows it)."""
+    from svolsdf.config import load_config
+    from svolsdf.config.presets import backbone_provenance
+
+    if not run.config_file.is_file():
+        return
+    try:
+        rc = load_config(run.config_file)
+    except InputError as e:
+        log.warning("%s: backbone not recorded (%s)", run.config_file, e)
+        return
+    metrics["settings"]["mvs_backbone"] = {**backbone_provenance(rc), "preset": rc.preset}
+    if rc.preset in ("paper", "released") and not metrics["settings"]["mvs_backbone"]["papers"]:
+        notes.append(f"{rc.preset} preset: {metrics['settings']['mvs_backbone']['note']}.")
 
 
 def _mesh_provenance(metrics: dict, has_mesh: bool) -> None:

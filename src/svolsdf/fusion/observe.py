@@ -45,7 +45,7 @@ def final_depth_step(depth_range: Tensor, width: str = "paper", stage: int = 3) 
 
     Args:
         depth_range: (V, 2) [near, far] z-depth per view, world units (`Scene.depth_range`).
-        width: the cascade's width option ("paper" or "released").
+        width: the cascade's width option (`svolsdf.mvs.hypotheses.WIDTHS`).
     """
     dr = torch.as_tensor(depth_range, dtype=torch.float64).reshape(-1, 2)
     return interval_ratio(stage, width) * base_interval(dr[:, 0], dr[:, 1])

@@ -153,7 +153,8 @@ class AdapterConfig:
     ndepths: tuple[int, int, int] = STAGE_DEPTHS
     """Hypotheses per stage (docs/method.md 0)."""
     width_mode: str = "paper"
-    """Finer-stage search width, "paper" or "released" (`svolsdf.mvs.hypotheses`)."""
+    """Finer-stage search width, "paper", "released" or "half-default"
+    (`svolsdf.mvs.hypotheses.WIDTHS`)."""
     inverse_depth: bool = False
     """Stage-1 planes uniform in inverse depth (docs/method.md 2.5)."""
     max_sources: int = MAX_SOURCES

@@ -65,13 +65,16 @@ log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- the backbone
-def mvs_input_size(width: int, height: int, x2_mvsres: bool = True) -> tuple[int, int]:
-    """Network input (W, H): the working size, doubled with ``x2_mvsres``, rounded to 32.
+def mvs_input_size(width: int, height: int, x2_mvsres: bool = True,
+                   scale: float | None = None) -> tuple[int, int]:
+    """Network input (W, H): the working size times ``scale`` (None: 2 with ``x2_mvsres``,
+    else 1), rounded to 32.
 
     docs/method.md 1.3: 576x768 -> 1152x1536 with x2_mvsres; multiples of 32 (docs/method.md 2.4
-    needs H/4 and D divisible by 8).
+    needs H/4 and D divisible by 8). The paper's mid resolution, 864x1152 with the network at
+    1152x1536, is ``scale`` 4/3.
     """
-    s = 2 if x2_mvsres else 1
+    s = float(scale) if scale is not None else (2 if x2_mvsres else 1)
     return max(32, round(s * width / 32) * 32), max(32, round(s * height / 32) * 32)
 
 
@@ -93,11 +96,15 @@ class CasMVSNetConfig:
     """Hypotheses per stage (docs/method.md 0: 192, 32, 8). Each must be divisible by 8."""
     width_mode: str = "released"
     """Finer-stage search width: "released" (r = 0.5, 0.5, what the checkpoint was run with in
-    the released S-VolSDF code) or "paper" ("half the default width"); see
-    `svolsdf.mvs.hypotheses`."""
+    the released S-VolSDF code), "paper" (the same, the paper's explicit numbers) or
+    "half-default" (r = 1, 0.5); see `svolsdf.mvs.hypotheses`."""
     x2_mvsres: bool = True
     """Run the network on the working-size images upsampled 2x (docs/method.md 1.3, 9.2 item 2); the
     stage-3 volume is then at twice the working size."""
+    scale: float | None = None
+    """Network input at this many times the working size (rounded to multiples of 32),
+    instead of ``x2_mvsres``'s 2 or 1 (`mvs_input_size`; ``mvs.scale`` other than 1 and 2).
+    None: ``x2_mvsres`` decides."""
     native_images: bool = False
     """With ``x2_mvsres``, read the images from their files when those are larger than the
     working size (`Scene.images_at`), instead of upsampling the working-size images as the
@@ -126,6 +133,21 @@ class CasMVSNetBackbone(MVSBackbone):
     """
 
     config_class = CasMVSNetConfig
+
+    @classmethod
+    def scale_problem(cls, scale: float | None) -> str | None:
+        """None: CasMVSNet runs at any ``mvs.scale`` > 0 (its input rounded to multiples of
+        32, `mvs_input_size`); 1 and 2 are ``x2_mvsres``, others ``scale``."""
+        return None
+
+    @classmethod
+    def options(cls, mvs) -> dict:
+        """`MVSBackbone.options`, with ``scale`` for an ``mvs.scale`` other than 1 and 2 (the
+        paper's mid resolution needs 4/3)."""
+        kw = super().options(mvs)
+        if mvs.scale is not None and float(mvs.scale) not in (1.0, 2.0):
+            kw["scale"] = float(mvs.scale)
+        return kw
 
     def __init__(self, model: CasMVSNet, config: CasMVSNetConfig | None = None, **cfg):
         self.config = config or CasMVSNetConfig(**cfg)
@@ -162,7 +184,8 @@ class CasMVSNetBackbone(MVSBackbone):
         c = self._cache
         if c is not None and c[0] is scene.images and c[1] == tuple(scene.view_ids):
             return c[2], c[3]
-        Wn, Hn = mvs_input_size(scene.width, scene.height, self.config.x2_mvsres)
+        Wn, Hn = mvs_input_size(scene.width, scene.height, self.config.x2_mvsres,
+                                self.config.scale)
         dev = self.config.device
         images = scene.images_at(Wn, Hn, from_files=self.config.native_images).to(
             dev, torch.float32)

@@ -10,14 +10,18 @@ d_k = 1 / ((1 - t_k)/d_min + t_k/d_max), t_k = k/(D - 1).
 Stages 2 and 3: per pixel, centred on a guide depth d: lower = d - (D/2) r Δ̄,
 upper = d + (D/2) r Δ̄, D values spaced (upper - lower)/(D - 1); the total width is D r Δ̄.
 
-Widths (docs/method.md 2.5 and 9.2 item 1), with counts (192, 32, 8):
+Widths (docs/method.md 2.5 and 9.2.1), with counts (192, 32, 8):
 
-- ``width="paper"`` (default): the paper's "half of the default search width in finer stages".
-  The default CasMVSNet widths are 48·4Δ̄ = 192Δ̄ (stage 1), 32·2Δ̄ = 64Δ̄ (stage 2) and
-  8·1Δ̄ = 8Δ̄ (stage 3); half of them at stages 2 and 3 is 32Δ̄ and 4Δ̄, i.e. r = 1.0 at stage 2
-  (32 hypotheses) and r = 0.5 at stage 3 (8 hypotheses). DTU: ≈ 84.4 mm and ≈ 10.5 mm.
-- ``width="released"``: the released code's r = 0.5 at both stages: 32·0.5Δ̄ = 16Δ̄ and
-  8·0.5Δ̄ = 4Δ̄. DTU: ≈ 42.2 mm and ≈ 10.5 mm (a quarter and a half of the default).
+- ``width="paper"`` (default): the paper's implementation details, "192, 32, and 8 depth
+  hypotheses with intervals 1, 0.5, and 0.5", i.e. r = 0.5 at stages 2 and 3: 32·0.5Δ̄ = 16Δ̄
+  and 8·0.5Δ̄ = 4Δ̄. DTU: ≈ 42.2 mm and ≈ 10.5 mm. The released code runs the same.
+- ``width="released"``: the released code's ratios, the same numbers as ``paper`` (a name kept
+  for configs that say where their value comes from).
+- ``width="half-default"``: a reading of the paper's method section, "half of the depth search
+  width in the finer stages compared to the default": the default CasMVSNet widths are
+  48·4Δ̄ = 192Δ̄, 32·2Δ̄ = 64Δ̄ and 8·1Δ̄ = 8Δ̄; half of them at stages 2 and 3 is 32Δ̄ and 4Δ̄,
+  i.e. r = 1.0 at stage 2 and r = 0.5 at stage 3. DTU: ≈ 84.4 mm and ≈ 10.5 mm. It was
+  svolsdf's ``paper`` until the explicit numbers were taken as the paper's setting.
 
 Stage 1 covers the whole range in both cases (DTU: 506 mm at 2.65 mm spacing).
 """
@@ -43,8 +47,9 @@ STAGE_DEPTHS: tuple[int, int, int] = (192, 32, 8)
 
 #: interval ratio r per stage for each width option (docs/method.md 2.5, 9.2 item 1)
 WIDTHS: dict[str, tuple[float, float, float]] = {
-    "paper": (1.0, 1.0, 0.5),
+    "paper": (1.0, 0.5, 0.5),
     "released": (1.0, 0.5, 0.5),
+    "half-default": (1.0, 1.0, 0.5),
 }
 
 
@@ -54,7 +59,8 @@ def base_interval(d_min: float | Tensor, d_max: float | Tensor) -> float | Tenso
 
 
 def interval_ratio(stage: int, width: str = "paper") -> float:
-    """Interval ratio r of ``stage`` (1-based) for the width option ("paper" or "released")."""
+    """Interval ratio r of ``stage`` (1-based) for the width option (`WIDTHS`: "paper",
+    "released" or "half-default")."""
     if width not in WIDTHS:
         raise ValueError(f"width must be one of {sorted(WIDTHS)}, got {width!r}")
     if not 1 <= stage <= 3:

@@ -78,8 +78,8 @@ class PlaneSweepConfig:
     num_depths: tuple[int, int, int] = (192, 32, 8)
     """Hypotheses per stage (docs/method.md 2.5)."""
     width: str = "paper"
-    """Finer-stage search width: "paper" (half the CasMVSNet default) or "released" (r = 0.5);
-    see `svolsdf.mvs.hypotheses`."""
+    """Finer-stage search width: "paper" (r = 0.5, 0.5), "released" (the same) or
+    "half-default" (r = 1, 0.5); see `svolsdf.mvs.hypotheses`."""
     inverse_depth: bool = False
     """Space stage-1 planes uniformly in inverse depth (unbounded scenes)."""
     max_sources: int = MAX_SOURCES

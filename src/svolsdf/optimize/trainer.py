@@ -423,9 +423,9 @@ class Trainer:
 
     # ------------------------------------------------------------------ loop
     def fit(self, steps: int | None = None, progress: bool = True, log_every: int = 10,
-            on_checkpoint=None) -> list[dict]:
+            on_checkpoint=None, on_step=None) -> list[dict]:
         """Run until ``steps`` (default cfg.steps + cfg.colour_steps) total steps,
-        checkpointing as configured."""
+        checkpointing as configured; ``on_step(step)`` after every step (surface snapshots)."""
         from tqdm.auto import tqdm
 
         steps = self.cfg.steps + self.cfg.colour_steps if steps is None else steps
@@ -463,6 +463,8 @@ class Trainer:
                     self.save_checkpoint()
                     if on_checkpoint is not None:
                         on_checkpoint(self.step)
+                if on_step is not None:
+                    on_step(self.step)
         except KeyboardInterrupt:
             stopped = True
             raise

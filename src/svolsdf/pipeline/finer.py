@@ -20,7 +20,8 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
     """The paper's optional optimization at the finer stages (docs/method.md 9.2.13; the released
     code forbids it): stage 2 runs centred on the rendered depth, the field is optimized
     further against the soft-consistency prior of the stage-2 volumes, its depth is rendered
-    again, and stage 3 runs centred on that depth.
+    again, and stage 3 runs centred on that depth; with ``mvs.third_stage_optimization`` the
+    field is then optimized once more against the stage-3 volumes and rendered again.
 
     Args:
         p: the running pipeline (`StageContext`: its field, backbone, scene and folder).
@@ -45,18 +46,27 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
     t2 = copy.copy(t)
     t2.steps, t2.anneal_rgb, t2.colour_steps = max(1, t.steps // 5), 0, 0
     t2.beta_start = t.beta_end if t.beta_start > 0 else 0.0
-    prior2 = MVSPrior(res2[2], scene.normalization, device=p.device)
-    trainer = Trainer(model, p.train_data(), t2, prior=prior2,
-                      sampler=build_sampler(p.cfg, prior2),
-                      out_dir=p.dir.field_dir / "stage2", device=p.device)
-    trainer.fit(progress=p.progress)
-    log.info("finer-stage optimization: %d more steps against the stage-2 volumes", t2.steps)
-    save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
-                                     "grid_resolution": getattr(model, "resolution", None)})
-    guide2 = p.render_guide().depth
-    for v, d in guide2.items():  # the refined surface, for fusion (fusion.surface)
-        save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",
-                 d.numpy().astype(np.float32))
+
+    def optimize(volumes, stage: int) -> dict:
+        """steps/5 more steps against ``volumes``' prior; the refined field and its depth."""
+        prior = MVSPrior(volumes, scene.normalization, device=p.device)
+        trainer = Trainer(model, p.train_data(), t2, prior=prior,
+                          sampler=build_sampler(p.cfg, prior),
+                          out_dir=p.dir.field_dir / f"stage{stage}", device=p.device)
+        trainer.fit(progress=p.progress)
+        log.info("finer-stage optimization: %d more steps against the stage-%d volumes",
+                 t2.steps, stage)
+        save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
+                                         "grid_resolution": getattr(model, "resolution", None)})
+        depth = p.render_guide().depth
+        for v, d in depth.items():  # the refined surface, for fusion (fusion.surface)
+            save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",
+                     d.numpy().astype(np.float32))
+        return depth
+
+    guide2 = optimize(res2[2], 2)
     res3 = run_cascade(bb, scene, guide_depth=guide2, stages=(3,),
                        prev={v.view_id: v for v in res2[2]})
+    if p.cfg.mvs.third_stage_optimization:  # stages 1, 2, 3: once more, against stage 3
+        optimize(res3[3], 3)
     return {2: res2[2], 3: res3[3]}

@@ -47,6 +47,13 @@ STAGES = ("mvs1", "field", "guide", "mvs23", "unguided", "fusion", "mesh")
 _FUSION_KEYS_WHEN_SET = ("fusion_network", "fusion_network_weights", "fusion_unguided_dilation")
 
 
+# the mvs.width values under the names their ratios had in the keys of earlier run folders,
+# and the values whose stages 2-3 ran otherwise under that name then (they carry _WIDTH_MARK)
+_WIDTH_KEYS = {"half-default": "paper"}
+_WIDTH_MARKED = ("paper",)
+_WIDTH_MARK = "mvs.width paper = (1, 0.5, 0.5)"
+
+
 def _hash(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
@@ -74,9 +81,22 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     # keys run folders had before the option existed
     if not sig["config"].get("native_images", True):
         del sig["config"]["native_images"]
+    # ditto CasMVSNet's scale (mvs.scale other than 1 and 2): unset, its runs keep their keys
+    if sig["config"].get("scale", 0) is None:
+        del sig["config"]["scale"]
+    # mvs.width "paper" meant r = (1, 1, 0.5) until it became the paper's explicit (1, 0.5,
+    # 0.5): that reading, now "half-default", keeps every key "paper" gave it, and "paper"
+    # keeps its name in the keys but marks stages 2-3 (`_WIDTH_MARK`): run folders of the old
+    # default keep stage 1 and the field and rerun their finer stages
+    for where, k in ((c["mvs"], "width"), (sig["config"], "width"),
+                     (sig["config"], "width_mode")):
+        if k in where:
+            where[k] = _WIDTH_KEYS.get(where[k], where[k])
+    width_mark = [_WIDTH_MARK] if cfg.mvs.width in _WIDTH_MARKED else []
     # mvs.save_volumes only says which files are kept, not what they hold
     c["mvs"] = {**{k: v for k, v in c["mvs"].items()
-                   if k not in ("guide_network", "save_volumes", "crop_to_masks")},
+                   if k not in ("guide_network", "save_volumes", "crop_to_masks",
+                                "third_stage_optimization")},
                 "signature": sig}
     # how the views were picked does not matter once they are known (views), and run
     # folders from before the option keep their keys
@@ -106,6 +126,8 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
     if not c["train"].get("colour_steps"):
         for k in ("colour_steps", "colour_rays", "colour_object_fraction"):
             c["train"].pop(k, None)
+    # train.snapshot_every only writes pictures of the surface as it trains: in no key
+    c["train"].pop("snapshot_every", None)
     # ditto train.prior_sources: only "selected", with a field
     if not (c["train"].get("prior_sources") == "selected" and has_field(cfg)):
         c["train"].pop("prior_sources", None)
@@ -125,8 +147,10 @@ def stage_keys(cfg: Config, views: list[int]) -> dict[str, str]:
                     *([gmd, *(no_masks if has_field(cfg) else [])] if gmd is not None else []))
     cropped = [("crop", crop)] if crop is not None else []
     k_mvs23 = _hash(k_guide, c["mvs"], c["output"]["finer_stage_optimization"],
-                    *([guide_init] if guide_init is not None else []), *cropped)
-    k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3", *cropped)
+                    *([guide_init] if guide_init is not None else []), *cropped, *width_mark,
+                    # the optimization after stage 3 enters only when set (newer than runs)
+                    *(["stage-3 optimization"] if cfg.mvs.third_stage_optimization else []))
+    k_unguided = _hash(k_mvs1, c["mvs"], "unguided stages 2-3", *cropped, *width_mark)
     # options added after runs existed enter only when set: those runs keep their keys
     fo = {k: v for k, v in c["output"].items() if (k.startswith("fusion") or k == "use_masks")
           and not (k in _FUSION_KEYS_WHEN_SET and v is None)}

@@ -186,6 +186,12 @@ class Pipeline(StageRecords, Run):
         self.input_keys = input_keys(self.cfg, manifest)
         self._input_changes = describe_changes(before, manifest)
         save_config(self.cfg, self.dir.config_file)
+        if self.cfg.preset in ("paper", "released"):
+            from svolsdf.config.presets import backbone_provenance
+
+            prov = backbone_provenance(self.cfg)
+            (log.info if prov["papers"] else log.warning)("%s preset: %s", self.cfg.preset,
+                                                          prov["note"])
         self._config_digest = config_digest(self.dir.config_file)
         self.dir.write_views(self.views, self.test_view_ids, (scene.width, scene.height),
                              str(self.cfg.scene.path))
@@ -279,8 +285,13 @@ class Pipeline(StageRecords, Run):
         else:
             self.dir.mark("field_partial", self.keys["field"], **self._provenance("field"))
         self._trainer = trainer  # its step, for the message of an interrupt
-        trainer.fit(progress=self.progress)
+        from svolsdf.pipeline.snapshots import snapshot_writer, write_snapshot_figure
+
+        snap = snapshot_writer(self, model, trainer.step)
+        trainer.fit(progress=self.progress, on_step=snap)
         self._trainer = None
+        if snap is not None:
+            write_snapshot_figure(self)
         final.parent.mkdir(parents=True, exist_ok=True)
         save_torch(final, {"model_state_dict": model.state_dict(),
                            "grid_resolution": getattr(model, "resolution", None),

@@ -253,6 +253,15 @@ def load_scene(path: str | Path, views: list[int] | None = None,
     mask_paths = None
     if src.mask_paths is not None:
         mask_paths = [src.mask_paths[i] for i in idx]
+        if any(p is None for p in mask_paths):
+            # a folder with the masks of some views (BlendedMVS' evaluation masks): kept for
+            # the evaluation (extras "eval_mask_paths"), used by the run only when every
+            # loaded view has one
+            have = {v: str(p) for v, p in zip(view_ids, mask_paths, strict=True) if p is not None}
+            extras["eval_mask_paths"] = have
+            log.info("%s: masks of %d of the %d loaded views: used for evaluation only, the run "
+                     "uses none", src.path, len(have), len(mask_paths))
+            mask_paths = None
     elif src.masks_from_alpha:
         with_alpha = _has_alpha(image_paths[0])
         mask_paths = image_paths if with_alpha else None

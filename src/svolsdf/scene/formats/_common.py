@@ -44,7 +44,8 @@ class SceneSource:
             (COLMAP, transforms.json); None = the size of the image files.
         camera_source: V strings naming where each camera came from (for error messages).
         cameras_file: the file (or folder) the cameras came from, for count messages.
-        mask_paths: V mask files, or None.
+        mask_paths: V mask files (None for a view without one, in formats whose mask folder
+            may cover only some views: `match_masks` with ``partial``), or None.
         masks_from_alpha: masks are the images' alpha channels (transforms.json RGBA).
         background: grey level to composite RGBA images onto, or None to drop alpha.
         pairs, pair_scores: from pair.txt, or None (computed later).
@@ -65,7 +66,7 @@ class SceneSource:
     camera_source: list[str]
     cameras_file: str
     camera_size: tuple[int, int] | None = None
-    mask_paths: list[Path] | None = None
+    mask_paths: list[Path | None] | None = None
     masks_from_alpha: bool = False
     background: float | None = None
     pairs: dict[int, list[int]] | None = None
@@ -182,19 +183,25 @@ def match_numbered(files: dict[int, Path], view_ids: list[int], folder: Path, wh
                      f"{view_ids[0]:06d}.png), one per camera")
 
 
-def match_masks(mask_dir: Path | None, image_paths: list[Path], view_ids: list[int]
-                ) -> list[Path] | None:
+def match_masks(mask_dir: Path | None, image_paths: list[Path], view_ids: list[int],
+                partial: bool = False) -> list[Path | None] | None:
     """Mask files for the views, or None when there is no mask folder.
 
     Masks are matched by the number in their names (`numbered`: IDR's ``mask/007.png`` goes
-    with view 7, the image ``image/000007.png``), one per image.
+    with view 7, the image ``image/000007.png``), one per image. With ``partial`` a folder
+    that holds the masks of some views only (BlendedMVS' evaluation masks: the input and test
+    views) gives None for the others; `svolsdf.scene.loaders.load_scene` then uses masks only
+    when every loaded view has one.
 
     Raises:
-        SceneError: a mask's name holds no number, a view has no mask or a mask no view.
+        SceneError: a mask's name holds no number, a view has no mask (unless ``partial``) or
+            a mask no view.
     """
     if mask_dir is None:
         return None
     masks = numbered(list_images(mask_dir, "masks"))
+    if partial and masks and set(masks) <= set(view_ids):
+        return [masks.get(v) for v in view_ids]
     img_dir = image_paths[0].parent if image_paths else mask_dir.parent
     return match_numbered(masks, view_ids, mask_dir, "mask", f"image in {img_dir}")
 

@@ -132,7 +132,8 @@ def read(path: Path, lighting=None) -> SceneSource:
     scan = scan_number(path.name)
     if scan is not None:
         extras["scan"] = scan
-    masks = match_masks(find_dir(path, "mask", "masks"), images, ids)
+    # BlendedMVS' evaluation masks cover the input and test views only (docs/method.md 8.2)
+    masks = match_masks(find_dir(path, "mask", "masks"), images, ids, partial=True)
     return SceneSource(
         format="mvsnet", path=path, view_ids=ids, image_paths=images, K=torch.stack(Ks),
         w2c=torch.stack(w2cs), camera_source=[str(f) for _, f in cams],
