@@ -2,7 +2,9 @@
 
 Each case of `CASES` reconstructs the same small synthetic sphere (four 64x48 views, three of them
 used, a short field run on one thread) through ``svolsdf reconstruct --config``; the sha1 of every
-file the run writes (the scene's folder written as ``SCENE`` in config.yaml and views.json), what
+file the run writes (the scene's folder written as ``SCENE`` in config.yaml and views.json; a
+torch file by its loaded values, since its zip names its members after the temporary file it was
+written to; the field's steps per second left out of losses.csv and the checkpoint), what
 OUT/stages.json records of each stage (its output files and its inputs key), and the stage keys of
 the case's config (with ``scene.path`` = ``SCENE``, so that they do not depend on where the test
 runs) must equal tests/pipeline/data/outputs_fingerprint.json. A refactoring of the pipeline that
@@ -101,6 +103,52 @@ def _sha1(data: bytes) -> str:
     return hashlib.sha1(data).hexdigest()[:16]
 
 
+def _timeless(obj):
+    """``obj`` (a loaded torch file) with the optimization's speed left out, as JSON-able
+    values: a tensor becomes the digest of its dtype, shape and bytes."""
+    import torch
+
+    if isinstance(obj, torch.Tensor):
+        t = obj.detach().cpu().contiguous()
+        return f"{t.dtype}{tuple(t.shape)}:{_sha1(t.view(-1).view(torch.uint8).numpy().tobytes())}"
+    if isinstance(obj, dict):
+        return {str(k): _timeless(v) for k, v in obj.items() if k not in _SPEED}
+    if isinstance(obj, (list, tuple)):
+        return [_timeless(v) for v in obj]
+    return obj if isinstance(obj, (int, float, str, bool, type(None))) else repr(obj)
+
+
+# a field's steps per second (losses.csv's column, the checkpoint's history) is the machine's
+_SPEED = {"steps_per_s"}
+
+
+def _content(rel: str, path: Path, scene: Path) -> str:
+    """The digest of what a run file holds: its bytes, but for a torch file (whose zip names
+    its members after the temporary file it was written to) its loaded values, and for
+    losses.csv its columns but the speed."""
+    import torch
+
+    if path.suffix == ".pt":
+        obj = torch.load(path, map_location="cpu", weights_only=False)
+        return _sha1(json.dumps(_timeless(obj), sort_keys=True).encode())
+    data = path.read_bytes()
+    if rel in _WITH_SCENE_PATH:
+        data = data.replace(str(scene).encode(), b"SCENE")
+    if path.name == "losses.csv":
+        rows = [line.split(",") for line in data.decode().splitlines()]
+        keep = [i for i, name in enumerate(rows[0]) if name not in _SPEED]
+        data = "\n".join(",".join(r[i] for i in keep) for r in rows).encode()
+    return _sha1(data)
+
+
+def _recorded(outputs: dict | None) -> dict | None:
+    """A stage's record of its files (OUT/stages.json "outputs"), a torch file's by size (its
+    digest, of the bytes, follows the temporary name; its content is compared as a file)."""
+    if not isinstance(outputs, dict):
+        return outputs
+    return {f: ({"size": r.get("size")} if f.endswith(".pt") else r) for f, r in outputs.items()}
+
+
 def fingerprint(out: Path, scene: Path, cfg) -> dict:
     """What a case's run folder must hold: {"files": {path: sha1}, "stages": {stage: {"outputs":
     ..., "inputs": ...}}, "keys": {stage: key}}."""
@@ -109,12 +157,9 @@ def fingerprint(out: Path, scene: Path, cfg) -> dict:
         rel = f.relative_to(out).as_posix()
         if not f.is_file() or rel in _SKIPPED:
             continue
-        data = f.read_bytes()
-        if rel in _WITH_SCENE_PATH:
-            data = data.replace(str(scene).encode(), b"SCENE")
-        files[rel] = _sha1(data)
+        files[rel] = _content(rel, f, scene)
     st = json.loads((out / "stages.json").read_text())
-    stages = {s: {"outputs": st.get("outputs", {}).get(s),
+    stages = {s: {"outputs": _recorded(st.get("outputs", {}).get(s)),
                   "inputs": st.get("provenance", {}).get(s, {}).get("inputs")}
               for s in sorted(st) if isinstance(st[s], str)}
     views = json.loads((out / "views.json").read_text())["inputs"]
