@@ -123,12 +123,14 @@ EXTRA_IN_KEY: dict[str, Rule] = {
 }
 
 #: options read outside every stage (`Pipeline`'s construction and `Pipeline._run` before its
-#: stages): {option: why}.
+#: stages, which asks each stage whether it applies): {option: why}.
 SETUP_READS = {
     "device": "where the stages run, not what they compute: no key holds it, so finished stages "
               "are reused on another device (`get_backbone`)",
     "train.mode": "which stages run, and the log line (the stages read it too)",
     "train.ablation": "which stages run (the stages read it too)",
+    "fusion.unguided": "whether the unguided stage applies (`Stage.applies`, decided by the "
+                       "runner before the stages; the fusion stage reads it too)",
     "preset": "the log line",
     "threads": "torch's thread count: how fast, not what is computed",
     "scene.path": "views.json records it (the scene is read by Run.load)",
