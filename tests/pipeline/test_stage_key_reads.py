@@ -338,6 +338,31 @@ PINNED = {
 }
 
 
+@pytest.mark.parametrize("name", sorted(TABLE))
+def test_the_declared_reads_and_consumes_cover_what_the_stages_were_seen_doing(name):
+    """Each stage's declaration (`svolsdf.pipeline.stages`: `Stage.reads` of the run's config,
+    `Stage.consumes`) covers the options and the earlier stages the recorded run saw it read."""
+    from svolsdf.pipeline.stages import stage
+
+    cfg, record, bad = base_configs(SCENE)[name], TABLE[name], []
+    for s in STAGES:
+        declared = stage(s)
+        bad += [f"{name}: stage {s} reads {o} but does not declare it"
+                for o in record["reads"].get(s, []) if not declared.declares(cfg, o)]
+        bad += [f"{name}: stage {s} consumes {c} but does not declare it"
+                for c in record["consumes"].get(s, []) if c not in declared.consumes]
+    assert not bad, "\n".join(bad)
+
+
+def test_an_undeclared_read_is_found(monkeypatch):
+    from svolsdf.pipeline.stages.guide import Guide
+
+    monkeypatch.setattr(Guide, "reads", lambda self, cfg: ("scene.use_masks",))
+    with pytest.raises(AssertionError, match="stage guide reads guide.mask_dilation but does not"):
+        test_the_declared_reads_and_consumes_cover_what_the_stages_were_seen_doing(
+            "svolsdf-poisson")
+
+
 def test_the_keys_of_existing_run_folders_stay(monkeypatch):
     import svolsdf
     from svolsdf.config import preset

@@ -43,8 +43,16 @@ class Stage:
         return True
 
     def reads(self, cfg: Config) -> tuple[str, ...]:
-        """The options (``section.option``) the stage's result depends on for ``cfg``."""
+        """The options the stage reads for ``cfg``: ``section.option``, or ``section.*`` for
+        every option of a section (a component that takes its whole section, as the `Trainer`
+        takes ``train``). `tests/pipeline/test_stage_key_reads.py` checks that they cover what
+        the stage is seen reading."""
         return ()
+
+    def declares(self, cfg: Config, option: str) -> bool:
+        """``option`` (``section.option``) is among `reads` for ``cfg``."""
+        return any(option == r or (r.endswith(".*") and option.startswith(r[:-1]))
+                   for r in self.reads(cfg))
 
     def outputs(self, ctx) -> list[Path]:
         """The files whose presence (with the stage's marker) means it finished."""

@@ -51,6 +51,9 @@ class Field(Stage):
     def applies(self, cfg):
         return options.has_field(cfg)
 
+    def reads(self, cfg):
+        return ("field.*", "train.*", "scene.use_masks")
+
     def outputs(self, ctx):
         return [ctx.dir.model]
 

@@ -35,8 +35,12 @@ class Fusion(Stage):
     the depth stages' files, which the runner finished before."""
 
     name = "fusion"
-    consumes = ("mvs23", "unguided")
+    consumes = ("guide", "mvs23", "unguided")  # the surface's depth (fusion.surface): guide's
     scene_inputs = ("images", "masks", "cameras")
+
+    def reads(self, cfg):
+        return ("fusion.*", "guide.low_weight_rule", "mvs.finer_stage_optimization",
+                "scene.use_masks", "train.ablation", "train.mode")
 
     def outputs(self, ctx):
         return [ctx.dir.points]

@@ -23,6 +23,9 @@ class Guide(Stage):
     def applies(self, cfg):
         return options.has_guide(cfg)
 
+    def reads(self, cfg):
+        return ("guide.*", "scene.use_masks", "train.ablation", "train.mode", "train.sampler")
+
     def _files(self, ctx):
         return ctx.dir.view_files(ctx.dir.render_depth_dir(), ctx.views)
 

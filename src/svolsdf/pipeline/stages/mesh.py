@@ -16,11 +16,16 @@ class Mesh(Stage):
     asked for. Its value is the mesh file's path."""
 
     name = "mesh"
-    consumes = ("field", "mvs23", "guide", "fusion")
+    # the box of a field without one (mvs1), the observed depth (mvs23, unguided), the cull depth
+    consumes = ("mvs1", "field", "guide", "mvs23", "unguided", "fusion")
     scene_inputs = ("masks", "cameras")
 
     def applies(self, cfg):
         return options.has_field(cfg)
+
+    def reads(self, cfg):
+        return ("mesh.*", "field.kind", "fusion.unguided", "mvs.finer_stage_optimization",
+                "mvs.width", "scene.use_masks", "train.ablation", "train.mode", "train.seed")
 
     def outputs(self, ctx):
         return [ctx.dir.mesh(ctx.cfg.mesh.format)]

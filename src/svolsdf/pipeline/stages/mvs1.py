@@ -19,6 +19,9 @@ class MVS1(Stage):
     def applies(self, cfg):
         return options.runs_mvs1(cfg)
 
+    def reads(self, cfg):
+        return ("mvs.*", "scene.use_masks")
+
     def outputs(self, ctx):
         return [ctx.dir.stage1_file(v) for v in ctx.views]
 

@@ -22,6 +22,9 @@ class MVS23(Stage):
     consumes = ("mvs1", "field", "guide")
     scene_inputs = ("images", "cameras")
 
+    def reads(self, cfg):
+        return ("mvs.*", "guide.*", "train.*", "scene.use_masks")
+
     def _files(self, ctx):
         return ctx.dir.view_files(ctx.dir.depth_dir, ctx.views)
 

@@ -21,6 +21,9 @@ class Unguided(Stage):
     def applies(self, cfg):
         return options.wants_unguided(cfg)
 
+    def reads(self, cfg):
+        return ("mvs.*", "scene.use_masks")
+
     def _files(self, ctx):
         return ctx.dir.view_files(ctx.dir.unguided_dir / "depth", ctx.views)
 
