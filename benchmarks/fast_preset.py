@@ -167,7 +167,7 @@ def _try_mesh(p) -> tuple[float, str | None]:
     zero level set inside its box (a field early in its optimization may have none)."""
     t0 = time.perf_counter()
     try:
-        p.stage_mesh()
+        p.run_stage("mesh")
         err = None
     except ValueError as e:
         err = str(e)
@@ -203,7 +203,7 @@ def _paper_equal_time(scene: Path, out: Path, budget_s: float) -> dict:
     p.load()
     p.keys = p.stage_keys()
     (p.out / "views.json").write_text(json.dumps({"inputs": list(p.views)}))
-    p.stage_mvs1()
+    p.run_stage("mvs1")
     model = p.build_model()
     prior = MVSPrior(p.volumes1, p.load().normalization)
     tr = Trainer(model, p.train_data(), cfg.train, prior=prior, sampler=build_sampler(p.cfg, prior))

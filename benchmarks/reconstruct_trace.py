@@ -8,9 +8,9 @@ process under `sys.setprofile`, and records the svolsdf call stack (each frame's
 function, the hops between files) at the first call of the default backbone's algorithm
 (`PlaneSweepBackbone.stage`, MVS stage 1), of the fusion (`fuse_depth_maps`) and of the fast
 preset's mesh (`poisson_mesh`), which svolsdf files, and which of pipeline/, were entered
-before the first algorithm, and every call of a stage that does not come from `Pipeline._run`
-(a stage reaching another one for its input). Run it with ``PYTHONPATH=<checkout>/src`` to measure
-another commit; nothing is timed.
+before the first algorithm, and every run or load of a stage that does not come from the
+runner (`Pipeline._drive`; a stage reaching another one for its input). Run it with
+``PYTHONPATH=<checkout>/src`` to measure another commit; nothing is timed.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ def trace(work: Path) -> dict:
         except ValueError:
             return None
 
-    nested: list[str] = []  # a stage called from somewhere else than Pipeline._run
+    nested: list[str] = []  # a stage run or loaded from somewhere else than the runner's _drive
 
     def prof(frame, event, arg):
         if event != "call":
@@ -50,10 +50,11 @@ def trace(work: Path) -> dict:
         if r is None:
             return
         name = frame.f_code.co_name
-        if r == "pipeline/stages.py" and name.startswith("stage_") and frame.f_back is not None:
+        if (r.startswith("pipeline/stages/") and name in ("run", "load")
+                and frame.f_back is not None):
             caller = frame.f_back.f_code.co_name
-            if caller != "_run":
-                nested.append(f"{name} from {rel(frame.f_back)}:{caller}")
+            if caller != "_drive":
+                nested.append(f"{r}:{name} from {rel(frame.f_back)}:{caller}")
         if len(found) == len(targets):
             return
         if "mvs" not in found and r not in entered:
@@ -96,7 +97,7 @@ def main_() -> None:
     lines = [f"## {args.label}", "",
              f"- svolsdf files entered before the first algorithm: {len(r['entered'])}, of them "
              f"in pipeline/: {len(r['pipeline_entered'])} ({', '.join(r['pipeline_entered'])})",
-             f"- stages called by something else than `Pipeline._run` (a stage reaching another "
+             f"- stages run by something else than the runner (a stage reaching another "
              f"for its input): {len(r['nested'])}"
              + (f" ({'; '.join(r['nested'])})" if r["nested"] else "")]
     for name, what in (("mvs", "`PlaneSweepBackbone.stage`"), ("fusion", "`fuse_depth_maps`"),

@@ -158,7 +158,7 @@ def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None
     p = Pipeline(cfg, run, progress=False)
     scene = p.load()
     p.keys = p.stage_keys()
-    p.volumes1 = p.stage_mvs1()
+    p.volumes1 = p.run_stage("mvs1")
     torch.manual_seed(0)
     model = p.build_model()
     prior = MVSPrior(p.volumes1, scene.normalization, device=p.device)

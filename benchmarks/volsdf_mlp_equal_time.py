@@ -87,7 +87,7 @@ def _mlp(scene: Path, out: Path, budget_s: float, res: int) -> dict:
     t1 = time.perf_counter()
     err = None
     try:
-        p.stage_mesh()
+        p.run_stage("mesh")
     except (ValueError, RuntimeError) as e:  # no zero level inside the box yet
         err = " ".join(str(e).split())[:200]
     mesh_s = time.perf_counter() - t1

@@ -395,13 +395,13 @@ def test_sigterm_stops_a_run_with_status_143_and_the_stage(scene, tmp_path, caps
     import signal
     import time
 
-    import svolsdf.pipeline as pl
+    from svolsdf.pipeline.stages.mvs1 import MVS1
 
-    def terminated(self):
+    def terminated(self, ctx, inputs):
         os.kill(os.getpid(), signal.SIGTERM)  # as `kill PID` would, during stage 1
         time.sleep(30)
 
-    monkeypatch.setattr(pl.Pipeline, "stage_mvs1", terminated)
+    monkeypatch.setattr(MVS1, "run", terminated)
     before = signal.getsignal(signal.SIGTERM)
     out = tmp_path / "o"
     code, res = _run(["reconstruct", str(scene), "-o", str(out), "--no-progress"], capsys)

@@ -220,7 +220,7 @@ def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
     import svolsdf.io.ply as ply
     import svolsdf.scene.checks as checks
     from svolsdf.mvs.volume import ProbabilityVolume
-    from svolsdf.pipeline import Pipeline, loaded_run, stages
+    from svolsdf.pipeline import Pipeline, loaded_run, runner
 
     reads, consumed = Reads(), defaultdict(set)
     run: dict = {}  # the Pipeline, once made
@@ -244,6 +244,20 @@ def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
             return fn(path, *a, **k)
         return inner
 
+    class Inputs(dict):
+        """What the runner hands a stage: reading one of them consumes that stage."""
+
+        def __getitem__(self, stage):
+            value = super().__getitem__(stage)
+            if value is not None:
+                consume(stage)
+            return value
+
+    drive = Pipeline._drive
+
+    def driven(self, stage, inputs):
+        return drive(self, stage, Inputs(inputs))
+
     def getattribute(self, name):
         value = object.__getattribute__(self, name)
         if name in IN_MEMORY and value is not None:
@@ -251,9 +265,9 @@ def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
         return value
 
     saved = {(loaded_run, "stage_keys"): reads.wrap(loaded_run.stage_keys, None),
-             (stages, "input_keys"): reads.wrap(stages.input_keys, None),
-             (stages, "save_config"): reads.wrap(stages.save_config, None),
-             (stages, "validate_config"): reads.wrap(stages.validate_config, None),
+             (runner, "input_keys"): reads.wrap(runner.input_keys, None),
+             (runner, "save_config"): reads.wrap(runner.save_config, None),
+             (runner, "validate_config"): reads.wrap(runner.validate_config, None),
              (checks, "check_scene"): reads.wrap(checks.check_scene, None),
              (np, "load"): loads(np.load), (torch, "load"): loads(torch.load),
              (ply, "read_ply"): loads(ply.read_ply),
@@ -262,6 +276,7 @@ def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
     saved = {(o, n): (o.__dict__[n] if isinstance(o, type) else getattr(o, n), new)
              for (o, n), new in saved.items()}
     Pipeline.__getattribute__ = getattribute
+    Pipeline._drive = driven
     try:
         for (owner, name), (_, new) in saved.items():
             setattr(owner, name, new)
@@ -272,6 +287,7 @@ def record_run(cfg: Config, out: Path) -> dict[str, dict[str, list[str]]]:
             p.run()
     finally:
         del Pipeline.__getattribute__
+        Pipeline._drive = drive
         for (owner, name), (old, _) in saved.items():
             setattr(owner, name, old)
     return {"reads": {s: sorted(o) for s, o in sorted(reads.by_stage.items())},

@@ -181,7 +181,7 @@ def test_a_bug_in_a_loader_propagates_and_keeps_the_stages(mvs_run, field_run, t
     from svolsdf.config import load_config
     from svolsdf.mvs.volume import ProbabilityVolume
     from svolsdf.pipeline import Pipeline
-    from svolsdf.pipeline import stages as stages_module
+    from svolsdf.pipeline.stages import field as stages_module
 
     def broken(*args, **kwargs):
         raise bug("a loader's bug")
@@ -223,7 +223,9 @@ def test_outputs_of_an_earlier_config_are_refused_by_evaluate_and_report(mvs_run
     assert m["settings"]["provenance"] == {"points.ply": "config.yaml"}
     cfg = load_config(out / "config.yaml")
     cfg.fusion.min_views = 2  # a rerun with a new option, killed before fusion
-    monkeypatch.setattr(pl.Pipeline, "stage_fusion", lambda self: (_ for _ in ()).throw(
+    from svolsdf.pipeline.stages.fusion import Fusion
+
+    monkeypatch.setattr(Fusion, "run", lambda self, ctx, inputs: (_ for _ in ()).throw(
         KeyboardInterrupt))
     with pytest.raises(KeyboardInterrupt):
         pl.Pipeline(cfg, out, progress=False).run()

@@ -133,12 +133,14 @@ EXTRA_IN_KEY: dict[str, Rule] = {
 }
 
 #: options read outside every stage (`Pipeline`'s construction and `Pipeline._run` before its
-#: stages): {option: why}.
+#: stages, which asks each stage whether it applies): {option: why}.
 SETUP_READS = {
     "device": "where the stages run, not what they compute: no key holds it, so finished stages "
               "are reused on another device (`get_backbone`)",
     "train.mode": "which stages run, and the log line (the stages read it too)",
     "train.ablation": "which stages run (the stages read it too)",
+    "fusion.unguided": "whether the unguided stage applies (`Stage.applies`, decided by the "
+                       "runner before the stages; the fusion stage reads it too)",
     "preset": "the log line",
     "threads": "torch's thread count: how fast, not what is computed",
     "scene.path": "views.json records it (the scene is read by Run.load)",
@@ -350,6 +352,31 @@ PINNED = {
     "paper": "d260427d8ce9 407d7e6ab236 70cdfa8b5213 ca48d7438d86 4176f0fee367 39f7eb1fcecf "
              "595955346277",
 }
+
+
+@pytest.mark.parametrize("name", sorted(TABLE))
+def test_the_declared_reads_and_consumes_cover_what_the_stages_were_seen_doing(name):
+    """Each stage's declaration (`svolsdf.pipeline.stages`: `Stage.reads` of the run's config,
+    `Stage.consumes`) covers the options and the earlier stages the recorded run saw it read."""
+    from svolsdf.pipeline.stages import stage
+
+    cfg, record, bad = base_configs(SCENE)[name], TABLE[name], []
+    for s in STAGES:
+        declared = stage(s)
+        bad += [f"{name}: stage {s} reads {o} but does not declare it"
+                for o in record["reads"].get(s, []) if not declared.declares(cfg, o)]
+        bad += [f"{name}: stage {s} consumes {c} but does not declare it"
+                for c in record["consumes"].get(s, []) if c not in declared.consumes]
+    assert not bad, "\n".join(bad)
+
+
+def test_an_undeclared_read_is_found(monkeypatch):
+    from svolsdf.pipeline.stages.guide import Guide
+
+    monkeypatch.setattr(Guide, "reads", lambda self, cfg: ("scene.use_masks",))
+    with pytest.raises(AssertionError, match="stage guide reads guide.mask_dilation but does not"):
+        test_the_declared_reads_and_consumes_cover_what_the_stages_were_seen_doing(
+            "svolsdf-poisson")
 
 
 def test_the_keys_of_existing_run_folders_stay(monkeypatch):

@@ -105,12 +105,18 @@ def reconstruct(
                       "last: --set train.steps=200 --set mesh.method=poisson; "
                       "`svolsdf config` lists them all.")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+    from_stage: Annotated[str | None, typer.Option(
+        "--from", help="Run this stage (fusion, mesh, ...) and the later ones again on a finished "
+                       "OUT, reusing the earlier ones, which must be finished under the config "
+                       "(without SCENE and --config: OUT/config.yaml, changed by --set).")
+    ] = None,
     **options,  # the flags of RECONSTRUCT_FLAGS (`with_flags`), by parameter name
 ) -> None:
     """Reconstruct a scene: MVS, S-VolSDF optimization, guided MVS, fusion and mesh.
 
     Writes OUT/points.ply, OUT/mesh.ply, OUT/depth/<view>.npy (+ PNG), OUT/config.yaml, OUT/log
-    and OUT/timing.json. A rerun reuses finished stages and resumes an interrupted optimization.
+    and OUT/timing.json. A rerun reuses finished stages and resumes an interrupted optimization;
+    ``-o OUT --from fusion --set mesh.method=tsdf`` fuses and meshes a finished run again.
     """
     from svolsdf.pipeline import Pipeline
 
@@ -121,6 +127,8 @@ def reconstruct(
     if config is not None:
         config = input_file(config, "config file", "--config")
     out = output_dir(out, "output folder", "-o", create=False)
+    if from_stage is not None:
+        config = _from_config(from_stage, scene, config, out)
     if fusion_network is not None:
         fusion_network = input_file(fusion_network, "fusion network weights file",
                                     "--fusion-network")
@@ -136,7 +144,8 @@ def reconstruct(
     if auto:  # auto also replaces the views a --config file lists
         cfg.scene.views = None
     _check_run_memory(cfg)
-    pipe = Pipeline(cfg, out, progress=not no_progress)
+    pipe = Pipeline(cfg, out, progress=not no_progress,
+                    **({"start": from_stage} if from_stage is not None else {}))
     if auto:
         pipe.load()
         typer.echo(f"views auto: picked {pipe.views} of {len(pipe.all_view_ids)} views "
@@ -150,6 +159,22 @@ def reconstruct(
 
 
 app.command("reconstruct")(with_flags(reconstruct, RECONSTRUCT_FLAGS))
+
+
+def _from_config(stage: str, scene: Path | None, config: Path | None, out: Path) -> Path | None:
+    """The config file of ``reconstruct --from STAGE``: ``config``, or OUT/config.yaml when
+    neither SCENE nor --config is given (before anything is touched: exit 2 on a bad stage or
+    an OUT that is no run folder)."""
+    from svolsdf.pipeline.keys import STAGES
+
+    if stage not in STAGES:
+        raise InputError(f"--from {stage}: unknown stage (one of {', '.join(STAGES)})")
+    if scene is not None or config is not None:
+        return config
+    if not (out / "config.yaml").is_file():
+        raise InputError(f"--from {stage}: {out} is not a run folder (no config.yaml); run "
+                         f"svolsdf reconstruct SCENE -o {out} first")
+    return out / "config.yaml"
 
 
 def _check_run_memory(cfg) -> None:

@@ -2,8 +2,8 @@
 
 `pipeline/fusion_stage.py`, `pipeline/mesh.py` and `pipeline/finer.py` gather a stage's inputs and
 call the component that does the work. They take a `StageContext`, not the `Pipeline`: the
-config, the run folder, the loaded scene and field, the backbones and the guide depth the earlier
-stages wrote, and nothing else. `svolsdf.pipeline.stages.Pipeline` provides it; the helpers do not
+config, the run folder, the loaded scene, the backbones and the guide depth the earlier
+stages wrote, and nothing else. `svolsdf.pipeline.runner.Pipeline` provides it; the helpers do not
 import the pipeline, so the only arrow between them runs from the pipeline down to its helpers.
 """
 
@@ -58,10 +58,6 @@ class StageContext(Protocol):
         """The input views at the working size (loaded once)."""
         ...
 
-    def model(self) -> Any:
-        """The fitted field (a `svolsdf.field.base.SurfaceModel`)."""
-        ...
-
     def field_bounds(self) -> torch.Tensor:
         """(2, 3) unit-frame box of the field."""
         ...
@@ -83,6 +79,6 @@ class StageContext(Protocol):
         None when the run has no guide."""
         ...
 
-    def render_guide(self, previews: bool = False) -> GuideRender:
-        """The current field's guide depth of the input views (docs/method.md 6.1)."""
+    def render_guide(self, model, previews: bool = False) -> GuideRender:
+        """``model``'s guide depth of the input views (docs/method.md 6.1)."""
         ...

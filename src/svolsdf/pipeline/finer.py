@@ -16,7 +16,7 @@ __all__ = ["finer_stage_cascade"]
 log = logging.getLogger("svolsdf.pipeline")
 
 
-def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict:
+def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor], model) -> dict:
     """The paper's optional optimization at the finer stages (docs/method.md 9.2.13; the released
     code forbids it): stage 2 runs centred on the rendered depth, the field is optimized
     further against the soft-consistency prior of the stage-2 volumes, its depth is rendered
@@ -26,6 +26,7 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
     Args:
         p: the running pipeline (`StageContext`: its field, backbone, scene and folder).
         guide: {view: (H, W) world z-depth} the field's rendered depth.
+        model: the field stage's `SurfaceModel`, optimized further in place.
 
     Returns:
         {2: stage-2 volumes, 3: stage-3 volumes}.
@@ -38,7 +39,6 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
     bb = p.backbone()
     scene = p.load()
     res2 = run_cascade(bb, scene, guide_depth=guide, stages=(2,))
-    model = p.model()
     t = p.cfg.train
     # continue at the end of the stage-1 schedule: fixed final beta, no warm-up
     # (a copy, then the changed fields: `replace` would read every field, the colour steps'
@@ -58,7 +58,7 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
                  t2.steps, stage)
         save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
                                          "grid_resolution": getattr(model, "resolution", None)})
-        depth = p.render_guide().depth
+        depth = p.render_guide(model).depth
         for v, d in depth.items():  # the refined surface, for fusion (fusion.surface)
             save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",
                      d.numpy().astype(np.float32))

@@ -241,10 +241,10 @@ class Run:
 
     def render_views(self, cameras_unit, near_far=None, chunk: int = 4096,
                      keys=("depth", "opacity", "rgb", "normals"),
-                     pixels: torch.Tensor | None = None, desc: str = "render the field"
-                     ) -> dict[str, torch.Tensor]:
-        """Render every camera of ``cameras_unit`` with the field and the eval-mode sampler
-        (`svolsdf.render.views.render_field_views`).
+                     pixels: torch.Tensor | None = None, model=None,
+                     desc: str = "render the field") -> dict[str, torch.Tensor]:
+        """Render every camera of ``cameras_unit`` with the field (``model``, by default the
+        run's) and the eval-mode sampler (`svolsdf.render.views.render_field_views`).
 
         Args:
             pixels: optional (V, H, W) bool; only these pixels are rendered.
@@ -256,7 +256,8 @@ class Run:
         from svolsdf.pipeline.builders import build_sampler
         from svolsdf.render.views import render_field_views
 
-        return render_field_views(self.model(), build_sampler(self.cfg, None, training=False),
+        model = self.model() if model is None else model
+        return render_field_views(model, build_sampler(self.cfg, None, training=False),
                                   cameras_unit, near_far, chunk=chunk, keys=keys,
                                   pixels=pixels, device=self.device, desc=desc)
 

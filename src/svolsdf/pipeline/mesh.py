@@ -56,7 +56,8 @@ def _fused_points(p: StageContext) -> Path:
     return p.dir.points
 
 
-def build_mesh(p: StageContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+def build_mesh(p: StageContext, model
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
     """The run's mesh as the ``mesh`` section asks: (vw (V, 3) world vertices, faces (F, 3), colours
     (V, 3) uint8 or None, timing extras: ``mesh_source``, ``method``, ``cleanup``, ``points``).
 
@@ -67,6 +68,8 @@ def build_mesh(p: StageContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tenso
 
     Args:
         p: the running pipeline (`StageContext`), its fusion stage finished.
+        model: the field stage's `SurfaceModel` (its state replaced by the refined field's
+            when the finer-stage optimization made one).
 
     Raises:
         RuntimeError: free-space culling and trimming left no face.
@@ -76,7 +79,6 @@ def build_mesh(p: StageContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tenso
     from svolsdf.fusion.observe import final_depth_step
     from svolsdf.io.ply import read_ply
 
-    model = p.model()
     if p.cfg.mvs.finer_stage_optimization and p.dir.refined_model.is_file():
         # the field after the finer-stage optimization
         load_model(model, p.dir.refined_model)

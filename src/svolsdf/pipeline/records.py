@@ -46,7 +46,7 @@ class StageRecords:
     ``timing``, ``_config_digest``, ``_input_changes``, ``_logged`` (the stages whose reuse or
     rerun OUT/log explained) and ``_reruns`` (stage -> why it runs again)."""
 
-    def _reuse(self, stage: str, files: list[Path], read: Callable[[Path], T],
+    def reuse(self, stage: str, files: list[Path], read: Callable[[Path], T],
                discard: bool = False) -> list[T] | None:
         """``[read(f) for f in files]``, the files of a finished (or, for the field, started)
         ``stage``; None when one cannot be read: a warning in OUT/log names it and why, the
@@ -79,10 +79,10 @@ class StageRecords:
                     "discarding it and " if discarded else "", stage)
         self.dir.unmark(STAGES[STAGES.index(stage):])
 
-    def _reuse_maps(self, stage: str, files: dict[int, Path]) -> dict[int, torch.Tensor] | None:
+    def reuse_maps(self, stage: str, files: dict[int, Path]) -> dict[int, torch.Tensor] | None:
         """{view: (H, W) map} of a finished ``stage``'s .npy files, None when one cannot be read
-        (`_reuse`)."""
-        maps = self._reuse(stage, list(files.values()), load_map)
+        (`reuse`)."""
+        maps = self.reuse(stage, list(files.values()), load_map)
         return None if maps is None else dict(zip(files, maps, strict=True))
 
     def _mark(self, stage: str, outputs: list[Path] | None = None) -> None:
@@ -91,9 +91,9 @@ class StageRecords:
         raise_if_interrupted()  # one that something swallowed: the stage is not finished
         if outputs is None:
             outputs = self.dir.stage_outputs(stage, self.views)
-        self.dir.mark(stage, self.keys[stage], **self._provenance(stage), outputs=outputs)
+        self.dir.mark(stage, self.keys[stage], **self.provenance(stage), outputs=outputs)
 
-    def _provenance(self, stage: str) -> dict:
+    def provenance(self, stage: str) -> dict:
         """The inputs key and config digest a finished ``stage`` records (none outside run)."""
         if self.input_keys is None:
             return {}
@@ -103,14 +103,14 @@ class StageRecords:
     def _done(self, stage: str) -> bool:
         """``stage`` finished under the current key and inputs, and its files are those it
         finished with (a truncated or replaced one reruns it, `RunFolder.changed_output`)."""
-        if not self._inputs_unchanged(stage, stage):
+        if not self.inputs_unchanged(stage, stage):
             return False
         changed = self.dir.changed_output(stage)
         if changed is not None:
             self._rerun(stage, changed)
         return changed is None
 
-    def _inputs_unchanged(self, stage: str, marker: str) -> bool:
+    def inputs_unchanged(self, stage: str, marker: str) -> bool:
         """``marker`` (``stage`` or field_partial) is recorded under the stage's key, and its
         inputs are the current ones. A marker without an inputs record (a run folder made before
         they were recorded) is kept, with a line in OUT/log."""
@@ -140,12 +140,12 @@ class StageRecords:
         reused) under them, so that its outputs name the config that stands for them."""
         if self.input_keys is None or not self.dir.done(stage, self.keys[stage]):
             return
-        if self.dir.provenance(stage) != self._provenance(stage):
-            self.dir.mark(stage, self.keys[stage], **self._provenance(stage))
+        if self.dir.provenance(stage) != self.provenance(stage):
+            self.dir.mark(stage, self.keys[stage], **self.provenance(stage))
 
     def _time(self, stage: str, t0: float, **extra) -> None:
         """Record ``stage``'s time, peak memory and ``extra`` in OUT/timing.json, with why it ran
-        again (``rerun``) when its earlier file could not be read (`_reuse`)."""
+        again (``rerun``) when its earlier file could not be read (`reuse`)."""
         rerun = {"rerun": self._reruns.pop(stage)} if stage in self._reruns else {}
         self.timing[stage] = {"seconds": round(time.perf_counter() - t0, 3),
                               "peak_memory_gb": round(peak_rss_gb(), 3), **extra, **rerun}

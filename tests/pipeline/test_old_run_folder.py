@@ -1,0 +1,68 @@
+"""A run folder made before the stages were declared objects (tests/pipeline/data/run_0c42d68:
+`svolsdf reconstruct` at commit 0c42d68 of the small synthetic sphere, views 0 1 2 at 32x24, a
+short fast-preset field with the field's own mesh, the scene given as the relative path
+``scene`` so that its stage keys do not depend on where the test runs) is recognised: rerun, it
+computes nothing; with its last stages forgotten (a run killed after the depth), it computes
+those alone and writes the same bytes."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from tiny_pipeline import cli, make_small_sphere_scene
+
+FIXTURE = Path(__file__).parent / "data" / "run_0c42d68"
+_BOOKKEEPING = {"log", "timing.json", "stages.json", ".svolsdf.lock"}
+
+
+@pytest.fixture
+def old_run(tmp_path, monkeypatch) -> Path:
+    monkeypatch.chdir(tmp_path)
+    make_small_sphere_scene(Path("scene"))
+    return Path(shutil.copytree(FIXTURE, tmp_path / "run"))
+
+
+def _files(run: Path) -> dict[str, bytes]:
+    return {f.relative_to(run).as_posix(): f.read_bytes() for f in sorted(run.rglob("*"))
+            if f.is_file() and f.relative_to(run).as_posix() not in _BOOKKEEPING}
+
+
+def _stage_times(run: Path) -> dict:
+    return {k: v for k, v in json.loads((run / "timing.json").read_text()).items()
+            if k != "total"}
+
+
+def _rerun() -> None:
+    cli(["reconstruct", "-o", "run", "--config", "run/config.yaml", "--no-progress"])
+
+
+def test_an_old_run_folder_is_reused_without_computing_anything(old_run):
+    files, times = _files(old_run), _stage_times(old_run)
+    markers = {k: v for k, v in json.loads((old_run / "stages.json").read_text()).items()
+               if isinstance(v, str)}
+    _rerun()
+    assert _files(old_run) == files
+    assert _stage_times(old_run) == times  # no stage ran (each would have timed itself)
+    state = json.loads((old_run / "stages.json").read_text())
+    assert all(s in state for s in markers if s != "field_partial"), state
+    assert "running the stage" not in (old_run / "log").read_text()
+
+
+def test_an_old_run_folder_killed_before_fusion_resumes_with_the_same_bytes(old_run):
+    files, times = _files(old_run), _stage_times(old_run)
+    state = json.loads((old_run / "stages.json").read_text())
+    for part in (state, state["provenance"], state["outputs"]):
+        for stage in ("fusion", "mesh"):
+            part.pop(stage, None)
+    (old_run / "stages.json").write_text(json.dumps(state))
+    (old_run / "points.ply").unlink()
+    (old_run / "mesh.ply").unlink()
+    _rerun()
+    assert _files(old_run) == files
+    now = _stage_times(old_run)
+    assert {k: now[k] for k in ("mvs1", "field", "guide", "mvs23")} == {
+        k: times[k] for k in ("mvs1", "field", "guide", "mvs23")}  # read back, not run
+    assert now["fusion"] != times["fusion"] and now["mesh"] != times["mesh"]
