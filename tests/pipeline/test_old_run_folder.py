@@ -3,7 +3,12 @@
 short fast-preset field with the field's own mesh, the scene given as the relative path
 ``scene`` so that its stage keys do not depend on where the test runs) is recognised: rerun, it
 computes nothing; with its last stages forgotten (a run killed after the depth), it computes
-those alone and writes the same bytes."""
+those alone and writes the same bytes.
+
+The fixture was made when ``mvs.width = paper`` meant (1, 1, 0.5); it now means the paper's
+explicit (1, 0.5, 0.5), and the old reading is named ``half-default`` (docs/method.md 2.5). The
+copy the tests rerun says ``half-default``, the option its stages ran with; the fixture as made
+(``paper``) keeps the stages before the finer MVS stages and runs those again."""
 
 from __future__ import annotations
 
@@ -15,11 +20,25 @@ import pytest
 from tiny_pipeline import cli, make_small_sphere_scene
 
 FIXTURE = Path(__file__).parent / "data" / "run_0c42d68"
-_BOOKKEEPING = {"log", "timing.json", "stages.json", ".svolsdf.lock"}
+# config.yaml is written again with every option of today's schema (options added since the
+# fixture appear with their defaults); run.json records the command that last finished
+_BOOKKEEPING = {"log", "timing.json", "stages.json", ".svolsdf.lock", "config.yaml", "run.json"}
 
 
 @pytest.fixture
 def old_run(tmp_path, monkeypatch) -> Path:
+    monkeypatch.chdir(tmp_path)
+    make_small_sphere_scene(Path("scene"))
+    run = Path(shutil.copytree(FIXTURE, tmp_path / "run"))
+    cfg = run / "config.yaml"
+    text = cfg.read_text()
+    assert "  width: paper\n" in text
+    cfg.write_text(text.replace("  width: paper\n", "  width: half-default\n"))
+    return run
+
+
+@pytest.fixture
+def old_run_as_made(tmp_path, monkeypatch) -> Path:
     monkeypatch.chdir(tmp_path)
     make_small_sphere_scene(Path("scene"))
     return Path(shutil.copytree(FIXTURE, tmp_path / "run"))
@@ -66,3 +85,14 @@ def test_an_old_run_folder_killed_before_fusion_resumes_with_the_same_bytes(old_
     assert {k: now[k] for k in ("mvs1", "field", "guide", "mvs23")} == {
         k: times[k] for k in ("mvs1", "field", "guide", "mvs23")}  # read back, not run
     assert now["fusion"] != times["fusion"] and now["mesh"] != times["mesh"]
+
+
+def test_an_old_run_folder_with_width_paper_runs_the_finer_stages_again(old_run_as_made):
+    """``width: paper`` changed meaning: the stages before the finer MVS stages are read back,
+    the finer stages and everything after them run again."""
+    times = _stage_times(old_run_as_made)
+    _rerun()
+    now = _stage_times(old_run_as_made)
+    assert {k: now[k] for k in ("mvs1", "field", "guide")} == {
+        k: times[k] for k in ("mvs1", "field", "guide")}
+    assert now["mvs23"] != times["mvs23"] and now["fusion"] != times["fusion"]
