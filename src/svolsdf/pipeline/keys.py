@@ -32,7 +32,6 @@ from svolsdf.pipeline.options import (
     mesh_from_points,
     wants_mesh_fit,
     wants_network,
-    wants_poisson,
     wants_unguided,
 )
 
@@ -45,6 +44,12 @@ STAGES = ("mvs1", "field", "guide", "mvs23", "unguided", "fusion", "mesh")
 # only when not None: they came after finished runs, which keep their keys (and their fused
 # points) while the option is unset
 _FUSION_KEYS_WHEN_SET = ("fusion_network", "fusion_network_weights", "fusion_unguided_dilation")
+
+
+def wants_poisson(cfg: Config) -> bool:
+    """The Poisson surface of the fused points enters the mesh key (under the name these keys
+    have always given it): ``mesh.method`` poisson without a watertight mesh."""
+    return cfg.mesh.method == "poisson" and not cfg.mesh.watertight
 
 
 def _hash(*parts) -> str:

@@ -18,7 +18,7 @@ from typing import Any
 
 from svolsdf.registry import Registry
 
-__all__ = ["SamplerInputs", "get_sampler", "register_sampler", "registered_samplers"]
+__all__ = ["SAMPLERS", "SamplerInputs", "get_sampler", "register_sampler", "registered_samplers"]
 
 
 @dataclass
@@ -39,28 +39,17 @@ class SamplerInputs:
 
 SamplerFactory = Callable[[SamplerInputs], Any]
 
-_SAMPLERS: Registry[SamplerFactory] = Registry("sampler", "svolsdf.render", "register_sampler")
+#: name -> sampler kind; the modules of `svolsdf.render` that use ``@register_sampler(...)`` are
+#: imported the first time a name is asked for (`svolsdf.registry.Registry`)
+SAMPLERS: Registry[SamplerFactory] = Registry("sampler", "svolsdf.render", "register_sampler")
 
-
-def register_sampler(name: str):
-    """Function decorator adding a sampler kind under ``name``: ``fn(SamplerInputs)`` returns
-    the sampler."""
-    return _SAMPLERS.decorator(name)
-
-
-def registered_samplers() -> list[str]:
-    """The names `TrainConfig.sampler` accepts, in registration order (the built-in ones
-    first)."""
-    return _SAMPLERS.names()
-
-
-def get_sampler(name: str) -> SamplerFactory:
-    """The sampler kind registered as ``name``.
-
-    Raises:
-        InputError: no sampler has that name.
-    """
-    return _SAMPLERS.get(name)
+#: ``@register_sampler(name)``: a function decorator adding a sampler kind, whose
+#: ``fn(SamplerInputs)`` returns the sampler
+register_sampler = SAMPLERS.register
+#: the names `TrainConfig.sampler` accepts, in registration order (the built-in ones first)
+registered_samplers = SAMPLERS.names
+#: the sampler kind registered as a name (InputError when none is)
+get_sampler = SAMPLERS.get
 
 
 # --------------------------------------------------------------------------- built in
