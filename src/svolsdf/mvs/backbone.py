@@ -80,6 +80,8 @@ class MVSBackbone(ABC):
     num_stages: int = NUM_STAGES
     #: the dataclass its ``**cfg`` keywords fill (None: the keywords are the whole config)
     config_class: type | None = None
+    #: it can start a stage from a given depth map (``fusion.network``; PatchmatchNet can)
+    can_start_from_depth: bool = False
 
     @classmethod
     def signature(cls, weights=None, **cfg) -> dict:

@@ -8,8 +8,9 @@ import logging
 import numpy as np
 import torch
 
+from svolsdf.field.saved import save_field
 from svolsdf.pipeline.context import StageContext
-from svolsdf.pipeline.rundir import save_npy, save_torch
+from svolsdf.pipeline.rundir import save_npy
 
 __all__ = ["finer_stage_cascade"]
 
@@ -51,8 +52,7 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor]) -> dict
                       out_dir=p.dir.field_dir / "stage2", device=p.device)
     trainer.fit(progress=p.progress)
     log.info("finer-stage optimization: %d more steps against the stage-2 volumes", t2.steps)
-    save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
-                                     "grid_resolution": getattr(model, "resolution", None)})
+    save_field(p.dir.refined_model, model)
     guide2 = p.render_guide().depth
     for v, d in guide2.items():  # the refined surface, for fusion (fusion.surface)
         save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",

@@ -40,6 +40,7 @@ from svolsdf.errors import (
     raise_if_interrupted,
     watch_interrupts,
 )
+from svolsdf.field.saved import save_field
 from svolsdf.io.paths import user_path
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline import builders, options
@@ -48,7 +49,7 @@ from svolsdf.pipeline.keys import describe_changes, input_keys, input_manifest
 from svolsdf.pipeline.loaded_run import Run, load_model
 from svolsdf.pipeline.machine import set_threads
 from svolsdf.pipeline.records import StageRecords, load_maps
-from svolsdf.pipeline.rundir import one_line, save_npy, save_torch
+from svolsdf.pipeline.rundir import one_line, save_npy
 
 __all__ = ["Pipeline"]
 
@@ -282,9 +283,7 @@ class Pipeline(StageRecords, Run):
         trainer.fit(progress=self.progress)
         self._trainer = None
         final.parent.mkdir(parents=True, exist_ok=True)
-        save_torch(final, {"model_state_dict": model.state_dict(),
-                           "grid_resolution": getattr(model, "resolution", None),
-                           "bounds": getattr(model, "bounds", None)})
+        save_field(final, model)
         self._model = model
         self._mark("field")
         hist = trainer.history
