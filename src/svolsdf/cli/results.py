@@ -8,46 +8,28 @@ from typing import Annotated
 import typer
 
 from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
+from svolsdf.cli.flags import EVALUATE_FLAGS, dataclass_values, with_dataclass_flags
 from svolsdf.errors import RunInterrupted
+from svolsdf.evaluate.scoring import EvaluateConfig
 from svolsdf.io.paths import input_dir, input_file, input_path, output_dir
 
 
 # --------------------------------------------------------------------------- evaluate
-@app.command("evaluate")
 def evaluate(
     out: Annotated[Path, typer.Argument(help="Run folder (points.ply, mesh.ply, renders/, ...).")],
-    gt_points: Annotated[Path | None, typer.Option(
-        "--gt-points", help="Ground-truth points (.ply or (N,3) .npy) for the generic Chamfer "
-                            "and F-score.")] = None,
-    dtu_gt: Annotated[Path | None, typer.Option(
-        "--dtu-gt", help="DTU ground-truth root (ObsMask/, Points/stl/): DTU Chamfer protocol."
-    )] = None,
-    scan: Annotated[int | None, typer.Option(
-        "--scan", help="DTU scan number (default: from the scene).")] = None,
-    scene: Annotated[Path | None, typer.Option(
-        "--scene", help="Scene folder with the ground-truth images (default: from "
-                        "OUT/config.yaml).")] = None,
     views: Annotated[str | None, typer.Option(
         "--views", help="View ids to evaluate, e.g. '1,2,9' (default: every "
                         "renders/<id>.png).")] = None,
-    threshold: Annotated[float | None, typer.Option(
-        "--threshold", help="F-score threshold in world units (default: 1% of the ground "
-                            "truth's bounding-box diagonal).")] = None,
-    lpips_net: Annotated[str, typer.Option(
-        "--lpips-net", help="LPIPS backbone: vgg (the paper's) or alex.")] = "vgg",
-    lpips_weights: Annotated[Path | None, typer.Option(
-        "--lpips-weights", help="LPIPS weights file or folder (default: shared/weights/lpips)."
-    )] = None,
-    ssim_data_range: Annotated[float, typer.Option(
-        "--ssim-data-range", help="SSIM data range; 2.0 reproduces the released code.")] = 1.0,
-    no_report: Annotated[bool, typer.Option(
-        "--no-report", help="Write metrics.json only.")] = False,
+    **options,  # the flags of EVALUATE_FLAGS (`with_dataclass_flags`), by parameter name
 ) -> None:
     """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
     from svolsdf.evaluate.run_outputs import check_views_rendered
-    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.scoring import evaluate_run
     from svolsdf.scene.loaders import scene_folder
 
+    values = dataclass_values(EVALUATE_FLAGS, options)
+    gt_points, dtu_gt, scene = values["gt_points"], values["dtu_gt"], values["scene"]
+    lpips_weights = values["lpips_weights"]
     out = input_dir(out, "run folder")
     if gt_points is not None:
         gt_points = input_file(gt_points, "ground-truth points file", "--gt-points")
@@ -59,10 +41,8 @@ def evaluate(
         lpips_weights = input_path(lpips_weights, "LPIPS weights file or folder",
                                    "--lpips-weights")
     check_views_rendered(out, _parse_views(views))
-    cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
-                         views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
-                         lpips_weights=lpips_weights, ssim_data_range=ssim_data_range,
-                         report=not no_report)
+    cfg = EvaluateConfig(**{**values, "gt_points": gt_points, "dtu_gt": dtu_gt, "scene": scene,
+                            "lpips_weights": lpips_weights}, out=out, views=_parse_views(views))
     m = evaluate_run(cfg)
     c, im = m["chamfer"], m["images"]
     lp = im["lpips"]
@@ -78,8 +58,11 @@ def evaluate(
     if cm.get("overall") is not None:
         typer.echo(f"mesh chamfer acc {cm['accuracy']} comp {cm['completeness']} overall "
                    f"{cm['overall']} (its surface, sampled every {cm['density']:.3g})")
-    typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
-                                                   f" and {out / 'report.html'}"))
+    typer.echo(f"wrote {out / 'metrics.json'}" + (f" and {out / 'report.html'}"
+                                                   if cfg.report else ""))
+
+
+app.command("evaluate")(with_dataclass_flags(evaluate, EvaluateConfig, EVALUATE_FLAGS))
 
 
 @app.command("report")
