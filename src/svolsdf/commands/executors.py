@@ -85,7 +85,7 @@ def check_executor(cfg: ExecutorConfig) -> None:
 
 def check_ray_address(address: str, timeout: float = 5.0, join_timeout: float = 20.0) -> None:
     """Raise `InputError` unless a Ray cluster answers at ``address``: ``ray.init`` retries a
-    wrong one for about 12 minutes (issue 38). First a TCP connection to host:port (``timeout``
+    wrong one for about 12 minutes, silently. First a TCP connection to host:port (``timeout``
     seconds), then ``ray.init`` in a child process, stopped after ``join_timeout`` seconds (a
     port that answers need not be Ray's). ``auto`` (Ray finds the cluster this node joined)
     is not checked.

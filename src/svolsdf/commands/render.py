@@ -1,5 +1,4 @@
-"""Novel views of a finished run: volume rendering and image-based rendering (issue 7,
-docs/method.md 7).
+"""Novel views of a finished run: volume rendering and image-based rendering (docs/method.md 7).
 
 ``svolsdf render OUT`` renders, for each target camera,
 
@@ -191,7 +190,7 @@ def render_outputs(
     ibr_config=None,
     progress: bool = True,
 ) -> dict:
-    """Render novel views of a finished run (``svolsdf render``; issue 7, docs/method.md 7).
+    """Render novel views of a finished run (``svolsdf render``; docs/method.md 7).
 
     Args:
         out: the run folder (config.yaml, views.json, field/model.pt).

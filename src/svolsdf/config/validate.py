@@ -328,8 +328,8 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
         refuse("mvs.finer_stage_optimization", True, *which,
                "the finer-stage optimization needs train.mode svolsdf without train.ablation "
                "(it optimizes the field against the stage-2 volumes)")
-    # a baseline never sees MVS (issue 38): the ablations run stage-1 MVS, and the mvs rule
-    # reads its depth into the guide
+    # a baseline never sees MVS, or it would not be the baseline the paper compares with: the
+    # ablations run stage-1 MVS, and the mvs rule reads its depth into the guide
     if t.ablation is not None and t.mode != "svolsdf":
         refuse("train.mode", t.mode, "train.ablation", t.ablation,
                "the ablations change S-VolSDF's prior; "

@@ -27,9 +27,10 @@ def guided_mvs(cfg: Config) -> bool:
 
 def mask_dilation(cfg: Config) -> int | None:
     """The object-mask dilation, in pixels, of the final depth (OUT/depth) in fusion; one rule
-    for every mode (issue 50): depth a field made, the guided stages 2-3 (svolsdf mode) or the
-    field's own rendering (volsdf mode), takes ``fusion.guided_dilation``; the MVS cascade alone
-    (mvs-only mode, as the unguided set of ``fusion.unguided``) ``fusion.unguided_dilation``.
+    for every mode, so that the modes' points are compared on the same region: depth a field
+    made, the guided stages 2-3 (svolsdf mode) or the field's own rendering (volsdf mode), takes
+    ``fusion.guided_dilation``; the MVS cascade alone (mvs-only mode, as the unguided set of
+    ``fusion.unguided``) ``fusion.unguided_dilation``.
     None = the released 12 px (docs/method.md 6.3)."""
     if cfg.train.mode == "mvs-only":
         return cfg.fusion.unguided_dilation
