@@ -43,6 +43,8 @@ def _other_value(key: str, default):
         return not default
     if key.endswith("weights"):
         return "w.pt"
+    if key == "device":  # a GPU by number
+        return "cpu" if default != "cpu" else "cuda:1"
     if isinstance(default, int):
         return str(default + 1)
     return "1.5" if default is None else str(default * 2)  # a float option

@@ -12,6 +12,7 @@ import typer
 from svolsdf.calibrate import CalibrateConfig
 from svolsdf.cli.app import (
     _RECONSTRUCT_OPTIONS,
+    VIEWS_HELP,
     _parse_auto_views,
     _parse_size,
     _parse_views,
@@ -25,6 +26,7 @@ from svolsdf.cli.flags import (
     RECONSTRUCT_FLAGS,
     SYNTH_FLAGS,
     dataclass_values,
+    flag_help,
     flag_overrides,
     with_dataclass_flags,
     with_flags,
@@ -67,8 +69,8 @@ def info(
 @app.command("config")
 def config_cmd(
     preset_name: Annotated[str | None, typer.Option(
-        "--preset", help="fast (default) or paper; with --config, the preset the file must "
-                         "name (as reconstruct).")] = None,
+        "--preset", help=flag_help("preset") + " With --config, the preset the file must "
+                                               "name.")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="Show this config.yaml (e.g. OUT/config.yaml) instead of a preset.")
     ] = None,
@@ -97,15 +99,11 @@ def reconstruct(
     scene: Annotated[Path | None, typer.Argument(
         help="Scene folder (any format `svolsdf info` reads); optional with --config.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out"),
-    views: Annotated[str | None, typer.Option(
-        "--views", help="Input view ids, e.g. --views 25 22 28, or --views auto [N]: N (3) views "
-                        "with good overlap and baselines (default: DTU's 25 22 28, or a "
-                        "central view and its two best source views).")] = None,
+    views: Annotated[str | None, typer.Option("--views", help=VIEWS_HELP)] = None,
     size: Annotated[str | None, typer.Option(
         "--size", help="Working size WxH (default: 768 wide, never upsampled).")] = None,
-    preset_name: Annotated[str | None, typer.Option(
-        "--preset", help="fast (default: minutes on a CPU) or paper (docs/method.md constants).")
-    ] = None,
+    preset_name: Annotated[str | None, typer.Option("--preset", help=flag_help("preset"))
+                           ] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="A config.yaml (e.g. from an earlier OUT) to start from.")] = None,
     fusion_network: Annotated[Path | None, typer.Option(
@@ -303,8 +301,7 @@ app.command("calibrate")(with_dataclass_flags(calibrate, CalibrateConfig, CALIBR
 def mvs(
     scene: Annotated[Path, typer.Argument(help="Scene folder (any format `svolsdf info` reads).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
-    views: Annotated[str | None, typer.Option(
-        "--views", help="Input view ids, e.g. --views 25 22 28 (default: all views).")] = None,
+    views: Annotated[str | None, typer.Option("--views", help=VIEWS_HELP)] = None,
     size: Annotated[str | None, typer.Option(
         "--size", help="Working size WxH (default: as reconstruct, at most 768 wide).")
     ] = None,
@@ -339,7 +336,7 @@ def mvs(
                              f"{depth_range!r}") from None
         rng = (near, far)
     cfg = MVSJobConfig(**{**values, "weights": weights}, scene=scene, out=out,
-                       views=_parse_views(views), depth_range=rng,
+                       views=_input_views(scene, views), depth_range=rng,
                        size=None if size is None else parse_size(size))
     _check_mvs_inputs(cfg)
     with _own_output_folder(out, "svolsdf mvs"):
@@ -357,6 +354,19 @@ def mvs(
 
 
 app.command("mvs")(with_dataclass_flags(mvs, MVSJobConfig, MVS_FLAGS))
+
+
+def _input_views(scene: Path, views: str | None) -> list[int]:
+    """The input views ``--views`` names (ids or ``auto [N]``), by default those reconstruct
+    takes (`svolsdf.pipeline.views.default_views`)."""
+    from svolsdf.pipeline.views import auto_views, default_views
+    from svolsdf.scene.loaders import load_scene
+
+    auto = _parse_auto_views(views)
+    if views is not None and not auto:
+        return _parse_views(views)
+    probe = load_scene(scene, load_images=False)
+    return auto_views(probe, auto) if auto else default_views(probe)
 
 
 def _check_mvs_inputs(cfg) -> None:
@@ -399,8 +409,10 @@ def _own_output_folder(out: Path, command: str):
 
 
 def synth(
-    out: Annotated[Path, typer.Argument(help="Output folder (new, empty, or an earlier "
-                                             "synthetic scene).")],
+    out: Annotated[Path | None, typer.Option(
+        "--out", "-o", help="Scene folder to write (new, empty, or an earlier synthetic "
+                            "scene).")] = None,
+    old_out: Annotated[Path | None, typer.Argument(hidden=True, show_default=False)] = None,
     size: Annotated[str, typer.Option("--size", help="Image size WxH.")] = "768x576",
     cameras_from: Annotated[Path | None, typer.Option(
         "--cameras-from", help="Borrow the cameras of this IDR scene (cameras.npz or "
@@ -416,8 +428,12 @@ def synth(
     from svolsdf.scene.synthetic import make_synthetic_scene
 
     values = dataclass_values(SYNTH_FLAGS, options)
+    if (out is None) == (old_out is None):  # the positional OUT of earlier versions still works
+        raise InputError("give the scene folder to write as -o OUT" if out is None else
+                         f"two scene folders given ({old_out} and -o {out}): give -o OUT only")
+    out = out if out is not None else old_out
 
-    out = output_dir(out, "scene folder", create=False)
+    out = output_dir(out, "scene folder", "-o", create=False)
     if cameras_from is not None:
         cameras_from = input_dir(cameras_from, "IDR scene folder", "--cameras-from")
     w, h = parse_size(size)

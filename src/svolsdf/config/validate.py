@@ -7,6 +7,7 @@ import dataclasses
 import math
 import numbers
 import os
+import re
 import types
 from collections.abc import Mapping
 from dataclasses import fields
@@ -110,6 +111,9 @@ def _check_value(value: Any, tp: Any, lim: dict) -> Any:
                 raise _Rejected("one of " + ", ".join(repr(a) for a in allowed))
         if not isinstance(value, str):
             raise _Rejected("a string")
+        pattern = lim.get("pattern")
+        if pattern is not None and re.fullmatch(pattern, value) is None:
+            raise _Rejected(lim.get("wanted", f"a string matching {pattern}"))
         return value
     if origin in (list, tuple):
         item_tp = args[0] if args else Any
