@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 from dataclasses import asdict
 from pathlib import Path
@@ -347,6 +348,8 @@ def _is_allowed(value, tp, lim) -> bool:
     if tp is str:
         if "choices" in lim:
             return value in lim["choices"]()
+        if "pattern" in lim:  # (device: auto, cpu, cuda or cuda:N)
+            return isinstance(value, str) and re.fullmatch(lim["pattern"], value) is not None
         return isinstance(value, str)
     if origin is list:
         if not isinstance(value, list):
