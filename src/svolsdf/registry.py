@@ -25,9 +25,33 @@ from typing import Any, Generic, TypeVar
 
 from svolsdf.errors import InputError
 
-__all__ = ["Registry"]
+__all__ = ["DeclaresOptions", "Registry"]
 
 T = TypeVar("T")
+
+
+class DeclaresOptions:
+    """A registry entry that declares the config options its piece reads, as ``options``: a
+    tuple of dotted keys of the run's config (``"mesh.poisson.depth"``), or a function of the
+    config returning them (options that act only with others set). What the piece's result
+    depends on is then asked, not known by name: ``entry.reads(cfg)``."""
+
+    options: tuple[str, ...] | Callable[[Any], tuple[str, ...]] = ()
+
+    def option_keys(self, cfg: Any) -> tuple[str, ...]:
+        """The dotted keys of the options the piece reads under ``cfg``."""
+        return tuple(self.options(cfg) if callable(self.options) else self.options)
+
+    def reads(self, cfg: Any) -> dict[str, Any]:
+        """{dotted key: value} of the options the piece reads under ``cfg``, in declaration
+        order."""
+        out = {}
+        for key in self.option_keys(cfg):
+            value = cfg
+            for part in key.split("."):
+                value = getattr(value, part)
+            out[key] = value
+        return out
 
 
 class Registry(Generic[T]):

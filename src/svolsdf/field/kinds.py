@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from svolsdf.registry import Registry
+from svolsdf.registry import DeclaresOptions, Registry
 
 __all__ = ["FIELD_KINDS", "FieldInputs", "FieldKind", "Refusal", "check_grid", "check_mlp",
            "get_field_kind", "grid_memory", "grid_resolution_schedule", "register_field_kind",
@@ -67,7 +67,7 @@ Memory = Callable[[Any], "list[tuple[tuple[str, ...], float, str]]"]
 
 
 @dataclass(frozen=True)
-class FieldKind:
+class FieldKind(DeclaresOptions):
     """A field kind's registry entry: what it builds and what it can do (the keywords of
     `register_field_kind`).
 
@@ -93,6 +93,9 @@ class FieldKind:
         memory: (FieldConfig) -> lower bounds of the largest allocations the kind makes,
             [(the options that set it, bytes, what it is)], for the memory check before a run
             (`svolsdf.config.validate.memory_needs`); None: none worth checking.
+        options: the dotted config keys of the ``field.*`` options the kind reads (its build,
+            schedule and checks), or a function of the run's config returning them;
+            ``reads(cfg)``: {key: value} of them (`svolsdf.registry.DeclaresOptions`).
     """
 
     build: FieldFactory
@@ -103,6 +106,7 @@ class FieldKind:
     check: Check | None = None
     background: Mapping[str, Any] = field(default_factory=dict)
     memory: Memory | None = None
+    options: tuple[str, ...] | Callable[[Any], tuple[str, ...]] = ()
 
     @property
     def starts_from_mvs(self) -> bool:
@@ -252,9 +256,18 @@ def grid_memory(f) -> list[tuple[tuple[str, ...], float, str]]:
              f"the {r}-node SDF grid")]
 
 
+def _grid_options(cfg) -> tuple[str, ...]:
+    """The grid's options: its final resolution and the background switch (the sphere clamp),
+    and its start's: the sphere's, or the MVS start's resolution and vote weight."""
+    start = (("field.sphere_start_resolution", "field.sphere_radius")
+             if not starts_from_mvs(cfg.field, cfg.train) else
+             ("field.grid_start_resolution", "field.init_unverified_weight"))
+    return ("field.grid_resolution", "field.background", *start)
+
+
 @register_field_kind("grid", init_from_mvs=_grid_from_mvs, sphere_options=True,
                      fits_points=True, schedule=grid_resolution_schedule, check=check_grid,
-                     memory=grid_memory,
+                     memory=grid_memory, options=_grid_options,
                      # a smaller background MLP than the paper's beside the fast field
                      background={"n_layers": 4, "d_hidden": 64, "skip_in": (),
                                  "feature_dim": 32, "colour_hidden": 32})
@@ -280,7 +293,8 @@ def _grid(i: FieldInputs):
     return GridSDFField(box, gcfg)
 
 
-@register_field_kind("mlp", check=check_mlp)
+@register_field_kind("mlp", check=check_mlp,
+                     options=("field.mlp_depth", "field.mlp_width", "field.background"))
 def _mlp(i: FieldInputs):
     """The paper's VolSDF MLP (`VolSDFField`), ``mlp_depth`` x ``mlp_width``."""
     from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig

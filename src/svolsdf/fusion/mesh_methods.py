@@ -23,7 +23,7 @@ import numpy as np
 from torch import Tensor
 
 from svolsdf.errors import raise_if_interrupted
-from svolsdf.registry import Registry
+from svolsdf.registry import DeclaresOptions, Registry
 from svolsdf.scene.scene import Scene
 
 __all__ = ["MESH_METHODS", "MeshInputs", "MeshMethod", "get_mesh_method",
@@ -67,7 +67,7 @@ class MeshInputs:
 
 
 @dataclass(frozen=True)
-class MeshMethod:
+class MeshMethod(DeclaresOptions):
     """A registered method and what it declares (the keywords of ``register_mesh_method``).
 
     Attributes:
@@ -83,6 +83,7 @@ class MeshMethod:
         options: the dotted config keys of the options it reads (``"mesh.poisson.depth"``), or
             a function of the run's `Config` returning them (options that act only with others
             set); the mesh stage's own options (resolution, culling) are not listed.
+            ``reads(cfg)``: {key: value} of them (`svolsdf.registry.DeclaresOptions`).
     """
 
     name: str
@@ -98,21 +99,6 @@ class MeshMethod:
         if self.needs_observed:
             object.__setattr__(self, "needs_points", True)
 
-    def option_keys(self, cfg) -> tuple[str, ...]:
-        """The dotted keys of the options the method reads under ``cfg`` (a `Config`)."""
-        return tuple(self.options(cfg) if callable(self.options) else self.options)
-
-    def reads(self, cfg) -> dict[str, Any]:
-        """{dotted key: value} of the options the method reads under ``cfg`` (a `Config`), in
-        declaration order: what its result depends on beside the mesh stage's own options
-        and inputs."""
-        out = {}
-        for key in self.option_keys(cfg):
-            value = cfg
-            for part in key.split("."):
-                value = getattr(value, part)
-            out[key] = value
-        return out
 
 
 #: name -> method; the modules of `svolsdf.fusion` that use ``@register_mesh_method(...)`` are

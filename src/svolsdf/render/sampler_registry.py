@@ -16,9 +16,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from svolsdf.registry import Registry
+from svolsdf.registry import DeclaresOptions, Registry
 
-__all__ = ["SAMPLERS", "SamplerInputs", "get_sampler", "register_sampler", "registered_samplers"]
+__all__ = ["SAMPLERS", "SamplerInputs", "SamplerKind", "get_sampler", "register_sampler",
+           "registered_samplers"]
 
 
 @dataclass
@@ -39,12 +40,32 @@ class SamplerInputs:
 
 SamplerFactory = Callable[[SamplerInputs], Any]
 
+
+@dataclass(frozen=True)
+class SamplerKind(DeclaresOptions):
+    """A registered sampler kind: called with a `SamplerInputs`, it builds the sampler.
+
+    Attributes:
+        name: the name `TrainConfig.sampler` accepts.
+        build: `SamplerInputs` -> the sampler.
+        options: the dotted config keys of the options it reads in training (or a function
+            of the config returning them); ``reads(cfg)``: {key: value} of them.
+    """
+
+    name: str
+    build: SamplerFactory
+    options: tuple[str, ...] | Callable[[Any], tuple[str, ...]] = ()
+
+    def __call__(self, inputs: SamplerInputs) -> Any:
+        return self.build(inputs)
+
 #: name -> sampler kind; the modules of `svolsdf.render` that use ``@register_sampler(...)`` are
 #: imported the first time a name is asked for (`svolsdf.registry.Registry`)
-SAMPLERS: Registry[SamplerFactory] = Registry("sampler", "svolsdf.render", "register_sampler")
+SAMPLERS: Registry[SamplerKind] = Registry("sampler", "svolsdf.render", "register_sampler",
+                                           entry=SamplerKind)
 
-#: ``@register_sampler(name)``: a function decorator adding a sampler kind, whose
-#: ``fn(SamplerInputs)`` returns the sampler
+#: ``@register_sampler(name, options=...)``: a function decorator adding a sampler kind, whose
+#: ``fn(SamplerInputs)`` returns the sampler (`SamplerKind`)
 register_sampler = SAMPLERS.register
 #: the names `TrainConfig.sampler` accepts, in registration order (the built-in ones first)
 registered_samplers = SAMPLERS.names
@@ -53,7 +74,7 @@ get_sampler = SAMPLERS.get
 
 
 # --------------------------------------------------------------------------- built in
-@register_sampler("mvs")
+@register_sampler("mvs", options=("train.samples_uniform", "train.samples_fine"))
 def _mvs(s: SamplerInputs):
     """Samples near P' and the current surface (`MVSGuidedSampler`; with the prior in
     training, a lighter one without it for rendering)."""
