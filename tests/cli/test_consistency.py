@@ -113,3 +113,12 @@ def test_the_command_line_sets_them_before_torch_loads():
 def test_help_runs(capsys):
     r = CliRunner().invoke(app, ["synth", "--help"])
     assert r.exit_code == 0 and "-o" in r.output
+
+
+def test_no_help_cites_the_docs_or_the_code():
+    """A help text says what the option does for the user, not where the method or the code
+    is (no docs/ page, method.md section or module name)."""
+    bad = [(name, p.opts, p.help) for name, cmd in typer.main.get_command(app).commands.items()
+           for p in cmd.params if re.search(r"docs/|method\.md|svolsdf\.[a-z_]+\.",
+                                            getattr(p, "help", None) or "")]
+    assert not bad, bad

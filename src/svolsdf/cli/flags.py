@@ -67,6 +67,9 @@ SYNTH_FLAGS: dict[str, str] = {
     "--soft-shadows": "soft_shadows", "--gt-points": "gt_points",
 }
 
+#: `svolsdf render` flag -> the field of `svolsdf.ibr.IBRConfig` it sets
+RENDER_IBR_FLAGS: dict[str, str] = {"--ibr-unseen": "unseen"}
+
 #: `svolsdf evaluate` flag -> the field of `svolsdf.evaluate.scoring.EvaluateConfig` it sets
 EVALUATE_FLAGS: dict[str, str] = {
     "--gt-points": "gt_points", "--dtu-gt": "dtu_gt", "--scan": "scan", "--scene": "scene",

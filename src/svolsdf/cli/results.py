@@ -8,9 +8,15 @@ from typing import Annotated
 import typer
 
 from svolsdf.cli.app import _parse_size, _parse_views, _Stopped, app
-from svolsdf.cli.flags import EVALUATE_FLAGS, dataclass_values, with_dataclass_flags
+from svolsdf.cli.flags import (
+    EVALUATE_FLAGS,
+    RENDER_IBR_FLAGS,
+    dataclass_values,
+    with_dataclass_flags,
+)
 from svolsdf.errors import RunInterrupted
 from svolsdf.evaluate.scoring import EvaluateConfig
+from svolsdf.ibr import IBRConfig
 from svolsdf.io.paths import input_dir, input_file, input_path, output_dir
 
 
@@ -190,7 +196,6 @@ def benchmark(
 
 
 # --------------------------------------------------------------------------- render
-@app.command("render")
 def render(
     out: Annotated[Path, typer.Argument(help="Run folder of svolsdf reconstruct.")],
     views: Annotated[str | None, typer.Option(
@@ -201,28 +206,25 @@ def render(
                        "instead of scene views.")] = None,
     frames: Annotated[int, typer.Option("--frames", help="Orbit frames.")] = 60,
     ibr: Annotated[bool, typer.Option(
-        "--ibr",
-        help="Also image-based rendering (docs/method.md 7) -> OUT/renders_ibr/.")] = False,
+        "--ibr", help="Also image-based rendering (the input photos reprojected onto the "
+                      "surface and blended) -> OUT/renders_ibr/.")] = False,
     size: Annotated[str | None, typer.Option(
         "--size", help="Render size WxH, e.g. 768x576 (default: the run's working size).")
     ] = None,
     chunk: Annotated[int, typer.Option("--chunk", help="Rays per batch.")] = 4096,
-    ibr_unseen: Annotated[str, typer.Option(
-        "--ibr-unseen", help="IBR where no input view sees the surface: 'render' (the paper: "
-                             "the volume-rendered colour) or 'inpaint' (the seen colours spread "
-                             "by push-pull; docs/novel-views.md).")] = "render",
+    **options,  # the flags of RENDER_IBR_FLAGS (`with_dataclass_flags`), by parameter name
 ) -> None:
     """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
     from svolsdf.commands.render import render_outputs
     from svolsdf.errors import InputError
-    from svolsdf.ibr import IBRConfig
 
-    if ibr_unseen not in ("render", "inpaint"):
-        raise InputError(f"--ibr-unseen {ibr_unseen!r}: expected 'render' or 'inpaint'")
+    values = dataclass_values(RENDER_IBR_FLAGS, options)
+    if values["unseen"] not in ("render", "inpaint"):
+        raise InputError(f"--ibr-unseen {values['unseen']!r}: expected 'render' or 'inpaint'")
     out = input_dir(out, "run folder")
     res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
                          size=_parse_size(size), frames=frames, chunk=chunk, progress=True,
-                         ibr_config=IBRConfig(unseen=ibr_unseen))
+                         ibr_config=IBRConfig(**values))
     w, h = res["size"]
     typer.echo(f"rendered {len(res['files'])} view(s) at {w}x{h} "
                f"({res['seconds_per_view']:.1f} s per view) -> {out / 'renders'}"
@@ -232,3 +234,4 @@ def render(
             typer.echo(f"video {res[key]}")
 
 
+app.command("render")(with_dataclass_flags(render, IBRConfig, RENDER_IBR_FLAGS))
