@@ -263,9 +263,9 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
     if path == "orbit":
         cams_w = orbit_cameras(scene.cameras, frames)
         names = [f"{k:03d}" for k in range(frames)]
-        b = getattr(model, "bounds", None)
+        b = model.box()  # a grid's own box (`SurfaceModel.box`), else none
         cams_u = cams_w.transformed(norm.center, s)
-        if isinstance(b, Tensor):
+        if b is not None:
             near_far = box_near_far(cams_u, b.detach().cpu())
         else:
             r = _scene_range(scene, s)

@@ -126,8 +126,8 @@ def _field_mesh(p: StageContext, model, scene, use_masks: bool):
     if fit:
         model = _surface_fitted_to_points(p, model)
     model.eval()
-    b = getattr(model, "bounds", None)
-    bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else p.field_bounds()
+    b = model.box()  # a grid's own box, else the field's (`SurfaceModel.box`)
+    bounds = b.detach().cpu() if b is not None else p.field_bounds()
     # the fitted surface moved away from the rendered depth: the views' depth of the mesh
     # itself decides what they see
     mc = p.cfg.mesh
