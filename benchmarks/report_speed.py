@@ -80,7 +80,9 @@ def main() -> None:
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks/results/report_speed.md")
     args = ap.parse_args()
 
-    import svolsdf  # noqa: F401  (OMP_WAIT_POLICY before torch)
+    from svolsdf.runtime import set_cpu_env
+
+    set_cpu_env()  # before torch loads
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -21,7 +21,9 @@ def main() -> None:
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks/results/synth_speed.md")
     args = ap.parse_args()
 
-    import svolsdf  # noqa: F401  (OMP_WAIT_POLICY before torch)
+    from svolsdf.runtime import set_cpu_env
+
+    set_cpu_env()  # before torch loads
     from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
 
     cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo")

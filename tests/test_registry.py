@@ -54,3 +54,40 @@ def test_order_removal_and_unknown_names():
     reg.remove("never")
     with pytest.raises(InputError, match=r"unknown number 'two' \(available: one, ten\)"):
         reg.get("two")
+
+
+def test_register_stores_what_the_entry_function_builds_from_the_declaration():
+    reg: Registry[tuple] = Registry("piece", "svolsdf.io", "register_piece",
+                                    entry=lambda name, obj, size=1: (name, obj, size))
+    plain: Registry[int] = Registry("number", "svolsdf.io", "register_number")
+
+    @reg.register("big", size=3)
+    def fn():
+        return "made"
+
+    assert fn() == "made"  # the decorated object is returned unchanged
+    assert reg.get("big") == ("big", fn, 3)
+    assert plain.register("one")(1) == 1 and plain.get("one") == 1
+    with pytest.raises(TypeError, match="a number declares nothing beside its name"):
+        plain.register("two", size=2)
+
+
+def test_each_kind_is_one_registry_read_through_its_own_methods():
+    """The five kinds keep no wrapper functions of their own: their register/get/names names
+    are the bound methods of one `Registry`."""
+    from svolsdf.field import kinds
+    from svolsdf.fusion import mesh_methods
+    from svolsdf.mvs import backbone
+    from svolsdf.render import sampler_registry
+    from svolsdf.scene import formats
+
+    for reg, register, get in (
+            (backbone.BACKBONES, backbone.register_backbone, backbone._backbone_class),
+            (kinds.FIELD_KINDS, kinds.register_field_kind, kinds.get_field_kind),
+            (sampler_registry.SAMPLERS, sampler_registry.register_sampler,
+             sampler_registry.get_sampler),
+            (formats.SCENE_FORMATS, formats.register_scene_format, formats.get_scene_format),
+            (mesh_methods.MESH_METHODS, mesh_methods.register_mesh_method,
+             mesh_methods.get_mesh_method)):
+        assert isinstance(reg, Registry)
+        assert register == reg.register and get == reg.get

@@ -1,5 +1,13 @@
 """`Registry`: the names of one pluggable kind (MVS backbones, samplers, field kinds, scene
-formats) and what each name builds, filled by a decorator where the piece is written.
+formats, mesh methods) and what each name builds, filled by a decorator where the piece is
+written.
+
+Each kind has one `Registry` and no wrapper functions of its own: the piece's module decorates it
+with ``REGISTRY.register(name, **declared)`` (the kind's module names that bound method
+``register_<kind>`` for its pieces to import), and readers call ``REGISTRY.get(name)`` and
+``REGISTRY.names()``. What a piece declares beside its name (the options it reads, what it can
+do) goes into its entry, built by the registry's ``entry`` function, so callers ask the entry and
+never compare a name.
 
 A registry knows the package its pieces live in and the decorator that registers them: the first
 time it is read, it imports every module of that package whose source uses the decorator
@@ -17,9 +25,33 @@ from typing import Any, Generic, TypeVar
 
 from svolsdf.errors import InputError
 
-__all__ = ["Registry"]
+__all__ = ["DeclaresOptions", "Registry"]
 
 T = TypeVar("T")
+
+
+class DeclaresOptions:
+    """A registry entry that declares the config options its piece reads, as ``options``: a
+    tuple of dotted keys of the run's config (``"mesh.poisson.depth"``), or a function of the
+    config returning them (options that act only with others set). What the piece's result
+    depends on is then asked, not known by name: ``entry.reads(cfg)``."""
+
+    options: tuple[str, ...] | Callable[[Any], tuple[str, ...]] = ()
+
+    def option_keys(self, cfg: Any) -> tuple[str, ...]:
+        """The dotted keys of the options the piece reads under ``cfg``."""
+        return tuple(self.options(cfg) if callable(self.options) else self.options)
+
+    def reads(self, cfg: Any) -> dict[str, Any]:
+        """{dotted key: value} of the options the piece reads under ``cfg``, in declaration
+        order."""
+        out = {}
+        for key in self.option_keys(cfg):
+            value = cfg
+            for part in key.split("."):
+                value = getattr(value, part)
+            out[key] = value
+        return out
 
 
 class Registry(Generic[T]):
@@ -31,13 +63,17 @@ class Registry(Generic[T]):
         decorator: the registering decorator's name ("register_backbone"); a module of
             ``package`` whose source contains ``@decorator(`` is imported on the first read.
         sort: `names` in alphabetical order instead of registration order.
+        entry: ``entry(name, obj, *args, **declared)`` -> the entry `register` stores for the
+            decorated ``obj`` (default: ``obj`` itself; a declaration is then refused).
     """
 
-    def __init__(self, kind: str, package: str, decorator: str, sort: bool = False):
+    def __init__(self, kind: str, package: str, decorator: str, sort: bool = False,
+                 entry: Callable[..., T] | None = None):
         self.kind = kind
         self.package = package
         self.marker = f"@{decorator}("
         self.sort = sort
+        self._entry = entry
         self._entries: dict[str, T] = {}
         self._discovered = False
 
@@ -88,6 +124,24 @@ class Registry(Generic[T]):
     def __contains__(self, name: object) -> bool:
         self._discover()
         return name in self._entries
+
+    def register(self, name: str, *args: Any, **declared: Any) -> Callable[[Any], Any]:
+        """A decorator registering ``entry(name, obj, *args, **declared)`` under ``name`` and
+        returning ``obj`` unchanged: ``@BACKBONES.register("planesweep")``,
+        ``@MESH_METHODS.register("poisson", needs_points=True, options=(...))``.
+
+        Raises:
+            TypeError: a declaration given to a registry whose entries are the objects alone.
+        """
+        if self._entry is None and (args or declared):
+            raise TypeError(f"a {self.kind} declares nothing beside its name")
+
+        def deco(obj):
+            self.add(name, obj if self._entry is None else
+                     self._entry(name, obj, *args, **declared))
+            return obj
+
+        return deco
 
     def decorator(self, name: str, make: Callable[[Any], T] | None = None):
         """A decorator registering ``make(obj)`` (default: ``obj`` itself) under ``name`` and

@@ -16,7 +16,7 @@ def test_choices_read_the_schema_literal():
     (lit, none) = get_args(hints["ablation"])  # Literal[...] | None
     assert none is type(None)
     assert choices("train.ablation") == get_args(lit)
-    assert choices("device") == get_args(get_type_hints(Config)["device"])
+    assert choices("preset") == get_args(get_type_hints(Config)["preset"])
     assert choices("scene.lighting") == ("max",)  # int | Literal["max"]
     assert get_args(Literal["svolsdf"]) == ("svolsdf",)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 from dataclasses import asdict
 from pathlib import Path
@@ -74,7 +75,7 @@ def test_enumerations_are_literals():
     # every str option with a fixed set of values is a Literal; the pluggable kinds (backbones,
     # field kinds, samplers, mesh methods) are checked against their registries instead
     kinds = {key: tp for key, tp, _ in LEAVES}
-    for key in ("preset", "device", "mvs.width", "field.init", "train.mode",
+    for key in ("preset", "mvs.width", "field.init", "train.mode",
                 "train.gce_form", "train.sparse_norm", "mesh.format",
                 "guide.low_weight_rule"):
         assert get_origin(kinds[key]) is Literal, key
@@ -349,6 +350,8 @@ def _is_allowed(value, tp, lim) -> bool:
     if tp is str:
         if "choices" in lim:
             return value in lim["choices"]()
+        if "pattern" in lim:  # (device: auto, cpu, cuda or cuda:N)
+            return isinstance(value, str) and re.fullmatch(lim["pattern"], value) is not None
         return isinstance(value, str)
     if origin is list:
         if not isinstance(value, list):
@@ -535,3 +538,35 @@ def test_the_old_layout_holds_every_option_once():
         assert set(old) == {"preset", "device", "threads", "scene", "mvs", "field", "train",
                             "output"}
         assert config_from_dict(old) == cfg
+
+
+@pytest.mark.parametrize("device", ["auto", "cpu", "cuda", "cuda:0", "cuda:3"])
+def test_device_takes_a_gpu_by_number(device):
+    cfg = preset("fast")
+    cfg.device = device
+    assert validate_config(cfg).device == device
+
+
+@pytest.mark.parametrize("device", ["gpu", "cuda:", "cuda:x", "cuda1", "cpu:0"])
+def test_a_device_of_no_such_form_is_refused_saying_the_forms(device):
+    cfg = preset("fast")
+    cfg.device = device
+    with pytest.raises(InputError, match=r"device = .*: expected auto, cpu, cuda or cuda:N$"):
+        validate_config(cfg)
+
+
+def test_resolve_device_checks_the_gpu_number(monkeypatch):
+    import torch
+
+    from svolsdf.pipeline.machine import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert resolve_device("cuda:1") == torch.device("cuda:1")
+    with pytest.raises(InputError, match=r"--device cuda:2: there are 2 CUDA devices "
+                                         r"\(cuda:0 \.\. cuda:1\)"):
+        resolve_device("cuda:2")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(InputError, match="--device cuda:0: no CUDA device is available"):
+        resolve_device("cuda:0")

@@ -188,3 +188,21 @@ def test_the_mlp_keeps_its_refusals():
     with pytest.raises(InputError, match=r"field\.kind = mlp with field\.init = mvs: only the "
                                          r"grid field starts from the MVS surface; the MLP "):
         validate_config(cfg)
+
+
+def test_the_memory_check_asks_the_field_kind():
+    """`memory_needs` reports what a kind declares (`FieldKind.memory`), not a built-in
+    name's allocation."""
+    from svolsdf.config.validate import memory_needs
+
+    cfg = preset("fast")
+    grid = [n for keys, _, _ in memory_needs(cfg) for n in keys]
+    assert "field.grid_resolution" in grid
+    cfg.field.kind, cfg.field.init = "test-huge", "sphere"
+    assert memory_needs(cfg)[0] == (("field.mlp_width",), 2.0**60, "the toy's table")
+    cfg.field.kind = "test-tiny-mlp"
+    assert all("field." not in k for keys, _, _ in memory_needs(cfg) for k in keys)
+
+
+register_field_kind("test-huge", memory=lambda f: [(("field.mlp_width",), 2.0**60,
+                                                    "the toy's table")])(_toy_build)

@@ -177,6 +177,8 @@ def other_values(option: str, value: Any) -> list[Any]:
         out += [c for c in choices(option) if c != value]
     except KeyError:
         pass
+    if option == "device":  # a pattern, not a list: auto, cpu, cuda or cuda:N
+        return [d for d in ("auto", "cpu", "cuda", "cuda:1") if d != value]
     if value is None:
         if out:
             return out

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import tempfile
 import time
@@ -42,7 +43,8 @@ from svolsdf.calibrate.inputs import Photo, gather_inputs, shared_camera
 from svolsdf.errors import InputError
 from svolsdf.io.replace import OutputSpec, check_replace, replace_outputs
 
-__all__ = ["CalibrateConfig", "CalibrationError", "calibrate", "undistort_simple_radial"]
+__all__ = ["CalibrateConfig", "CalibrationError", "calibrate", "num_threads",
+           "undistort_simple_radial"]
 
 log = logging.getLogger(__name__)
 
@@ -69,12 +71,25 @@ class CalibrateConfig:
     """SIFT features per image."""
     min_registered: int = 3
     """Fewest registered photos accepted (S-VolSDF needs 3 views)."""
-    threads: int = -1
-    """CPU threads for pycolmap (-1: all cores)."""
+    threads: int = 0
+    """CPU threads for structure from motion; 0 = the cores this process may run on (as
+    reconstruct's --threads)."""
     seed: int = 0
     """Random seed of the mapper (same inputs, same cameras)."""
     progress: bool = True
     """Show progress bars."""
+
+
+def num_threads(threads: int) -> int:
+    """pycolmap's thread count for ``threads``: as given when > 0, else the cores this process
+    may run on (its CPU affinity, which sees a container's cpuset; pycolmap's own -1 counts every
+    core of the host)."""
+    if threads > 0:
+        return threads
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def _pycolmap():
@@ -124,7 +139,7 @@ def _run_sfm(pycolmap, work: Path, photos: list[Photo], single: bool, matcher: s
     # batches afterwards so that the progress bar moves
     pycolmap.import_images(db, images, camera_mode=mode, image_names=names, options=reader)
     ext = pycolmap.FeatureExtractionOptions()
-    ext.num_threads = cfg.threads
+    ext.num_threads = num_threads(cfg.threads)
     ext.max_image_size = -1  # the inputs are already at max_size
     ext.sift.max_num_features = cfg.max_features
     batch = 8
@@ -139,7 +154,7 @@ def _run_sfm(pycolmap, work: Path, photos: list[Photo], single: bool, matcher: s
 
     t0 = time.perf_counter()
     mopt = pycolmap.FeatureMatchingOptions()
-    mopt.num_threads = cfg.threads
+    mopt.num_threads = num_threads(cfg.threads)
     n_pairs = len(names) * (len(names) - 1) // 2
     log.info("calibrate: matching %s (%d photos%s)", matcher, len(names),
              f", {n_pairs} pairs" if matcher == "exhaustive" else "")
@@ -157,7 +172,7 @@ def _run_sfm(pycolmap, work: Path, photos: list[Photo], single: bool, matcher: s
 
     t0 = time.perf_counter()
     opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = cfg.threads
+    opts.num_threads = num_threads(cfg.threads)
     opts.random_seed = cfg.seed
     opts.min_model_size = min(opts.min_model_size, cfg.min_registered)
     (work / "sparse").mkdir()

@@ -14,6 +14,10 @@ import signal
 import sys
 from typing import NoReturn
 
+from svolsdf.runtime import set_cpu_env
+
+set_cpu_env()  # before the commands' imports load torch (`svolsdf.runtime.CPU_ENV`: why)
+
 try:
     # the console script imports this module before `main` runs, and the commands' imports load
     # torch (seconds): a Ctrl-C meanwhile ends as a stopped run does, in one line

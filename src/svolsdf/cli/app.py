@@ -85,6 +85,12 @@ def _root(
 
 
 # --------------------------------------------------------------------------- info
+#: the help of ``--views`` wherever it names the input views (reconstruct, mvs): one default
+VIEWS_HELP = ("Input view ids, e.g. --views 25 22 28, or --views auto [N]: N (3) views with good "
+              "overlap and baselines (default: DTU's 25 22 28, or a central view and its two "
+              "best source views).")
+
+
 def _parse_views(text: str | None) -> list[int] | None:
     """'25,22,28' or '25 22 28' -> [25, 22, 28]; None -> None."""
     if text is None:

@@ -7,6 +7,13 @@ first sentence of the option's docstring (`svolsdf.config.option_docs`) with its
 name them all, and its default is None: the config's value stands unless the flag is given.
 `with_flags` adds the table's flags to a command's signature for typer, and `flag_overrides`
 turns the values typer passes back into the dotted overrides that `build_config` applies.
+
+The other commands are configured by a dataclass of their own (`CalibrateConfig`,
+`MVSJobConfig`, `SynthConfig`, `EvaluateConfig`): a table ``flag -> field`` such as
+`CALIBRATE_FLAGS` declares their flags the same way (`with_dataclass_flags`, then
+`dataclass_values`), each with the field's type, the first sentence of its docstring and its
+default. A help text says what the option does for the user: references to the code and to
+docs/ in parentheses are left out (`user_help`).
 """
 
 from __future__ import annotations
@@ -39,6 +46,37 @@ RECONSTRUCT_FLAGS: dict[str, str] = {
 
 #: flags that take a file (a ``Path`` on the command line, a string in the config)
 PATH_FLAGS = frozenset({"--weights"})
+
+#: `svolsdf calibrate` flag -> the field of `svolsdf.calibrate.CalibrateConfig` it sets
+CALIBRATE_FLAGS: dict[str, str] = {
+    "--max-size": "max_size", "--matcher": "matcher", "--frames": "frames",
+    "--max-features": "max_features", "--min-registered": "min_registered",
+    "--threads": "threads", "--seed": "seed", "--progress": "progress",
+}
+
+#: `svolsdf mvs` flag -> the field of `svolsdf.commands.mvs.MVSJobConfig` it sets
+MVS_FLAGS: dict[str, str] = {
+    "--backbone": "backbone", "--weights": "weights", "--device": "device", "--fuse": "fuse",
+}
+
+#: `svolsdf synth` flag -> the field of `svolsdf.scene.synthetic.SynthConfig` it sets
+SYNTH_FLAGS: dict[str, str] = {
+    "--seed": "seed", "--views": "views", "--object": "object",
+    "--texture-contrast": "texture_contrast", "--supersample": "supersample",
+    "--distance": "distance", "--focal": "focal", "--intrinsics-jitter": "intrinsics_jitter",
+    "--soft-shadows": "soft_shadows", "--gt-points": "gt_points",
+}
+
+#: `svolsdf render` flag -> the field of `svolsdf.ibr.IBRConfig` it sets
+RENDER_IBR_FLAGS: dict[str, str] = {"--ibr-unseen": "unseen", "--ibr-holes": "hole_depth"}
+
+#: `svolsdf evaluate` flag -> the field of `svolsdf.evaluate.scoring.EvaluateConfig` it sets
+EVALUATE_FLAGS: dict[str, str] = {
+    "--gt-points": "gt_points", "--dtu-gt": "dtu_gt", "--scan": "scan", "--scene": "scene",
+    "--threshold": "threshold", "--max-dist": "max_dist", "--lpips-net": "lpips_net",
+    "--lpips-weights": "lpips_weights", "--ssim-data-range": "ssim_data_range",
+    "--masks": "masks", "--report": "report",
+}
 
 
 def param_name(flag: str) -> str:
@@ -75,7 +113,11 @@ def flag_type(flag: str, key: str) -> type:
     """The flag's value type: the option's annotation without None (a ``Literal`` is a str)."""
     if flag in PATH_FLAGS:
         return Path
-    hint = _option_field(key)[0]
+    return _value_type(flag, key, _option_field(key)[0])
+
+
+def _value_type(flag: str, key: str, hint: Any) -> type:
+    """A flag's value type from the annotation ``hint`` of the option or field ``key``."""
     args = get_args(hint) if get_origin(hint) in (Union, types.UnionType) else (hint,)
     args = tuple(a for a in args if a is not type(None))
     if len(args) != 1:
@@ -83,7 +125,7 @@ def flag_type(flag: str, key: str) -> type:
     tp = args[0]
     if get_origin(tp) is Literal:
         return str
-    if tp not in (bool, int, float, str):
+    if tp not in (bool, int, float, str, Path):
         raise TypeError(f"{flag}: option {key} of type {tp} needs a hand-written flag")
     return tp
 
@@ -100,12 +142,22 @@ def first_sentence(doc: str) -> str:
     return text
 
 
+#: a parenthesis that points at the code or the docs rather than at what the option does
+_REFERENCE = re.compile(r"\s*\([^()]*(?:docs/|svolsdf\.|\.py\b|method\.md)[^()]*\)")
+
+
+def user_help(text: str) -> str:
+    """``text`` without its parentheses that cite code or docs ("(docs/method.md 5.4)",
+    "(svolsdf.scene.size)"): a help text says what the option does for the user."""
+    return re.sub(r"\s+([.,;:])(?=\s|$)", r"\1", _REFERENCE.sub("", text)).strip()
+
+
 def flag_help(key: str) -> str:
     """The help of the flag setting option ``key``: the first sentence of its docstring, then
     its choices in parentheses when the sentence does not name each of them."""
     from svolsdf.config import option_docs
 
-    text = first_sentence(option_docs()[key])
+    text = user_help(first_sentence(option_docs()[key]))
     named = set(re.findall(r"[\w-]+", text))
     allowed = option_choices(key)
     if allowed and not set(allowed) <= named:
@@ -150,3 +202,71 @@ def flag_overrides(table: dict[str, str], options: dict[str, Any]) -> dict[str, 
 def flag_labels(table: dict[str, str]) -> dict[str, str]:
     """Dotted option -> the flag that sets it (for error messages)."""
     return {key: flag for flag, key in table.items()}
+
+
+# --------------------------------------------------------------------------- other commands
+def field_docs(cls: type) -> dict[str, str]:
+    """Field name -> the docstring under it in ``cls``'s source, one paragraph with single
+    spaces ("" for a field without one)."""
+    import ast
+    import textwrap
+
+    docs: dict[str, str] = {}
+    node = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0]
+    for a, b in zip(node.body, node.body[1:], strict=False):
+        if isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name) and \
+                isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant) and \
+                isinstance(b.value.value, str):
+            docs[a.target.id] = " ".join(b.value.value.split())
+    return docs
+
+
+def _field_option(cls: type, flag: str, name: str, docs: dict[str, str]
+                  ) -> tuple[type, Any, typer.models.OptionInfo]:
+    """(value type, default, typer option) of the flag ``flag`` setting field ``name``."""
+    hint = get_type_hints(cls)[name]
+    field = next((f for f in dataclasses.fields(cls) if f.name == name), None)
+    if field is None:
+        raise KeyError(f"{flag}: {cls.__name__} has no field {name}")
+    tp = _value_type(flag, f"{cls.__name__}.{name}", hint)
+    default = None if field.default is dataclasses.MISSING else field.default
+    text = user_help(first_sentence(docs.get(name, "")))
+    if get_origin(hint) is Literal and not set(get_args(hint)) <= set(re.findall(r"[\w-]+",
+                                                                                 text)):
+        text += f" (one of: {', '.join(get_args(hint))})"
+    decl = f"{flag}/--no-{flag[2:]}" if tp is bool else flag
+    return tp, default, typer.Option(decl, help=text)
+
+
+def with_dataclass_flags(fn, cls: type, table: dict[str, str]):
+    """``fn`` with a flag per entry of ``table`` (flag -> field of the dataclass ``cls``) in its
+    signature, in place of its ``**options``: the field's type (a ``bool`` as
+    ``--flag/--no-flag``), its docstring's first sentence as help and its default.
+
+    Raises:
+        TypeError: ``fn`` takes no ``**options`` or already has a parameter of a flag's name, or
+            a field's type has no flag (write that flag by hand).
+        KeyError: ``table`` names a field ``cls`` does not have.
+    """
+    sig = inspect.signature(fn, eval_str=True)
+    params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    if len(params) == len(sig.parameters):
+        raise TypeError(f"{fn.__name__} takes no **options for the generated flags")
+    taken = {p.name for p in params}
+    docs = field_docs(cls)
+    for flag, name in table.items():
+        param = param_name(flag)
+        if param in taken:
+            raise TypeError(f"{flag}: {fn.__name__} already has a parameter {param}")
+        tp, default, option = _field_option(cls, flag, name, docs)
+        params.append(inspect.Parameter(
+            param, inspect.Parameter.KEYWORD_ONLY, default=default,
+            annotation=Annotated[tp if default is not None else tp | None, option]))
+    fn.__signature__ = sig.replace(parameters=params)
+    return fn
+
+
+def dataclass_values(table: dict[str, str], options: dict[str, Any]) -> dict[str, Any]:
+    """The values typer passed for ``table``'s flags -> field name -> value (the keywords of
+    the command's dataclass)."""
+    return {name: options[param_name(flag)] for flag, name in table.items()}

@@ -8,48 +8,34 @@ from typing import Annotated
 import typer
 
 from svolsdf.cli.app import _STATE, _parse_size, _parse_views, _Stopped, app
+from svolsdf.cli.flags import (
+    EVALUATE_FLAGS,
+    RENDER_IBR_FLAGS,
+    dataclass_values,
+    with_dataclass_flags,
+)
 from svolsdf.errors import RunInterrupted
+from svolsdf.evaluate.scoring import EvaluateConfig
+from svolsdf.ibr import IBRConfig
 from svolsdf.io.paths import input_dir, input_file, input_path, output_dir
 
 
 # --------------------------------------------------------------------------- evaluate
-@app.command("evaluate")
 def evaluate(
     out: Annotated[Path, typer.Argument(help="Run folder (points.ply, mesh.ply, renders/, ...).")],
-    gt_points: Annotated[Path | None, typer.Option(
-        "--gt-points", help="Ground-truth points (.ply or (N,3) .npy) for the generic Chamfer "
-                            "and F-score.")] = None,
-    dtu_gt: Annotated[Path | None, typer.Option(
-        "--dtu-gt", help="DTU ground-truth root (ObsMask/, Points/stl/): DTU Chamfer protocol."
-    )] = None,
-    scan: Annotated[int | None, typer.Option(
-        "--scan", help="DTU scan number (default: from the scene).")] = None,
-    scene: Annotated[Path | None, typer.Option(
-        "--scene", help="Scene folder with the ground-truth images (default: from "
-                        "OUT/config.yaml).")] = None,
     views: Annotated[str | None, typer.Option(
         "--views", help="View ids to evaluate, e.g. '1,2,9' (default: every "
                         "renders/<id>.png).")] = None,
-    threshold: Annotated[float | None, typer.Option(
-        "--threshold", help="F-score threshold in world units (default: 1% of the ground "
-                            "truth's bounding-box diagonal).")] = None,
-    lpips_net: Annotated[str, typer.Option(
-        "--lpips-net", help="LPIPS backbone: vgg (the paper's) or alex.")] = "vgg",
-    lpips_weights: Annotated[Path | None, typer.Option(
-        "--lpips-weights", help="LPIPS weights: a whole LPIPS file or folder, or torchvision's "
-                                "backbone file (vgg16-397923af.pth) on a machine without "
-                                "internet (default: downloaded once into the torch cache).")
-    ] = None,
-    ssim_data_range: Annotated[float, typer.Option(
-        "--ssim-data-range", help="SSIM data range; 2.0 reproduces the released code.")] = 1.0,
-    no_report: Annotated[bool, typer.Option(
-        "--no-report", help="Write metrics.json only.")] = False,
+    **options,  # the flags of EVALUATE_FLAGS (`with_dataclass_flags`), by parameter name
 ) -> None:
     """Chamfer / F-score and PSNR / SSIM / LPIPS of a run: OUT/metrics.json and OUT/report.html."""
     from svolsdf.evaluate.run_outputs import check_views_rendered, metric_lines
-    from svolsdf.evaluate.scoring import EvaluateConfig, evaluate_run
+    from svolsdf.evaluate.scoring import evaluate_run
     from svolsdf.scene.loaders import scene_folder
 
+    values = dataclass_values(EVALUATE_FLAGS, options)
+    gt_points, dtu_gt, scene = values["gt_points"], values["dtu_gt"], values["scene"]
+    lpips_weights = values["lpips_weights"]
     out = input_dir(out, "run folder")
     if gt_points is not None:
         gt_points = input_file(gt_points, "ground-truth points file", "--gt-points")
@@ -61,15 +47,16 @@ def evaluate(
         lpips_weights = input_path(lpips_weights, "LPIPS weights file or folder",
                                    "--lpips-weights")
     check_views_rendered(out, _parse_views(views))
-    cfg = EvaluateConfig(out=out, gt_points=gt_points, dtu_gt=dtu_gt, scan=scan, scene=scene,
-                         views=_parse_views(views), threshold=threshold, lpips_net=lpips_net,
-                         lpips_weights=lpips_weights, ssim_data_range=ssim_data_range,
-                         report=not no_report)
+    cfg = EvaluateConfig(**{**values, "gt_points": gt_points, "dtu_gt": dtu_gt, "scene": scene,
+                            "lpips_weights": lpips_weights}, out=out, views=_parse_views(views))
     m = evaluate_run(cfg)
     for line in metric_lines(m):
         typer.echo(line)
-    typer.echo(f"wrote {out / 'metrics.json'}" + ("" if no_report else
-                                                   f" and {out / 'report.html'}"))
+    typer.echo(f"wrote {out / 'metrics.json'}" + (f" and {out / 'report.html'}"
+                                                   if cfg.report else ""))
+
+
+app.command("evaluate")(with_dataclass_flags(evaluate, EvaluateConfig, EVALUATE_FLAGS))
 
 
 @app.command("report")
@@ -245,7 +232,6 @@ def benchmark(
 
 
 # --------------------------------------------------------------------------- render
-@app.command("render")
 def render(
     out: Annotated[Path, typer.Argument(help="Run folder of svolsdf reconstruct.")],
     views: Annotated[str | None, typer.Option(
@@ -256,35 +242,27 @@ def render(
                        "instead of scene views.")] = None,
     frames: Annotated[int, typer.Option("--frames", help="Orbit frames.")] = 60,
     ibr: Annotated[bool, typer.Option(
-        "--ibr",
-        help="Also image-based rendering (docs/method.md 7) -> OUT/renders_ibr/.")] = False,
+        "--ibr", help="Also image-based rendering (the input photos reprojected onto the "
+                      "surface and blended) -> OUT/renders_ibr/.")] = False,
     size: Annotated[str | None, typer.Option(
         "--size", help="Render size WxH, e.g. 768x576 (default: the run's working size).")
     ] = None,
     chunk: Annotated[int, typer.Option("--chunk", help="Rays per batch.")] = 4096,
-    ibr_unseen: Annotated[str, typer.Option(
-        "--ibr-unseen", help="IBR where no input view sees the surface: 'render' (the paper: "
-                             "the volume-rendered colour) or 'inpaint' (the seen colours spread "
-                             "by push-pull; docs/novel-views.md).")] = "render",
-    ibr_holes: Annotated[str, typer.Option(
-        "--ibr-holes", help="IBR where the field renders no surface: 'none' (the paper: the "
-                            "rendered colour, black where the field is empty) or 'mesh' (the "
-                            "run's mesh.ply gives the depth there, so the photos are warped "
-                            "onto it).")] = "none",
+    **options,  # the flags of RENDER_IBR_FLAGS (`with_dataclass_flags`), by parameter name
 ) -> None:
     """Novel views: OUT/renders/<id>.png (+ depth/, normals/), OUT/renders_ibr/<id>.png, orbit."""
     from svolsdf.commands.render import render_outputs
     from svolsdf.errors import InputError
-    from svolsdf.ibr import IBRConfig
 
-    if ibr_unseen not in ("render", "inpaint"):
-        raise InputError(f"--ibr-unseen {ibr_unseen!r}: expected 'render' or 'inpaint'")
-    if ibr_holes not in ("none", "mesh"):
-        raise InputError(f"--ibr-holes {ibr_holes!r}: expected 'none' or 'mesh'")
+    values = dataclass_values(RENDER_IBR_FLAGS, options)
+    if values["unseen"] not in ("render", "inpaint"):
+        raise InputError(f"--ibr-unseen {values['unseen']!r}: expected 'render' or 'inpaint'")
+    if values["hole_depth"] not in ("none", "mesh"):
+        raise InputError(f"--ibr-holes {values['hole_depth']!r}: expected 'none' or 'mesh'")
     out = input_dir(out, "run folder")
     res = render_outputs(out, views=_parse_views(views), path=path, ibr=ibr,
                          size=_parse_size(size), frames=frames, chunk=chunk, progress=True,
-                         ibr_config=IBRConfig(unseen=ibr_unseen, hole_depth=ibr_holes))
+                         ibr_config=IBRConfig(**values))
     w, h = res["size"]
     typer.echo(f"rendered {len(res['files'])} view(s) at {w}x{h} "
                f"({res['seconds_per_view']:.1f} s per view) -> {out / 'renders'}"
@@ -294,6 +272,7 @@ def render(
             typer.echo(f"video {res[key]}")
 
 
+app.command("render")(with_dataclass_flags(render, IBRConfig, RENDER_IBR_FLAGS))
 
 
 # --------------------------------------------------------------------------- export

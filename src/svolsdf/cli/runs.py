@@ -9,8 +9,10 @@ from typing import Annotated
 
 import typer
 
+from svolsdf.calibrate import CalibrateConfig
 from svolsdf.cli.app import (
     _RECONSTRUCT_OPTIONS,
+    VIEWS_HELP,
     _parse_auto_views,
     _parse_size,
     _parse_views,
@@ -18,9 +20,21 @@ from svolsdf.cli.app import (
     app,
     build_config,
 )
-from svolsdf.cli.flags import RECONSTRUCT_FLAGS, flag_overrides, with_flags
+from svolsdf.cli.flags import (
+    CALIBRATE_FLAGS,
+    MVS_FLAGS,
+    RECONSTRUCT_FLAGS,
+    SYNTH_FLAGS,
+    dataclass_values,
+    flag_help,
+    flag_overrides,
+    with_dataclass_flags,
+    with_flags,
+)
+from svolsdf.commands.mvs import MVSJobConfig
 from svolsdf.errors import InputError
 from svolsdf.io.paths import input_dir, input_file, input_path, output_dir, output_file
+from svolsdf.scene.synthetic import SynthConfig
 
 
 @app.command("info")
@@ -55,8 +69,8 @@ def info(
 @app.command("config")
 def config_cmd(
     preset_name: Annotated[str | None, typer.Option(
-        "--preset", help="fast (default), draft, paper or released; with --config, the preset "
-                         "the file must name (as reconstruct).")] = None,
+        "--preset", help=flag_help("preset") + " With --config, the preset the file must "
+                                               "name.")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="Show this config.yaml (e.g. OUT/config.yaml) instead of a preset.")
     ] = None,
@@ -85,15 +99,11 @@ def reconstruct(
     scene: Annotated[Path | None, typer.Argument(
         help="Scene folder (any format `svolsdf info` reads); optional with --config.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out"),
-    views: Annotated[str | None, typer.Option(
-        "--views", help="Input view ids, e.g. --views 25 22 28, or --views auto [N]: N (3) views "
-                        "with good overlap and baselines (default: DTU's 25 22 28, or a "
-                        "central view and its two best source views).")] = None,
+    views: Annotated[str | None, typer.Option("--views", help=VIEWS_HELP)] = None,
     size: Annotated[str | None, typer.Option(
         "--size", help="Working size WxH (default: 768 wide, never upsampled).")] = None,
-    preset_name: Annotated[str | None, typer.Option(
-        "--preset", help="fast (default: minutes on a CPU), draft, paper (docs/method.md "
-                         "constants) or released (the released code's settings).")] = None,
+    preset_name: Annotated[str | None, typer.Option("--preset", help=flag_help("preset"))
+                           ] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="A config.yaml (e.g. from an earlier OUT) to start from.")] = None,
     fusion_network: Annotated[Path | None, typer.Option(
@@ -281,20 +291,11 @@ def demo(
 
 
 # --------------------------------------------------------------------------- calibrate
-@app.command("calibrate")
 def calibrate(
     inputs: Annotated[Path, typer.Argument(help="A folder of photos or a video file.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Scene folder to write (COLMAP "
                                                           "model + images/).")],
-    max_size: Annotated[int, typer.Option(
-        "--max-size", help="Longest image side in pixels for SfM and the scene's images.")
-    ] = 1600,
-    matcher: Annotated[str, typer.Option(
-        "--matcher", help="exhaustive (photos), sequential (video frames) or auto.")] = "auto",
-    frames: Annotated[int, typer.Option("--frames", help="Frames sampled from a video.")] = 40,
-    threads: Annotated[int, typer.Option(
-        "--threads", help="CPU threads for structure from motion (-1: all cores).")] = -1,
-    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")] = False,
+    **options,  # the flags of CALIBRATE_FLAGS (`with_dataclass_flags`), by parameter name
 ) -> None:
     """Camera poses for your own photos or video (structure from motion with pycolmap).
 
@@ -303,13 +304,11 @@ def calibrate(
     in OUT/calibration.json. OUT may hold the folder of the photos (OUT/photos, not OUT/images);
     a rerun replaces only what an earlier calibrate wrote, once the new calibration is complete.
     """
-    from svolsdf.calibrate import CalibrateConfig
     from svolsdf.calibrate import calibrate as run_calibrate
 
     inputs = input_path(inputs, "folder of photos or video file")
     out = output_dir(out, "scene folder", "-o", create=False)
-    cfg = CalibrateConfig(max_size=max_size, matcher=matcher, frames=frames, threads=threads,
-                          progress=not no_progress)
+    cfg = CalibrateConfig(**dataclass_values(CALIBRATE_FLAGS, options))
     s = run_calibrate(inputs, out, cfg)
     n_in, n_reg = s["num_inputs"], len(s["registered"])
     kind = "frames" if s["video"] else "photos"
@@ -323,27 +322,21 @@ def calibrate(
     typer.echo(f"scene {out}; next: svolsdf reconstruct {out} --views auto -o RUN")
 
 
+app.command("calibrate")(with_dataclass_flags(calibrate, CalibrateConfig, CALIBRATE_FLAGS))
+
+
 # --------------------------------------------------------------------------- mvs / synth
-@app.command("mvs")
 def mvs(
     scene: Annotated[Path, typer.Argument(help="Scene folder (any format `svolsdf info` reads).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
-    views: Annotated[str | None, typer.Option(
-        "--views", help="Input view ids, e.g. --views 25 22 28 (default: all views).")] = None,
-    backbone: Annotated[str, typer.Option(
-        "--backbone", help="planesweep (training-free, default), casmvsnet or patchmatchnet.")
-    ] = "planesweep",
-    weights: Annotated[Path | None, typer.Option(
-        "--weights", help="Weights of casmvsnet (required) or patchmatchnet (default: "
-                          "../shared/weights/patchmatchnet).")] = None,
+    views: Annotated[str | None, typer.Option("--views", help=VIEWS_HELP)] = None,
     size: Annotated[str | None, typer.Option(
         "--size", help="Working size WxH (default: as reconstruct, at most 768 wide).")
     ] = None,
     depth_range: Annotated[str | None, typer.Option(
         "--depth-range", help="NEAR,FAR z-depth in world units for every view (default: the "
                               "scene's per-view ranges).")] = None,
-    no_fuse: Annotated[bool, typer.Option("--no-fuse", help="Skip the fused points.ply.")
-                       ] = False,
+    **options,  # the flags of MVS_FLAGS (`with_dataclass_flags`), by parameter name
 ) -> None:
     """MVS alone: per-view depth, confidence and probability volumes, and a fused point cloud.
 
@@ -352,10 +345,12 @@ def mvs(
     OUT/confidence/<view>.npy (+ PNG), OUT/points.ply and OUT/mvs.json. A stopped job resumes:
     the rerun reads back the stages that finished.
     """
-    from svolsdf.commands.mvs import MVSJobConfig, run_mvs
+    from svolsdf.commands.mvs import run_mvs
     from svolsdf.scene.loaders import scene_folder
     from svolsdf.scene.size import parse_size
 
+    values = dataclass_values(MVS_FLAGS, options)
+    weights = values["weights"]
     scene = scene_folder(scene)
     out = output_dir(out, "output folder", "-o", create=False)
     if weights is not None:
@@ -368,9 +363,9 @@ def mvs(
             raise InputError(f"--depth-range must be NEAR,FAR (e.g. 425,931); got "
                              f"{depth_range!r}") from None
         rng = (near, far)
-    cfg = MVSJobConfig(scene=scene, out=out, views=_parse_views(views), backbone=backbone,
-                       weights=weights, size=None if size is None else parse_size(size),
-                       depth_range=rng, fuse=not no_fuse)
+    cfg = MVSJobConfig(**{**values, "weights": weights}, scene=scene, out=out,
+                       views=_input_views(scene, views), depth_range=rng,
+                       size=None if size is None else parse_size(size))
     _check_mvs_inputs(cfg)
     with _own_output_folder(out, "svolsdf mvs"):
         s = run_mvs(cfg)
@@ -384,6 +379,22 @@ def mvs(
     if "fusion" in s:
         typer.echo(f"points: {out / 'points.ply'} ({s['fusion']['points_total']} points)")
     typer.echo(f"depth:  {out / 'depth'}/<view>.npy, volumes in {out / 'mvs'}")
+
+
+app.command("mvs")(with_dataclass_flags(mvs, MVSJobConfig, MVS_FLAGS))
+
+
+def _input_views(scene: Path, views: str | None) -> list[int]:
+    """The input views ``--views`` names (ids or ``auto [N]``), by default those reconstruct
+    takes (`svolsdf.pipeline.views.default_views`)."""
+    from svolsdf.pipeline.views import auto_views, default_views
+    from svolsdf.scene.loaders import load_scene
+
+    auto = _parse_auto_views(views)
+    if views is not None and not auto:
+        return _parse_views(views)
+    probe = load_scene(scene, load_images=False)
+    return auto_views(probe, auto) if auto else default_views(probe)
 
 
 def _check_mvs_inputs(cfg) -> None:
@@ -425,17 +436,12 @@ def _own_output_folder(out: Path, command: str):
             shutil.rmtree(os.path.realpath(out), ignore_errors=True)
 
 
-@app.command("synth")
 def synth(
-    out: Annotated[Path, typer.Argument(help="Output folder (new, empty, or an earlier "
-                                             "synthetic scene).")],
-    seed: Annotated[int, typer.Option("--seed", help="Random seed (same seed, same bytes).")
-                    ] = 0,
-    views: Annotated[int, typer.Option("--views", help="Number of views.")] = 9,
+    out: Annotated[Path | None, typer.Option(
+        "--out", "-o", help="Scene folder to write (new, empty, or an earlier synthetic "
+                            "scene).")] = None,
+    old_out: Annotated[Path | None, typer.Argument(hidden=True, show_default=False)] = None,
     size: Annotated[str, typer.Option("--size", help="Image size WxH.")] = "768x576",
-    object_kind: Annotated[str, typer.Option(
-        "--object", help="Object kind: random, sphere, box, torus, capsule or blobs.")
-    ] = "random",
     cameras_from: Annotated[Path | None, typer.Option(
         "--cameras-from", help="Borrow the cameras of this IDR scene (cameras.npz or "
                                "cameras_sphere.npz, image/).")] = None,
@@ -443,15 +449,19 @@ def synth(
         "--camera-views", help="With --cameras-from: the view ids to borrow, e.g. "
                                "'25 22 28 1 10 23' (default: --views evenly spaced ids).")
     ] = None,
-    texture_contrast: Annotated[float, typer.Option(
-        "--texture-contrast", help="Object texture contrast in [0, 1]; below 1 a "
-                                   "low-texture object.")] = 1.0,
+    **options,  # the flags of SYNTH_FLAGS (`with_dataclass_flags`), by parameter name
 ) -> None:
     """Render a synthetic scene with exact ground truth (IDR layout, gt_depth/, gt_points.ply)."""
     from svolsdf.scene.size import parse_size
-    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
+    from svolsdf.scene.synthetic import make_synthetic_scene
 
-    out = output_dir(out, "scene folder", create=False)
+    values = dataclass_values(SYNTH_FLAGS, options)
+    if (out is None) == (old_out is None):  # the positional OUT of earlier versions still works
+        raise InputError("give the scene folder to write as -o OUT" if out is None else
+                         f"two scene folders given ({old_out} and -o {out}): give -o OUT only")
+    out = out if out is not None else old_out
+
+    out = output_dir(out, "scene folder", "-o", create=False)
     if cameras_from is not None:
         cameras_from = input_dir(cameras_from, "IDR scene folder", "--cameras-from")
     w, h = parse_size(size)
@@ -463,11 +473,15 @@ def synth(
             ids = [int(t) for t in camera_views.replace(",", " ").split()]
         except ValueError:
             raise InputError(f"--camera-views: expected view ids, got {camera_views!r}") from None
-        views = len(ids)
-    cfg = SynthConfig(seed=seed, views=views, width=w, height=h, object=object_kind,
+        values["views"] = len(ids)
+    cfg = SynthConfig(**values, width=w, height=h,
                       cameras_from=None if cameras_from is None else str(cameras_from),
-                      camera_views=ids, texture_contrast=texture_contrast)
+                      camera_views=ids)
     path = make_synthetic_scene(out, cfg)
-    typer.echo(f"synthetic scene ({views} views, {w}x{h}, {object_kind}, seed {seed}): {path}")
+    typer.echo(f"synthetic scene ({cfg.views} views, {w}x{h}, {cfg.object}, seed {cfg.seed}): "
+               f"{path}")
+
+
+app.command("synth")(with_dataclass_flags(synth, SynthConfig, SYNTH_FLAGS))
 
 

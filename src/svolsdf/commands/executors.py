@@ -13,11 +13,13 @@ Ray is optional (``pip install "svolsdf[cluster]"``) and imported only by `run_r
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from svolsdf.errors import InputError, raise_if_interrupted
+from svolsdf.runtime import CPU_ENV
 
 __all__ = ["EXECUTORS", "ExecutorConfig", "check_executor", "check_ray_address", "job_threads",
            "run_jobs", "run_local", "run_ray"]
@@ -85,7 +87,7 @@ def check_executor(cfg: ExecutorConfig) -> None:
 
 def check_ray_address(address: str, timeout: float = 5.0, join_timeout: float = 20.0) -> None:
     """Raise `InputError` unless a Ray cluster answers at ``address``: ``ray.init`` retries a
-    wrong one for about 12 minutes (issue 38). First a TCP connection to host:port (``timeout``
+    wrong one for about 12 minutes, silently. First a TCP connection to host:port (``timeout``
     seconds), then ``ray.init`` in a child process, stopped after ``join_timeout`` seconds (a
     port that answers need not be Ray's). ``auto`` (Ray finds the cluster this node joined)
     is not checked.
@@ -214,8 +216,10 @@ def run_ray(fn: Callable[[Any], dict], jobs: Sequence, on_row: Callable[[int, di
                         "until a node that big joins", cfg.cpus_per_job, cfg.gpus_per_job,
                         res.get("CPU", 0), res.get("GPU", 0))
         # one retry when a worker or its node is lost; the job resumes its finished stages
+        # the workers load torch with svolsdf's settings (`svolsdf.runtime.CPU_ENV`)
         task = ray.remote(num_cpus=cfg.cpus_per_job, num_gpus=cfg.gpus_per_job,
-                          max_retries=1)(fn)
+                          max_retries=1, runtime_env={"env_vars": {
+                              k: os.environ.get(k, v) for k, v in CPU_ENV.items()}})(fn)
         pending = {task.remote(job): i for i, job in enumerate(jobs)}
         with _progress(len(jobs) + done, done, progress) as bar:
             while pending:

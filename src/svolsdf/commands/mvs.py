@@ -69,7 +69,8 @@ class MVSJobConfig:
     """Output folder (created; an earlier job's finished stages there are read back when they
     match, the other files of the same names replaced)."""
     views: list[int] | None = None
-    """Input view ids (default: all views of the scene)."""
+    """Input view ids (None: every view of the scene; the command's default is reconstruct's
+    input views)."""
     backbone: str = "planesweep"
     """MVS backbone: planesweep (training-free), casmvsnet or patchmatchnet."""
     weights: Path | None = None
@@ -81,8 +82,8 @@ class MVSJobConfig:
     """(near, far) z-depth in world units for every view; None: the scene's ranges."""
     fuse: bool = True
     """Write the fused MVS-only point cloud points.ply."""
-    device: str = "cpu"
-    """Torch device of the backbone, the scene tensors and the fusion."""
+    device: str = "auto"
+    """Where the work runs: auto (the GPU when there is one), cpu, cuda or cuda:N (GPU N)."""
 
 
 def mvs_depth_range(scene: Scene, depth_range: tuple[float, float] | None = None
@@ -117,9 +118,11 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
     from svolsdf.mvs.backbone import backbone_signature, get_backbone
     from svolsdf.mvs.cascade import run_cascade, save_cascade
     from svolsdf.pipeline.keys import input_manifest
+    from svolsdf.pipeline.machine import resolve_device
     from svolsdf.scene.loaders import load_scene
 
     t_start = time.perf_counter()
+    cfg = replace(cfg, device=str(resolve_device(cfg.device)))
     out = output_dir(cfg.out, "output folder", create=False)
     probe = load_scene(cfg.scene, views=cfg.views, load_images=False)
     if len(probe) < 2:

@@ -1,5 +1,4 @@
-"""Novel views of a finished run: volume rendering and image-based rendering (issue 7,
-docs/method.md 7).
+"""Novel views of a finished run: volume rendering and image-based rendering (docs/method.md 7).
 
 ``svolsdf render OUT`` renders, for each target camera,
 
@@ -193,7 +192,7 @@ def render_outputs(
     ibr_config=None,
     progress: bool = True,
 ) -> dict:
-    """Render novel views of a finished run (``svolsdf render``; issue 7, docs/method.md 7).
+    """Render novel views of a finished run (``svolsdf render``; docs/method.md 7).
 
     Args:
         out: the run folder (config.yaml, views.json, field/model.pt).
@@ -336,9 +335,9 @@ def _render(p, out: Path, views, path, ibr, size, frames, chunk, fps, ibr_config
     if path == "orbit":
         cams_w = orbit_cameras(scene.cameras, frames)
         names = [f"{k:03d}" for k in range(frames)]
-        b = getattr(model, "bounds", None)
+        b = model.box()  # a grid's own box (`SurfaceModel.box`), else none
         cams_u = cams_w.transformed(norm.center, s)
-        if isinstance(b, Tensor):
+        if b is not None:
             near_far = box_near_far(cams_u, b.detach().cpu())
         else:
             r = _scene_range(scene, s)

@@ -25,11 +25,11 @@ __all__ = ["load_config", "save_config", "config_from_dict", "apply_overrides", 
 
 log = logging.getLogger("svolsdf.config")
 
-#: option names before the component sections (issue 40) -> their names now. Config files, run
-#: folders' config.yaml and ``--set`` still take the old names: `config_from_dict` and
-#: `apply_overrides` read them as the new ones and say so in one deprecation line; the stage
-#: keys hash the options under these old names (`legacy_layout`), so run folders made before
-#: the change keep their finished stages.
+#: option names of the flat ``output`` section, before the component sections -> their names
+#: now. Config files, run folders' config.yaml and ``--set`` still take the old names:
+#: `config_from_dict` and `apply_overrides` read them as the new ones and say so in one
+#: deprecation line; the stage keys hash the options under these old names (`legacy_layout`),
+#: so run folders made before the change keep their finished stages.
 RENAMED: dict[str, str] = {
     "output.mesh_method": "mesh.method",
     "output.mesh_resolution": "mesh.resolution",

@@ -25,7 +25,8 @@ def _limited(default: Any = dataclasses.MISSING, *, factory: Any = dataclasses.M
     Limits: ``min`` / ``max`` (inclusive) and ``gt`` (exclusive) bound a number or every item of
     a list; ``len`` / ``min_len`` the length of a list; ``unique`` forbids repeated items;
     ``choices`` is a function returning the allowed strings (for registries that can grow, where
-    a ``Literal`` would be too narrow).
+    a ``Literal`` would be too narrow); ``pattern`` a regular expression a string must match in
+    full, with ``wanted`` saying in words what it allows.
     """
     return dc_field(default=default, default_factory=factory, metadata={"limits": limits})
 
@@ -422,10 +423,11 @@ class Config:
     preset: Literal["fast", "draft", "paper", "released"] = "fast"
     """fast (default; minutes on a CPU) | draft (fast in about half the time: half the field
     steps, the plane sweep at 1.5x, other backbones at their own size; docs/presets.md) | paper
-    (docs/method.md constants; a GPU) | released (paper with the released code's settings and
-    per-scan constants, docs/method.md 9)."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    """auto | cpu | cuda."""
+    (the paper's constants, docs/method.md; a GPU) | released (paper with the released code's
+    settings and per-scan constants, docs/method.md 9)."""
+    device: str = _limited("auto", pattern=r"auto|cpu|cuda(:\d+)?",
+                           wanted="auto, cpu, cuda or cuda:N")
+    """Where the work runs: auto (the GPU when there is one), cpu, cuda or cuda:N (GPU N)."""
     threads: int = _limited(0, min=0)
     """torch intra-op threads; 0 = the cores this process may run on (its CPU affinity), unless
     OMP_NUM_THREADS is set, which then decides (`svolsdf.pipeline.set_threads`)."""

@@ -7,6 +7,7 @@ import dataclasses
 import math
 import numbers
 import os
+import re
 import types
 from collections.abc import Mapping
 from dataclasses import fields
@@ -110,6 +111,9 @@ def _check_value(value: Any, tp: Any, lim: dict) -> Any:
                 raise _Rejected("one of " + ", ".join(repr(a) for a in allowed))
         if not isinstance(value, str):
             raise _Rejected("a string")
+        pattern = lim.get("pattern")
+        if pattern is not None and re.fullmatch(pattern, value) is None:
+            raise _Rejected(lim.get("wanted", f"a string matching {pattern}"))
         return value
     if origin in (list, tuple):
         item_tp = args[0] if args else Any
@@ -206,10 +210,8 @@ def memory_needs(cfg: Config, size: tuple[int, int] | None = None, views: int | 
     Each bound counts only what the run surely allocates, so that a run the machine can hold is
     never refused:
 
-    - the grid field's SDF grid, values and gradients, float32: a box with ``grid_resolution``
-      nodes along its longest side and at least a fifth of that along the others (the field's
-      box is padded by 0.15 of its longest side on each side, `svolsdf.field.bounds`), 2 x R x
-      (R / 5)^2 x 4 bytes;
+    - what the field kind declares (`svolsdf.field.kinds.FieldKind.memory`: the grid field's
+      SDF grid, values and gradients), when the run fits a field;
     - the MVS probability volumes, float32 hypotheses and probabilities (D, H_k, W_k) per view
       (`svolsdf.mvs.volume.ProbabilityVolume`): stage 1 for every input view (kept in memory
       through the run), or one view of a finer stage, 2 x D_k x H_k x W_k x 4 bytes, the stage
@@ -228,10 +230,11 @@ def memory_needs(cfg: Config, size: tuple[int, int] | None = None, views: int | 
     at = "the" if size or cfg.scene.image_size else "the smallest"
     n_views = views or (len(cfg.scene.views) if cfg.scene.views else 2)
     out = []
-    if cfg.field.kind == "grid" and cfg.train.mode != "mvs-only":
-        r = cfg.field.grid_resolution
-        out.append((("field.grid_resolution",), 2.0 * r * max(2, r // 5) ** 2 * 4,
-                    f"the {r}-node SDF grid"))
+    if cfg.train.mode != "mvs-only":  # the field kind's own (`FieldKind.memory`)
+        from svolsdf.field.kinds import get_field_kind
+
+        memory = get_field_kind(cfg.field.kind).memory
+        out.extend(memory(cfg.field) if memory is not None else [])
     if cfg.train.mode != "volsdf":
         scale = max(1.0, float(cfg.mvs.scale or 1.0))
         need, stage = 0.0, 1
@@ -333,8 +336,8 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
         refuse("mvs.third_stage_optimization", True, "mvs.finer_stage_optimization", False,
                "the optimization after stage 3 follows the one after stage 2 (stages 1, 2, 3); "
                "set mvs.finer_stage_optimization=true too")
-    # a baseline never sees MVS (issue 38): the ablations run stage-1 MVS, and the mvs rule
-    # reads its depth into the guide
+    # a baseline never sees MVS, or it would not be the baseline the paper compares with: the
+    # ablations run stage-1 MVS, and the mvs rule reads its depth into the guide
     if t.ablation is not None and t.mode != "svolsdf":
         refuse("train.mode", t.mode, "train.ablation", t.ablation,
                "the ablations change S-VolSDF's prior; "
@@ -352,13 +355,19 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
         refuse("fusion.network_weights", cfg.fusion.network_weights,
                "fusion.network", None, "the weights are of the fusion network; set "
                "fusion.network too or leave the weights out")
-    if t.mode == "mvs-only" and cfg.mesh.method == "field":
+    # what the mesh method declares (svolsdf.fusion.mesh_methods.MeshMethod), never its name
+    from svolsdf.fusion.mesh_methods import get_mesh_method, registered_mesh_methods
+
+    method = get_mesh_method(cfg.mesh.method)
+    if t.mode == "mvs-only" and method.needs_field:
         # no mesh stage runs without a field (svolsdf.pipeline.options.has_field), so no
         # mesh.method makes a mesh in mvs-only: the way out must not promise one
+        of_points = [n for n in registered_mesh_methods() if get_mesh_method(n).needs_points]
         refuse("train.mode", t.mode, "mesh.method", cfg.mesh.method,
                "mvs-only fits no field and makes no mesh of any method, only points.ply: for "
                "a mesh use train.mode svolsdf (or volsdf); for the points alone set "
-               "mesh.method to a method of the points (poisson), which mvs-only leaves unused")
+               f"mesh.method to a method of the points ({', '.join(of_points)}), which "
+               "mvs-only leaves unused")
     # a scale the backbone cannot run at would stop the run at the backbone's construction
     from svolsdf.config.presets import MVS_SCALE_BY_BACKBONE
     from svolsdf.mvs.backbone import backbone_scale_problem
@@ -371,11 +380,12 @@ def _check_combinations(cfg: Config, head: str, labels: Mapping[str, str]) -> No
                why + (f" ({cfg.mvs.scale:g} is the {cfg.preset} preset's scale for "
                       f"{whose[0]})" if whose and "mvs.scale" not in labels else "")
                + ": leave mvs.scale unset (--set mvs.scale=null) for the backbone's own size")
-    if cfg.mesh.watertight and cfg.mesh.method != "field":
+    if cfg.mesh.watertight and not method.closed:
+        closed = [n for n in registered_mesh_methods() if get_mesh_method(n).closed]
         refuse("mesh.watertight", True, "mesh.method", cfg.mesh.method,
-               "the watertight mesh is the field's closed zero level, and the meshes of the "
-               "points (poisson, tsdf, ...) open where no point is: use "
-               "mesh.method=field or drop mesh.watertight")
+               f"the {cfg.mesh.method} method gives no closed surface (a mesh of the points "
+               f"opens where no point is): use mesh.method={' or '.join(closed)} or drop "
+               "mesh.watertight")
     if 0 < t.beta_start < t.beta_end:
         refuse("train.beta_start", t.beta_start, "train.beta_end", t.beta_end,
                "beta is annealed from beta_start down to beta_end (a sharper surface at the "

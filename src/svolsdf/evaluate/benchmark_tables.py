@@ -27,7 +27,7 @@ def method_label(mode: str, field_kind: str | None = None) -> str:
     """What a run of ``mode`` (``cfg.train.mode``) with a field of ``field_kind``
     (``cfg.field.kind``; None: not recorded) is, for tables: ``--mode volsdf`` is the paper's
     VolSDF only with the MLP; with the grid field it is the same fast field without the MVS
-    prior (issue 38)."""
+    prior, which a table must not call VolSDF."""
     if mode == "volsdf":
         return {"grid": "VolSDF (grid field, no prior)", "mlp": "VolSDF (MLP)"}.get(
             field_kind, "VolSDF (field kind not recorded)")

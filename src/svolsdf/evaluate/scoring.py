@@ -117,7 +117,9 @@ class EvaluateConfig:
     lpips_net: Literal["vgg", "alex"] = "vgg"
     """LPIPS backbone, 'vgg' (the paper's) or 'alex'."""
     lpips_weights: Path | None = None
-    """LPIPS weights file or folder (default: shared/weights/lpips)."""
+    """LPIPS weights: a whole LPIPS file or folder, or torchvision's backbone file
+    (vgg16-397923af.pth) on a machine without internet (default: downloaded once into the torch
+    cache)."""
     ssim_data_range: float = 1.0
     """SSIM data range; 2.0 reproduces the released code's numbers (docs/method.md 8.3)."""
     masks: bool = True

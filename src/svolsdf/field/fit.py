@@ -1,5 +1,5 @@
 """Fit the optimized surface to the fused points: the cascade's finer depth applied back to the
-field (issue 28; not in the paper).
+field (ours, not in the paper).
 
 S-VolSDF's optimized surface guides MVS stages 2-3, whose depth is finer than the surface that
 guided them (docs/method.md 6.1-6.3): the fused points are more accurate than the field's zero

@@ -286,7 +286,7 @@ class GridSDFField(SurfaceModel):
         a "name" key ("grid" or "mlp").
         """
         grid = [self.sdf_grid, *self.feature_grids]
-        bg = getattr(self, "background", None)  # a background's maps train as grids
+        bg = self.get_background()  # a background's maps train as grids
         if bg is not None and hasattr(bg, "grid_parameters"):
             grid += bg.grid_parameters()
         grid_ids = {id(p) for p in grid}
@@ -296,12 +296,48 @@ class GridSDFField(SurfaceModel):
             {"params": rest, "lr": lr_mlp, "name": "mlp"},
         ]
 
+    def get_param_groups(self, train) -> list[dict]:
+        """`param_groups` at ``train.lr_grid`` and ``train.lr``, the SDF grid apart at its own
+        (small) rate: ``train.lr_sdf`` started from the MVS surface, else
+        ``train.lr_sdf_sphere``."""
+        groups = self.param_groups(train.lr_grid, train.lr)
+        sdf = self.sdf_grid
+        for g in groups:
+            g["params"] = [p for p in g["params"] if p is not sdf]
+        lr = train.lr_sdf if self.mvs_initialised else train.lr_sdf_sphere
+        groups.append({"params": [sdf], "lr": lr, "name": "sdf"})
+        return groups
+
     def colour_parameters(self) -> list[nn.Parameter]:
         """The parameters of the colour alone: the feature grids, the colour network and the
         background's (`svolsdf.optimize.trainer.Trainer`'s colour steps train only these)."""
-        bg = getattr(self, "background", None)
+        bg = self.get_background()
         return [*self.feature_grids, *self.colour_net.parameters(),
                 *(bg.parameters() if bg is not None else [])]
+
+    def before_step(self) -> None:
+        """`recycle_grads`: the dense gradients' memory is reused every step."""
+        self.recycle_grads()
+
+    def grow(self, resolution: int) -> bool:
+        """`upsample` to ``resolution`` when it is finer than the grid's."""
+        if resolution <= self.resolution:
+            return False
+        self.upsample(resolution)
+        return True
+
+    def extra_losses(self, train):
+        """The grid's eikonal term on every node (``train.grid_eikonal_weight``, from the
+        sphere only: a start from the MVS surface is not a distance field yet) and its
+        Laplacian smoothness (``train.smooth_weight``)."""
+        if train.grid_eikonal_weight > 0 and not self.mvs_initialised:
+            yield "grid_eikonal", train.grid_eikonal_weight, self.grid_eikonal_loss()
+        if train.smooth_weight > 0:
+            yield "smooth", train.smooth_weight, self.smoothness_loss()
+
+    def box(self) -> Tensor:
+        """(2, 3) the grid's box (``bounds``)."""
+        return self.bounds
 
     def recycle_grads(self) -> None:
         """Clear the feature grids' gradients (``.grad = None``), keeping their memory for the

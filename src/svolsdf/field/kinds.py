@@ -23,11 +23,11 @@ from typing import Any
 
 import torch
 
-from svolsdf.registry import Registry
+from svolsdf.registry import DeclaresOptions, Registry
 
-__all__ = ["FieldInputs", "FieldKind", "Refusal", "check_grid", "check_mlp", "get_field_kind",
-           "grid_resolution_schedule", "register_field_kind", "registered_field_kinds",
-           "starts_from_mvs"]
+__all__ = ["FIELD_KINDS", "FieldInputs", "FieldKind", "Refusal", "check_grid", "check_mlp",
+           "get_field_kind", "grid_memory", "grid_resolution_schedule", "register_field_kind",
+           "registered_field_kinds", "starts_from_mvs"]
 
 
 @dataclass
@@ -62,9 +62,12 @@ Schedule = Callable[[Any, Any, bool], list[tuple[int, int]]]
 #: (FieldConfig, TrainConfig, from_sphere) -> the first refused pair of options, or None
 Check = Callable[[Any, Any, bool], "Refusal | None"]
 
+#: (FieldConfig) -> [(the options that set an allocation, bytes, what it is)]
+Memory = Callable[[Any], "list[tuple[tuple[str, ...], float, str]]"]
+
 
 @dataclass(frozen=True)
-class FieldKind:
+class FieldKind(DeclaresOptions):
     """A field kind's registry entry: what it builds and what it can do (the keywords of
     `register_field_kind`).
 
@@ -87,6 +90,12 @@ class FieldKind:
             after the general ones; None: none.
         background: `svolsdf.field.background.BackgroundConfig` fields other than the radius
             of the background model it gets with field.background (empty: the paper's sizes).
+        memory: (FieldConfig) -> lower bounds of the largest allocations the kind makes,
+            [(the options that set it, bytes, what it is)], for the memory check before a run
+            (`svolsdf.config.validate.memory_needs`); None: none worth checking.
+        options: the dotted config keys of the ``field.*`` options the kind reads (its build,
+            schedule and checks), or a function of the run's config returning them;
+            ``reads(cfg)``: {key: value} of them (`svolsdf.registry.DeclaresOptions`).
     """
 
     build: FieldFactory
@@ -96,6 +105,8 @@ class FieldKind:
     schedule: Schedule | None = None
     check: Check | None = None
     background: Mapping[str, Any] = field(default_factory=dict)
+    memory: Memory | None = None
+    options: tuple[str, ...] | Callable[[Any], tuple[str, ...]] = ()
 
     @property
     def starts_from_mvs(self) -> bool:
@@ -103,28 +114,23 @@ class FieldKind:
         return self.init_from_mvs is not None
 
 
-_KINDS: Registry[FieldKind] = Registry("field kind", "svolsdf.field", "register_field_kind")
+def _kind_entry(name: str, build: FieldFactory, *, background: Mapping[str, Any] | None = None,
+                **declared: Any) -> FieldKind:
+    return FieldKind(build, background=dict(background or {}), **declared)
 
 
-def register_field_kind(name: str, *, init_from_mvs: MVSStart | None = None,
-                        sphere_options: bool = False, fits_points: bool = False,
-                        schedule: Schedule | None = None, check: Check | None = None,
-                        background: Mapping[str, Any] | None = None):
-    """Function decorator adding a field kind under ``name``: ``fn(FieldInputs)`` returns the
-    `SurfaceModel`; the function is returned unchanged.
+#: name -> field kind; the modules of `svolsdf.field` that use ``@register_field_kind(...)`` are
+#: imported the first time a name is asked for (`svolsdf.registry.Registry`)
+FIELD_KINDS: Registry[FieldKind] = Registry("field kind", "svolsdf.field", "register_field_kind",
+                                            entry=_kind_entry)
 
-    Args:
-        name: the name `FieldConfig.kind` accepts.
-        init_from_mvs: `FieldKind.init_from_mvs` (None: the kind starts from a sphere only).
-        sphere_options: `FieldKind.sphere_options`.
-        fits_points: `FieldKind.fits_points`.
-        schedule: `FieldKind.schedule` (None: no coarse-to-fine schedule).
-        check: `FieldKind.check` (None: no checks of its own).
-        background: `FieldKind.background` (None: the paper's background sizes).
-    """
-    return _KINDS.decorator(name, lambda fn: FieldKind(
-        fn, init_from_mvs=init_from_mvs, sphere_options=sphere_options, fits_points=fits_points,
-        schedule=schedule, check=check, background=dict(background or {})))
+#: ``@register_field_kind(name, **declared)``: a function decorator adding a field kind, whose
+#: ``fn(FieldInputs)`` returns the `SurfaceModel`; the keywords are `FieldKind`'s fields
+register_field_kind = FIELD_KINDS.register
+#: the names `FieldConfig.kind` accepts, in registration order (the built-in ones first)
+registered_field_kinds = FIELD_KINDS.names
+#: the field kind registered as a name (InputError when none is; call its ``build`` for a model)
+get_field_kind = FIELD_KINDS.get
 
 
 def starts_from_mvs(field_cfg: Any, train_cfg: Any) -> bool:
@@ -138,20 +144,6 @@ def starts_from_mvs(field_cfg: Any, train_cfg: Any) -> bool:
     """
     return (get_field_kind(field_cfg.kind).starts_from_mvs and train_cfg.mode == "svolsdf"
             and field_cfg.init == "mvs" and train_cfg.ablation != "soft-consistency-only")
-
-
-def registered_field_kinds() -> list[str]:
-    """The names `FieldConfig.kind` accepts, in registration order (the built-in ones first)."""
-    return _KINDS.names()
-
-
-def get_field_kind(name: str) -> FieldKind:
-    """The field kind registered as ``name`` (call its ``build`` for a model).
-
-    Raises:
-        InputError: no field kind has that name.
-    """
-    return _KINDS.get(name)
 
 
 # --------------------------------------------------------------------------- built in
@@ -250,8 +242,32 @@ def check_mlp(f, t, from_sphere: bool) -> Refusal | None:
     return None
 
 
+def grid_memory(f) -> list[tuple[tuple[str, ...], float, str]]:
+    """The grid field's SDF grid, values and gradients, float32: a box with ``grid_resolution``
+    nodes along its longest side and at least a fifth of that along the others (the field's box
+    is padded by 0.15 of its longest side on each side, `svolsdf.field.bounds`),
+    2 x R x (R / 5)^2 x 4 bytes.
+
+    Args:
+        f: the `FieldConfig`.
+    """
+    r = f.grid_resolution
+    return [(("field.grid_resolution",), 2.0 * r * max(2, r // 5) ** 2 * 4,
+             f"the {r}-node SDF grid")]
+
+
+def _grid_options(cfg) -> tuple[str, ...]:
+    """The grid's options: its final resolution and the background switch (the sphere clamp),
+    and its start's: the sphere's, or the MVS start's resolution and vote weight."""
+    start = (("field.sphere_start_resolution", "field.sphere_radius")
+             if not starts_from_mvs(cfg.field, cfg.train) else
+             ("field.grid_start_resolution", "field.init_unverified_weight"))
+    return ("field.grid_resolution", "field.background", *start)
+
+
 @register_field_kind("grid", init_from_mvs=_grid_from_mvs, sphere_options=True,
                      fits_points=True, schedule=grid_resolution_schedule, check=check_grid,
+                     memory=grid_memory, options=_grid_options,
                      # a smaller background MLP than the paper's beside the fast field
                      background={"n_layers": 4, "d_hidden": 64, "skip_in": (),
                                  "feature_dim": 32, "colour_hidden": 32})
@@ -277,7 +293,8 @@ def _grid(i: FieldInputs):
     return GridSDFField(box, gcfg)
 
 
-@register_field_kind("mlp", check=check_mlp)
+@register_field_kind("mlp", check=check_mlp,
+                     options=("field.mlp_depth", "field.mlp_width", "field.background"))
 def _mlp(i: FieldInputs):
     """The paper's VolSDF MLP (`VolSDFField`), ``mlp_depth`` x ``mlp_width``."""
     from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig

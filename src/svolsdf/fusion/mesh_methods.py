@@ -23,11 +23,11 @@ import numpy as np
 from torch import Tensor
 
 from svolsdf.errors import raise_if_interrupted
-from svolsdf.registry import Registry
+from svolsdf.registry import DeclaresOptions, Registry
 from svolsdf.scene.scene import Scene
 
-__all__ = ["MeshInputs", "MeshMethod", "get_mesh_method", "register_mesh_method",
-           "registered_mesh_methods", "run_mesh_method"]
+__all__ = ["MESH_METHODS", "MeshInputs", "MeshMethod", "get_mesh_method",
+           "register_mesh_method", "registered_mesh_methods", "run_mesh_method"]
 
 log = logging.getLogger("svolsdf.pipeline")  # the mesh stage's messages, as they always were
 
@@ -67,46 +67,52 @@ class MeshInputs:
 
 
 @dataclass(frozen=True)
-class MeshMethod:
-    """A registered method: ``run(inputs)`` -> (vw, faces, colours); ``needs_points``: it meshes
-    the fused points (the mesh stage then reads OUT/points.ply and needs at least 100 of
-    them); ``needs_observed``: it reads the observed final depth (and so the points too)."""
+class MeshMethod(DeclaresOptions):
+    """A registered method and what it declares (the keywords of ``register_mesh_method``).
+
+    Attributes:
+        name: the name ``mesh.method`` accepts.
+        run: ``run(inputs)`` -> (vw, faces, colours).
+        needs_points: it meshes the fused points (the mesh stage then reads OUT/points.ply and
+            needs at least 100 of them); implied by ``needs_observed``.
+        needs_observed: it reads the observed final depth (and so the points too).
+        needs_field: its surface is the field's zero level: it needs a fitted field (a run
+            that fits none makes no mesh of it), and the mesh may be fitted to the fused points
+            first (``mesh.fit_points``).
+        closed: it can give the closed surface ``mesh.watertight`` asks for.
+        options: the dotted config keys of the options it reads (``"mesh.poisson.depth"``), or
+            a function of the run's `Config` returning them (options that act only with others
+            set); the mesh stage's own options (resolution, culling) are not listed.
+            ``reads(cfg)``: {key: value} of them (`svolsdf.registry.DeclaresOptions`).
+    """
 
     name: str
     run: Callable[[MeshInputs], MeshResult]
     needs_points: bool = False
     needs_observed: bool = False
+    needs_field: bool = False
+    closed: bool = False
+    options: tuple[str, ...] | Callable[[Any], tuple[str, ...]] = ()
+
+    def __post_init__(self):
+        # the observed depth is the views' depth where the fused points confirm it
+        if self.needs_observed:
+            object.__setattr__(self, "needs_points", True)
+
 
 
 #: name -> method; the modules of `svolsdf.fusion` that use ``@register_mesh_method(...)`` are
 #: imported the first time a name is asked for (`svolsdf.registry.Registry`)
-_METHODS: Registry[MeshMethod] = Registry("mesh method", "svolsdf.fusion", "register_mesh_method")
+MESH_METHODS: Registry[MeshMethod] = Registry("mesh method", "svolsdf.fusion",
+                                              "register_mesh_method", entry=MeshMethod)
 
-
-def register_mesh_method(name: str, needs_points: bool = False, needs_observed: bool = False):
-    """Function decorator adding a mesh method under ``name`` (see `MeshMethod`)."""
-
-    def deco(fn: Callable[[MeshInputs], MeshResult]):
-        # the observed depth is the views' depth where the fused points confirm it
-        _METHODS.add(name, MeshMethod(name, fn, needs_points or needs_observed, needs_observed))
-        return fn
-
-    return deco
-
-
-def registered_mesh_methods() -> list[str]:
-    """The names ``mesh.method`` accepts, in registration order (the built-in ones
-    first)."""
-    return _METHODS.names()
-
-
-def get_mesh_method(name: str) -> MeshMethod:
-    """The method registered as ``name``.
-
-    Raises:
-        InputError: no method has that name.
-    """
-    return _METHODS.get(name)
+#: ``@register_mesh_method(name, **declared)``: a function decorator adding a mesh method
+#: (`MeshMethod` lists what it may declare)
+register_mesh_method = MESH_METHODS.register
+#: the names ``mesh.method`` accepts, in registration order (the built-in ones first)
+registered_mesh_methods = MESH_METHODS.names
+#: the method registered as a name (InputError when none is)
+get_mesh_method = MESH_METHODS.get
 
 
 def run_mesh_method(method: MeshMethod, inputs: MeshInputs
@@ -122,7 +128,7 @@ def run_mesh_method(method: MeshMethod, inputs: MeshInputs
         vw (V, 3) world vertices, faces (F, 3), colours (V, 3) uint8 or None, and the source:
         the method's name, or "field (NAME failed: REASON)".
     """
-    if method.name != "field":
+    if not method.needs_field:
         try:
             if method.needs_points and (inputs.points is None or len(inputs.points) < 100):
                 n = 0 if inputs.points is None else len(inputs.points)
@@ -136,20 +142,33 @@ def run_mesh_method(method: MeshMethod, inputs: MeshInputs
             reason = " ".join(str(e).split())[:200]
             log.warning("mesh: no %s surface of the fused points (%s); the field's zero level "
                         "instead", method.name, reason)
-            vw, f, cols = get_mesh_method("field").run(inputs)
+            vw, f, cols = get_mesh_method(_FALLBACK).run(inputs)
             return vw, f, cols, f"field ({method.name} failed: {reason})"
     vw, f, cols = method.run(inputs)
-    return vw, f, cols, "field"
+    return vw, f, cols, method.name
 
 
 # --------------------------------------------------------------------------- built in
-@register_mesh_method("field")
+#: the method every other one falls back to: the field's zero level always exists
+_FALLBACK = "field"
+
+
+@register_mesh_method("field", needs_field=True, closed=True)
 def _field(m: MeshInputs) -> MeshResult:
     """The field's zero level (`svolsdf.fusion.meshing.field_mesh`), the paper's mesh."""
     return m.field_mesh()
 
 
-@register_mesh_method("poisson", needs_points=True)
+_POISSON = ("mesh.poisson.depth", "mesh.poisson.trim")
+
+
+def _tsdf_options(cfg) -> tuple[str, ...]:
+    """The TSDF's options, and the Poisson surface's when it fills the TSDF's small holes."""
+    own = ("mesh.tsdf.resolution", "mesh.tsdf.truncation_steps", "mesh.tsdf.fill_holes")
+    return own + (_POISSON if cfg.mesh.tsdf.fill_holes > 0 else ())
+
+
+@register_mesh_method("poisson", needs_points=True, options=_POISSON)
 def _poisson(m: MeshInputs) -> MeshResult:
     """Screened Poisson of the fused points (`svolsdf.fusion.meshing.poisson_mesh`)."""
     from svolsdf.fusion.meshing import poisson_mesh
@@ -160,7 +179,7 @@ def _poisson(m: MeshInputs) -> MeshResult:
                         rel_tol=o.cull_tol, device=m.device)
 
 
-@register_mesh_method("tsdf", needs_points=True, needs_observed=True)
+@register_mesh_method("tsdf", needs_observed=True, options=_tsdf_options)
 def _tsdf(m: MeshInputs) -> MeshResult:
     """The TSDF of the final depth the fused points confirm
     (`svolsdf.fusion.meshing.points_tsdf_mesh`)."""

@@ -127,11 +127,11 @@ class IBRConfig:
     surface is a quarter of the test views' masks and holds about half of their error)."""
 
     hole_depth: Literal["none", "mesh"] = "none"
-    """Depth of the target and source pixels where the field renders no surface (opacity
-    below 0.5; `svolsdf render` applies it, `ibr_render` takes the depths it is given).
-    "none" (paper): no depth there, so the rendered colour shows (black where the field left
-    the ray empty). "mesh": the run's mesh (OUT/mesh.ply) rasterized at the view fills those
-    pixels, so the input photos are warped there too (docs/novel-views.md)."""
+    """Depth where the field renders no surface: none (the paper: no depth, so the rendered
+    colour shows, black where the field left the ray empty) or mesh (the run's mesh.ply gives
+    the depth there, so the photos are warped onto it). Pixels of opacity below 0.5 of the
+    target and of the sources are holes; `svolsdf render` fills them (`mesh_depth_fill`),
+    `ibr_render` takes the depths it is given (docs/novel-views.md)."""
 
     inpaint_levels: int = 8
     """Pyramid levels of the push-pull fill (``unseen == "inpaint"``); 8 spreads colour about

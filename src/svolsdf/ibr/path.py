@@ -1,4 +1,4 @@
-"""Smooth camera paths between input views, for novel-view videos (issue 7, ``--path orbit``).
+"""Smooth camera paths between input views, for novel-view videos (``--path orbit``).
 
 The path visits the given views in order. Between consecutive views the camera centre moves on
 an arc around a look-at point p: its direction from p is slerped and its distance to p is
@@ -123,7 +123,7 @@ def orbit_cameras(
     target: Tensor | None = None,
     closed: bool = False,
 ) -> Cameras:
-    """A smooth camera path through the given views, for orbit videos (issue 7).
+    """A smooth camera path through the given views, for orbit videos.
 
     See the module docstring: centres on arcs around the look-at point ``target`` (slerped
     direction, linearly interpolated distance), orientation = look-at rotation (slerped up

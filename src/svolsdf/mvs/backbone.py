@@ -38,6 +38,7 @@ from svolsdf.scene.cameras import Cameras
 from svolsdf.scene.scene import Scene
 
 __all__ = [
+    "BACKBONES",
     "MAX_SOURCES",
     "select_sources",
     "MVSBackbone",
@@ -79,6 +80,8 @@ class MVSBackbone(ABC):
     num_stages: int = NUM_STAGES
     #: the dataclass its ``**cfg`` keywords fill (None: the keywords are the whole config)
     config_class: type | None = None
+    #: it can start a stage from a given depth map (``fusion.network``; PatchmatchNet can)
+    can_start_from_depth: bool = False
 
     @classmethod
     def signature(cls, weights=None, **cfg) -> dict:
@@ -179,36 +182,24 @@ class MVSBackbone(ABC):
 
 
 # --------------------------------------------------------------------------- registry
+def _named(name: str, cls: type[MVSBackbone]) -> type[MVSBackbone]:
+    cls.name = name
+    return cls
+
+
 #: name -> backbone class; the modules of `svolsdf.mvs` that use ``@register_backbone(...)`` are
 #: imported the first time a name is asked for (`svolsdf.registry.Registry`)
-_BACKBONES: Registry[type[MVSBackbone]] = Registry("MVS backbone", "svolsdf.mvs",
-                                                   "register_backbone", sort=True)
+BACKBONES: Registry[type[MVSBackbone]] = Registry("MVS backbone", "svolsdf.mvs",
+                                                  "register_backbone", sort=True, entry=_named)
 
-
-def register_backbone(name: str):
-    """Class decorator adding a backbone under ``name`` (its ``create`` builds it); in a module
-    of `svolsdf.mvs` it is found without any other edit."""
-
-    def deco(cls):
-        _BACKBONES.add(name, cls)
-        cls.name = name
-        return cls
-
-    return deco
-
-
-def unregister_backbone(name: str) -> None:
-    """Withdraw the backbone registered as ``name`` (a test's, say); unknown names are ignored."""
-    _BACKBONES.remove(name)
-
-
-def available_backbones() -> list[str]:
-    """Names accepted by :func:`get_backbone`, in alphabetical order."""
-    return _BACKBONES.names()
-
-
-def _backbone_class(name: str) -> type[MVSBackbone]:
-    return _BACKBONES.get(name)
+#: ``@register_backbone(name)``: a class decorator adding a backbone (its ``create`` builds
+#: it); in a module of `svolsdf.mvs` it is found without any other edit
+register_backbone = BACKBONES.register
+#: withdraw the backbone registered as a name (a test's, say); unknown names are ignored
+unregister_backbone = BACKBONES.remove
+#: the names accepted by `get_backbone`, in alphabetical order
+available_backbones = BACKBONES.names
+_backbone_class = BACKBONES.get
 
 
 def backbone_config_class(name: str) -> type | None:

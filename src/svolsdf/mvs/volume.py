@@ -75,7 +75,7 @@ class ProbabilityVolume:
         """Write a .npz (prob as float16) atomically, deflating only the arrays that shrink.
 
         Deflate took ~0.8 s of the ~1 s per stage-3 volume at 768x576 (scale 2: 8 x 1152 x 1536)
-        for files 30 % smaller, and over a tenth of the MVS stages' time (issue 39). Each array
+        for files 30 % smaller, and over a tenth of the MVS stages' time. Each array
         is now deflated (level 1) only when a sample of its bytes shrinks to under half
         (`_deflates_well`): stage 1's fronto-parallel ``depths`` (~200x) and stage 2's (~5x);
         the probabilities, the depth and confidence maps and stage 3's per-pixel hypotheses

@@ -80,7 +80,7 @@ def gce_weight_loss(
         # step's gradient NaN; eps = the released form's 1e-8 (docs/method.md 9.2.4). Negatives are
         # rounded to 0 with the gradient passed straight through: at exactly w = 0, clamp_min's
         # own gradient depends on the torch version (1 up to 2.13, 0 from 2.14: pytorch/pytorch
-        # issue 195931; tests/optimize/test_losses.py caught it), and without it the loss cannot
+        # #195931; tests/optimize/test_losses.py caught it), and without it the loss cannot
         # pull up the empty samples it labels
         w_pos = w + (w.clamp_min(0.0) - w).detach()
         per = p * (1.0 - (w_pos + _LOG_EPS) ** q) / q

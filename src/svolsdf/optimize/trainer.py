@@ -31,6 +31,7 @@ from torch.profiler import record_function
 from svolsdf.config import TrainConfig
 from svolsdf.errors import raise_if_interrupted
 from svolsdf.field.base import SurfaceModel
+from svolsdf.field.saved import field_state, load_field, read_field
 from svolsdf.optimize import losses as L
 from svolsdf.optimize.modes import ABLATIONS, supervised_by_mvs_depth, uses_prior
 from svolsdf.render.rays import RayBundle, rays_from_cameras
@@ -113,7 +114,7 @@ class Trainer:
         self.V, self.H, self.W = V, H, W
         # pixel indices (into H*W) of each view's focus region, padded: (V, max count), (V,)
         self.focus_index = self.focus_count = None
-        if cfg.colour_steps > 0 and not callable(getattr(model, "colour_parameters", None)):
+        if cfg.colour_steps > 0 and model.colour_parameters() is None:
             raise ValueError("train.colour_steps needs a field whose colour trains alone "
                              "(colour_parameters: the grid field)")
         if data.focus is not None and (cfg.object_ray_fraction > 0 or cfg.colour_steps > 0):
@@ -144,32 +145,18 @@ class Trainer:
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self._build_optimizer()
         self.history: list[dict] = []
-        # docs/method.md 4.5: the eikonal term uses the raw field, without the sphere clamp (for
-        # fields whose sdf_and_grad can switch it off); decided once, not every step
-        import inspect
-
-        clamp_arg = "clamp" in inspect.signature(self.model.sdf_and_grad).parameters
-        self._noclamp = {"clamp": False} if clamp_arg else {}
         # the NaN-safe update (`_safe_clip`), the step's pixels, the colour only where it counts
         # (train.colour_min_weight) and the prior's sources only where P_ref counts
         # (`MVSPrior.label`) read sizes or flags on the host where that costs nothing
         self.host_branch = torch.device(self.device).type == "cpu"
-        if prior is not None and hasattr(prior, "label_floor"):
+        if prior is not None:
             prior.label_floor = cfg.prior_floor  # (the sampler reads the same prior)
 
     # ------------------------------------------------------------------ setup
     def _build_optimizer(self) -> None:
-        if hasattr(self.model, "param_groups"):
-            groups = self.model.param_groups(self.cfg.lr_grid, self.cfg.lr)
-            sdf = getattr(self.model, "sdf_grid", None)
-            if sdf is not None:  # the SDF grid gets its own (small) rate
-                for g in groups:
-                    g["params"] = [p for p in g["params"] if p is not sdf]
-                lr = self.cfg.lr_sdf if getattr(self.model, "mvs_initialised", False) \
-                    else self.cfg.lr_sdf_sphere
-                groups.append({"params": [sdf], "lr": lr, "name": "sdf"})
-        else:
-            groups = [{"params": list(self.model.parameters()), "lr": self.cfg.lr}]
+        # the field's groups and rates (`SurfaceModel.get_param_groups`: the grid's SDF grid
+        # apart at its own small rate)
+        groups = self.model.get_param_groups(self.cfg)
         # docs/method.md 4.6: Adam, default betas, constant learning rate. The fused kernel does the
         # same update in one pass per tensor: on the fast preset's dense grids (~11 M
         # parameters) it measured ~6x faster than the per-tensor loop on the CPU, 1.36x on a
@@ -180,12 +167,13 @@ class Trainer:
 
     def _maybe_grow_grid(self) -> None:
         for at_step, res in self.grid_schedule:
-            if self.step == at_step and hasattr(self.model, "upsample") \
-                    and res > self.model.resolution:
+            if self.step == at_step:
                 with record_function("svolsdf.grid_growth"):
-                    self.model.upsample(res)
-                    self._build_optimizer()
-                log.info("grid grown to %d at step %d", res, self.step)
+                    grown = self.model.grow(res)
+                    if grown:
+                        self._build_optimizer()
+                if grown:
+                    log.info("grid grown to %d at step %d", res, self.step)
 
     # ------------------------------------------------------------------ rays
     def sample_rays(self, n: int, focus_share: float | None = None
@@ -219,7 +207,7 @@ class Trainer:
         """Rays of view t (an int or a (1,) long tensor) through pixels uv (R, 2), clipped to
         the view's depth range (only the near bound with a background model: the foreground
         then ends at the bounding sphere, docs/method.md 5.5)."""
-        radius = float(getattr(self.model, "radius", 3.0))
+        radius = float(self.model.radius)
         R = uv.shape[0]
         view = (torch.full((R,), t, device=self.device) if isinstance(t, int)
                 else t.reshape(1).expand(R))
@@ -236,7 +224,7 @@ class Trainer:
     @property
     def background(self):
         """The model's background (``model.background``, docs/method.md 5.5) or None."""
-        return getattr(self.model, "background", None)
+        return self.model.get_background()
 
     # ------------------------------------------------------------------ one step
     def losses(self) -> dict[str, Tensor]:
@@ -246,7 +234,7 @@ class Trainer:
         # the shortcuts that read sizes on the host (the colour where it counts, the prior's
         # sources where P_ref counts) only where that costs nothing (host_branch: the CPU)
         host = self.host_branch
-        if self.prior is not None and hasattr(self.prior, "host_reads"):
+        if self.prior is not None:
             self.prior.host_reads = host
         with record_function("svolsdf.rays"):
             rays, pix, t = self.sample_rays(cfg.rays)
@@ -287,10 +275,8 @@ class Trainer:
             # eikonal (docs/method.md 4.5): R uniform points in the box + one sample per ray
             lo, hi = self._eikonal_box()
             u = torch.rand(R, 3, device=self.device) * (hi - lo) + lo
-            if hasattr(model, "sdf_grad"):  # without the colour features it would discard
-                _, g_u = model.sdf_grad(u, create_graph=True, **self._noclamp)
-            else:
-                _, g_u, _ = model.sdf_and_grad(u, create_graph=True, **self._noclamp)
+            # the raw field, without the sphere clamp (docs/method.md 4.5)
+            _, g_u = model.sdf_grad(u, create_graph=True, clamp=False)
             g_all = torch.cat([g_u, out.grad[torch.arange(R, device=self.device),
                                              s.eik_index.clamp_max(out.grad.shape[1] - 1)]], 0)
             terms["eikonal"] = L.eikonal_loss(g_all)
@@ -314,29 +300,22 @@ class Trainer:
                     terms["sparse"] = L.sparse_loss(out.depth_all, p_label,
                                                     normalize=cfg.sparse_norm)
                     total = total + w_sp * terms["sparse"]
-            if cfg.grid_eikonal_weight > 0 and hasattr(model, "grid_eikonal_loss") \
-                    and not getattr(model, "mvs_initialised", False):
-                terms["grid_eikonal"] = model.grid_eikonal_loss()
-                total = total + cfg.grid_eikonal_weight * terms["grid_eikonal"]
-            if cfg.smooth_weight > 0 and hasattr(model, "smoothness_loss"):
-                terms["smooth"] = model.smoothness_loss()
-                total = total + cfg.smooth_weight * terms["smooth"]
+            for name, weight, loss in model.extra_losses(cfg):  # the field's own terms
+                terms[name] = loss
+                total = total + weight * loss
             terms["total"] = total
             terms["psnr"] = -10.0 * torch.log10(((out.rgb.detach() - target) ** 2).mean()
                                                 + 1e-10)
         return terms
 
     def _eikonal_box(self) -> tuple[Tensor, Tensor]:
-        b = getattr(self.model, "bounds", None)
-        if isinstance(b, Tensor) and b.shape == (2, 3):
-            return b[0].to(self.device), b[1].to(self.device)
-        r = float(getattr(self.model, "radius", 3.0))
-        return (torch.full((3,), -r, device=self.device), torch.full((3,), r, device=self.device))
+        b = self.model.sample_box(self.device)
+        return b[0].to(self.device), b[1].to(self.device)
 
     def _anneal_beta(self) -> None:
         """TrainConfig.beta_start > 0: beta follows a log-linear anneal instead of being learned."""
         cfg = self.cfg
-        lap = getattr(self.model, "laplace", None)
+        lap = self.model.laplace_density()
         if cfg.beta_start <= 0 or lap is None:
             return
         t = min(self.step / max(cfg.steps, 1), 1.0)
@@ -376,9 +355,7 @@ class Trainer:
             if not colour:  # colour steps keep the surface's last beta, as its density
                 self._anneal_beta()
             self.model.train()
-            recycle = getattr(self.model, "recycle_grads", None)
-            if recycle is not None:  # the grid field reuses its dense gradients' memory
-                recycle()
+            self.model.before_step()  # (the grid field reuses its dense gradients' memory)
             self.optimizer.zero_grad(set_to_none=True)
             if colour != self._surface_frozen:
                 self._freeze_surface(colour)
@@ -501,10 +478,9 @@ class Trainer:
         path = Path(path) if path is not None else self.checkpoint_path()
         path.parent.mkdir(parents=True, exist_ok=True)
         state = {
-            "model_state_dict": self.model.state_dict(),
+            **field_state(self.model),
             "optimizer": self.optimizer.state_dict(),
             "iter_step": self.step,
-            "grid_resolution": getattr(self.model, "resolution", None),
             "generator": self.generator.get_state(),
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state(self.device)
@@ -522,9 +498,9 @@ class Trainer:
         path = Path(path) if path is not None else self.checkpoint_path()
         if not path.is_file():
             return False
-        state = torch.load(path, map_location=self.device, weights_only=False)
+        state = read_field(path, map_location=self.device)
         before = [id(q) for q in self.model.parameters()]
-        self.model.load_state_dict(state["model_state_dict"])
+        load_field(self.model, state)
         if [id(q) for q in self.model.parameters()] != before:
             # the grid field took the checkpoint's (grown, or other-box) grid shapes
             self._build_optimizer()

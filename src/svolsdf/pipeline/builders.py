@@ -56,7 +56,7 @@ def build_network_backbone(cfg: Config, device=None):
 
     bb = get_backbone(cfg.fusion.network, weights=cfg.fusion.network_weights,
                       max_sources=cfg.mvs.max_sources, device=device)
-    if not getattr(bb, "can_start_from_depth", False):
+    if not bb.can_start_from_depth:
         raise InputError(f"fusion.network: the {cfg.fusion.network!r} backbone "
                          "cannot start from a depth map (patchmatchnet can)")
     return bb
@@ -79,8 +79,9 @@ def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
     model = field_kind(cfg).build(FieldInputs(f, not field_from_mvs(cfg), bounds))
     if f.background:
         attach_background(model, f.kind, f.background_model)
-    if cfg.train.beta_min > 0 and hasattr(model, "laplace"):
-        model.laplace.beta_min = float(cfg.train.beta_min)  # docs/method.md 5.4's floor
+    lap = model.laplace_density()
+    if cfg.train.beta_min > 0 and lap is not None:
+        lap.beta_min = float(cfg.train.beta_min)  # docs/method.md 5.4's floor
     return model
 
 

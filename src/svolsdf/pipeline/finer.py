@@ -8,8 +8,9 @@ import logging
 import numpy as np
 import torch
 
+from svolsdf.field.saved import save_field
 from svolsdf.pipeline.context import StageContext
-from svolsdf.pipeline.rundir import save_npy, save_torch
+from svolsdf.pipeline.rundir import save_npy
 
 __all__ = ["finer_stage_cascade"]
 
@@ -56,8 +57,7 @@ def finer_stage_cascade(p: StageContext, guide: dict[int, torch.Tensor], model) 
         trainer.fit(progress=p.progress)
         log.info("finer-stage optimization: %d more steps against the stage-%d volumes",
                  t2.steps, stage)
-        save_torch(p.dir.refined_model, {"model_state_dict": model.state_dict(),
-                                         "grid_resolution": getattr(model, "resolution", None)})
+        save_field(p.dir.refined_model, model)
         depth = p.render_guide(model).depth
         for v, d in depth.items():  # the refined surface, for fusion (fusion.surface)
             save_npy(p.dir.render_depth_dir(refined=True) / f"{v}.npy",

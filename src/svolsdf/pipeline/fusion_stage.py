@@ -58,8 +58,9 @@ def fuse(p: StageContext, path: Path) -> tuple[int, dict]:
     f = cfg.fusion  # the filter's options have the same names as the config's
     fcfg = FusionFilterConfig(dist=f.dist, rel=f.rel, min_views=f.min_views, conf=f.conf,
                               surface=f.surface, use_masks=cfg.scene.use_masks)
-    # every mode's final depth within the same masks (issue 50): a field's depth, guided or
-    # rendered, within fusion.guided_dilation, the MVS cascade's alone within unguided_dilation
+    # every mode's final depth within the same masks (the modes compared on one region): a
+    # field's depth, guided or rendered, within fusion.guided_dilation, the MVS cascade's alone
+    # within unguided_dilation
     fcfg.primary_mask_dilation = options.mask_dilation(cfg)
     if options.guided_mvs(cfg):  # the unguided set, when fusion.unguided adds it
         fcfg.alt_mask_dilation = f.unguided_dilation

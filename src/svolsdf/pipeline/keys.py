@@ -32,7 +32,6 @@ from svolsdf.pipeline.options import (
     mesh_from_points,
     wants_mesh_fit,
     wants_network,
-    wants_poisson,
     wants_unguided,
 )
 
@@ -52,6 +51,12 @@ _FUSION_KEYS_WHEN_SET = ("fusion_network", "fusion_network_weights", "fusion_ung
 _WIDTH_KEYS = {"half-default": "paper"}
 _WIDTH_MARKED = ("paper",)
 _WIDTH_MARK = "mvs.width paper = (1, 0.5, 0.5)"
+
+
+def wants_poisson(cfg: Config) -> bool:
+    """The Poisson surface of the fused points enters the mesh key (under the name these keys
+    have always given it): ``mesh.method`` poisson without a watertight mesh."""
+    return cfg.mesh.method == "poisson" and not cfg.mesh.watertight
 
 
 def _hash(*parts) -> str:

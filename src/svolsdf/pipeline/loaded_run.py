@@ -14,6 +14,7 @@ import torch
 
 from svolsdf.config import Config
 from svolsdf.errors import InputError
+from svolsdf.field.saved import load_field, read_field
 from svolsdf.mvs.volume import ProbabilityVolume
 from svolsdf.pipeline.keys import stage_keys
 from svolsdf.pipeline.machine import resolve_device
@@ -36,14 +37,13 @@ def load_model(model, path: Path) -> None:
         RuntimeError: it holds another field than ``model`` (torch's message).
     """
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        sd = state["model_state_dict"]
+        state = read_field(path)
     except Exception as e:
         if not is_unreadable_file(e):  # a bug, not a truncated or corrupt file
             raise
         raise InputError(f"{path}: not a readable field file ({one_line(e)})") from None
     # a grid field takes the stored box and grid shapes (GridSDFField._load_from_state_dict)
-    model.load_state_dict(sd)
+    load_field(model, state)
 
 
 class Run:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import resource
 import sys
 
@@ -14,17 +15,24 @@ __all__ = ["peak_rss_gb", "resolve_device", "set_threads"]
 
 
 def resolve_device(name: str) -> torch.device:
-    """The torch device of ``--device`` auto (CUDA when available), cpu or cuda.
+    """The torch device of ``--device`` auto (CUDA when available), cpu, cuda or cuda:N.
 
     Raises:
-        InputError: cuda without a CUDA device, or an unknown name.
+        InputError: cuda without a CUDA device, cuda:N beyond the devices there are, or an
+            unknown name.
     """
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA device is available")
-    if name not in ("cpu", "cuda"):
-        raise InputError(f"unknown device {name!r} (auto, cpu or cuda)")
+    m = re.fullmatch(r"cpu|cuda(?::(\d+))?", str(name))
+    if m is None:
+        raise InputError(f"unknown device {name!r} (auto, cpu, cuda or cuda:N)")
+    if name.startswith("cuda"):
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if n == 0:
+            raise InputError(f"--device {name}: no CUDA device is available")
+        if m.group(1) is not None and int(m.group(1)) >= n:
+            raise InputError(f"--device {name}: there {'is' if n == 1 else 'are'} {n} CUDA "
+                             f"device{'s' if n > 1 else ''} (cuda:0 .. cuda:{n - 1})")
     return torch.device(name)
 
 

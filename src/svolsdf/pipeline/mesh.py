@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from svolsdf.field.saved import save_field
 from svolsdf.pipeline import options
 from svolsdf.pipeline.context import StageContext
 from svolsdf.pipeline.loaded_run import Run, load_model
-from svolsdf.pipeline.rundir import save_torch
 
 __all__ = ["build_mesh", "observed_depths_of"]
 
@@ -128,8 +128,8 @@ def _field_mesh(p: StageContext, model, scene, use_masks: bool):
     if fit:
         model = _surface_fitted_to_points(p, model)
     model.eval()
-    b = getattr(model, "bounds", None)
-    bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else p.field_bounds()
+    b = model.box()  # a grid's own box, else the field's (`SurfaceModel.box`)
+    bounds = b.detach().cpu() if b is not None else p.field_bounds()
     # the fitted surface moved away from the rendered depth: the views' depth of the mesh
     # itself decides what they see
     mc = p.cfg.mesh
@@ -168,7 +168,5 @@ def _surface_fitted_to_points(p: StageContext, model):
     fitted = copy.deepcopy(model)
     fit_sdf_to_points(fitted, unit.to(p.device), steps=p.cfg.mesh.fit_points,
                       seed=p.cfg.train.seed)
-    save_torch(p.dir.surface_model, {"model_state_dict": fitted.state_dict(),
-                                     "grid_resolution": getattr(fitted, "resolution", None),
-                                     "bounds": getattr(fitted, "bounds", None)})
+    save_field(p.dir.surface_model, fitted)
     return fitted

@@ -10,8 +10,8 @@ from svolsdf.optimize import modes
 
 __all__ = ["field_from_mvs", "field_kind", "fits_to_mvs_depth", "grid_from_sphere",
            "guide_from_consistency", "guided_mvs", "has_field", "has_guide", "is_baseline",
-           "mask_dilation", "mesh_from_points", "runs_mvs1", "uses_prior", "wants_mesh_fit",
-           "wants_network", "wants_poisson", "wants_unguided"]
+           "mask_dilation", "mesh_from_points", "mesh_method", "runs_mvs1", "uses_prior",
+           "wants_mesh_fit", "wants_network", "wants_unguided"]
 
 
 def is_baseline(cfg: Config) -> bool:
@@ -27,9 +27,10 @@ def guided_mvs(cfg: Config) -> bool:
 
 def mask_dilation(cfg: Config) -> int | None:
     """The object-mask dilation, in pixels, of the final depth (OUT/depth) in fusion; one rule
-    for every mode (issue 50): depth a field made, the guided stages 2-3 (svolsdf mode) or the
-    field's own rendering (volsdf mode), takes ``fusion.guided_dilation``; the MVS cascade alone
-    (mvs-only mode, as the unguided set of ``fusion.unguided``) ``fusion.unguided_dilation``.
+    for every mode, so that the modes' points are compared on the same region: depth a field
+    made, the guided stages 2-3 (svolsdf mode) or the field's own rendering (volsdf mode), takes
+    ``fusion.guided_dilation``; the MVS cascade alone (mvs-only mode, as the unguided set of
+    ``fusion.unguided``) ``fusion.unguided_dilation``.
     None = the released 12 px (docs/method.md 6.3)."""
     if cfg.train.mode == "mvs-only":
         return cfg.fusion.unguided_dilation
@@ -102,26 +103,27 @@ def wants_unguided(cfg: Config) -> bool:
     return cfg.fusion.unguided and guided_mvs(cfg)
 
 
+def mesh_method(cfg: Config):
+    """The registry entry of ``mesh.method`` (`svolsdf.fusion.mesh_methods.MeshMethod`): what
+    the method declares (the options it reads, whether it meshes the field or the points)."""
+    from svolsdf.fusion.mesh_methods import get_mesh_method
+
+    return get_mesh_method(cfg.mesh.method)
+
+
 def wants_mesh_fit(cfg: Config) -> bool:
-    """``mesh.fit_points`` applies: set, svolsdf mode (its points come from the
-    finer MVS stages), a field kind that can be fitted to points (the grid)."""
-    return (cfg.mesh.fit_points > 0 and cfg.mesh.method == "field"
+    """``mesh.fit_points`` applies: set, a mesh method of the field's zero level
+    (``needs_field``), svolsdf mode (its points come from the finer MVS stages), a field kind
+    that can be fitted to points (the grid)."""
+    return (cfg.mesh.fit_points > 0 and mesh_method(cfg).needs_field
             and guided_mvs(cfg)
             and cfg.train.ablation is None and field_kind(cfg).fits_points)
 
 
-def wants_poisson(cfg: Config) -> bool:
-    """``mesh.method`` = "poisson" applies: set and no watertight mesh (a Poisson
-    surface opens where it meets its octree's box; the watertight mesh is the field's)."""
-    return cfg.mesh.method == "poisson" and not cfg.mesh.watertight
-
-
 def mesh_from_points(cfg: Config) -> str | None:
-    """The mesh method that meshes the fused points and depth ("poisson", "tsdf" or another
-    registered with ``needs_points``, `svolsdf.fusion.mesh_methods`), or None when the mesh is
-    the field's (method field, or a watertight mesh: a surface of the points opens where they
-    stop; the watertight mesh is the field's closed zero level)."""
-    from svolsdf.fusion.mesh_methods import get_mesh_method
-
-    return cfg.mesh.method if get_mesh_method(cfg.mesh.method).needs_points \
-        and not cfg.mesh.watertight else None
+    """The mesh method that meshes the fused points and depth (one registered with
+    ``needs_points``, `svolsdf.fusion.mesh_methods`), or None when the mesh is the field's (a
+    method of the field, or a watertight mesh: a surface of the points opens where they stop;
+    the watertight mesh is the field's closed zero level)."""
+    return cfg.mesh.method if mesh_method(cfg).needs_points and not cfg.mesh.watertight \
+        else None

@@ -17,7 +17,8 @@ log = logging.getLogger("svolsdf.pipeline")
 
 def field_psnr(scene: Scene, views: list[int], rgb: torch.Tensor, pixels: torch.Tensor | None,
                use_masks: bool) -> dict:
-    """Log the field's PSNR on its own input views; returns it for timing.json (issue 28).
+    """Log the field's PSNR on its own input views (how well the field fits what it saw); returns
+    it for timing.json.
 
     A field that only copies MVS scores well on the points and badly here; a field that
     explains the photos scores > 20 dB. Masked as the paper's PSNR (docs/method.md 8.3): inside the

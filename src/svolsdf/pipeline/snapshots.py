@@ -45,8 +45,8 @@ def snapshot_writer(p: StageContext, model, start: int) -> Callable[[int], None]
     folder = snapshot_folder(p)
     folder.mkdir(parents=True, exist_ok=True)
     scene = p.load()
-    b = getattr(model, "bounds", None)
-    bounds = b.detach().cpu() if isinstance(b, torch.Tensor) else p.field_bounds()
+    b = model.box()  # a grid's own box, else the field's (`SurfaceModel.box`)
+    bounds = b.detach().cpu() if b is not None else p.field_bounds()
 
     def snap(step: int) -> None:
         if step % every and step != start:

@@ -97,7 +97,7 @@ class MVSGuidedSampler:
         zf = sample_pdf(zc, pdf, cfg.n_fine, det=not training)
         zu = uniform_sampler(rays.near, rays.far, cfg.n_uniform, stratified=training)
         z, _ = torch.sort(torch.cat([zu, zf], dim=-1), dim=-1)
-        if getattr(model, "background", None) is not None:
+        if model.get_background() is not None:
             # render_rays takes the last entry as the far bound where the background starts
             # (docs/method.md 5.5), as with the error-bounded sampler's final set
             z = torch.cat([z, rays.far[:, None]], dim=-1)

@@ -16,9 +16,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from svolsdf.registry import Registry
+from svolsdf.registry import DeclaresOptions, Registry
 
-__all__ = ["SamplerInputs", "get_sampler", "register_sampler", "registered_samplers"]
+__all__ = ["SAMPLERS", "SamplerInputs", "SamplerKind", "get_sampler", "register_sampler",
+           "registered_samplers"]
 
 
 @dataclass
@@ -39,32 +40,41 @@ class SamplerInputs:
 
 SamplerFactory = Callable[[SamplerInputs], Any]
 
-_SAMPLERS: Registry[SamplerFactory] = Registry("sampler", "svolsdf.render", "register_sampler")
 
+@dataclass(frozen=True)
+class SamplerKind(DeclaresOptions):
+    """A registered sampler kind: called with a `SamplerInputs`, it builds the sampler.
 
-def register_sampler(name: str):
-    """Function decorator adding a sampler kind under ``name``: ``fn(SamplerInputs)`` returns
-    the sampler."""
-    return _SAMPLERS.decorator(name)
-
-
-def registered_samplers() -> list[str]:
-    """The names `TrainConfig.sampler` accepts, in registration order (the built-in ones
-    first)."""
-    return _SAMPLERS.names()
-
-
-def get_sampler(name: str) -> SamplerFactory:
-    """The sampler kind registered as ``name``.
-
-    Raises:
-        InputError: no sampler has that name.
+    Attributes:
+        name: the name `TrainConfig.sampler` accepts.
+        build: `SamplerInputs` -> the sampler.
+        options: the dotted config keys of the options it reads in training (or a function
+            of the config returning them); ``reads(cfg)``: {key: value} of them.
     """
-    return _SAMPLERS.get(name)
+
+    name: str
+    build: SamplerFactory
+    options: tuple[str, ...] | Callable[[Any], tuple[str, ...]] = ()
+
+    def __call__(self, inputs: SamplerInputs) -> Any:
+        return self.build(inputs)
+
+#: name -> sampler kind; the modules of `svolsdf.render` that use ``@register_sampler(...)`` are
+#: imported the first time a name is asked for (`svolsdf.registry.Registry`)
+SAMPLERS: Registry[SamplerKind] = Registry("sampler", "svolsdf.render", "register_sampler",
+                                           entry=SamplerKind)
+
+#: ``@register_sampler(name, options=...)``: a function decorator adding a sampler kind, whose
+#: ``fn(SamplerInputs)`` returns the sampler (`SamplerKind`)
+register_sampler = SAMPLERS.register
+#: the names `TrainConfig.sampler` accepts, in registration order (the built-in ones first)
+registered_samplers = SAMPLERS.names
+#: the sampler kind registered as a name (InputError when none is)
+get_sampler = SAMPLERS.get
 
 
 # --------------------------------------------------------------------------- built in
-@register_sampler("mvs")
+@register_sampler("mvs", options=("train.samples_uniform", "train.samples_fine"))
 def _mvs(s: SamplerInputs):
     """Samples near P' and the current surface (`MVSGuidedSampler`; with the prior in
     training, a lighter one without it for rendering)."""

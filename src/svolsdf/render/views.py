@@ -48,12 +48,12 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
     from svolsdf.render.volume import render_rays
 
     model.eval()
-    background = getattr(model, "background", None)
+    background = model.get_background()
     cams = cameras_unit.to(device, dtype=torch.float32)
     H, W = cams.height, cams.width
     res = {k: [] for k in keys}
     for t in progress_bar(range(len(cams)), desc=desc, show=None if len(cams) > 1 else False):
-        rays = rays_from_cameras(cams, t, radius=float(getattr(model, "radius", 3.0)))
+        rays = rays_from_cameras(cams, t, radius=float(model.radius))
         if near_far is not None:
             rays.near = torch.maximum(rays.near, near_far[t, 0] / rays.cos)
             # with a background the foreground ends at the sphere (docs/method.md 5.5)

@@ -102,7 +102,7 @@ class SynthConfig:
     height: int = 576
     """Image height in pixels."""
     object: str = "random"
-    """Object kind, one of OBJECT_KINDS."""
+    """Object kind: random, sphere, box, torus, capsule or blobs (`OBJECT_KINDS`)."""
     supersample: int = 2
     """Anti-aliasing samples per pixel axis for the images (1 = one ray through each pixel
     centre). Depth and masks always come from the pixel-centre ray."""

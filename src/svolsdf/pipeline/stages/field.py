@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
+from svolsdf.field.saved import save_field
 from svolsdf.pipeline import builders, options
 from svolsdf.pipeline.loaded_run import load_model
-from svolsdf.pipeline.rundir import save_torch
 from svolsdf.pipeline.stages.base import Stage, StageResult
 
 __all__ = ["Field", "field_trainer"]
@@ -84,9 +84,7 @@ class Field(Stage):
             write_snapshot_figure(ctx)
         final = ctx.dir.model
         final.parent.mkdir(parents=True, exist_ok=True)
-        save_torch(final, {"model_state_dict": model.state_dict(),
-                           "grid_resolution": getattr(model, "resolution", None),
-                           "bounds": getattr(model, "bounds", None)})
+        save_field(final, model)
         hist = trainer.history
         return StageResult(model, steps=ctx.cfg.train.steps,
                            steps_per_s=round(hist[-1]["steps_per_s"], 3) if hist else None)

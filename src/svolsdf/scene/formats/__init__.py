@@ -19,8 +19,8 @@ from pathlib import Path
 from svolsdf.registry import Registry
 from svolsdf.scene.formats._common import SceneSource
 
-__all__ = ["SceneFormat", "SceneSource", "get_scene_format", "register_scene_format",
-           "scene_formats"]
+__all__ = ["SCENE_FORMATS", "SceneFormat", "SceneSource", "get_scene_format",
+           "register_scene_format", "scene_formats"]
 
 
 @dataclass(frozen=True)
@@ -47,27 +47,23 @@ class SceneFormat:
     title: str = ""
 
 
-_FORMATS: Registry[SceneFormat] = Registry("scene format", "svolsdf.scene.formats",
-                                           "register_scene_format")
+def _format_entry(name: str, read: Callable[..., SceneSource], detect: Callable[[Path], bool],
+                  order: int, looks_for: str, title: str = "") -> SceneFormat:
+    return SceneFormat(name, detect, read, order, looks_for, title)
 
 
-def register_scene_format(name: str, detect: Callable[[Path], bool], order: int,
-                          looks_for: str, title: str = ""):
-    """Function decorator registering the decorated ``read(path, lighting)`` as format
-    ``name``, detected by ``detect`` at its ``order`` (see `SceneFormat`)."""
-    return _FORMATS.decorator(
-        name, lambda read: SceneFormat(name, detect, read, order, looks_for, title))
+#: name -> format; the modules of this package that use ``@register_scene_format(...)`` are
+#: imported the first time a format is asked for (`svolsdf.registry.Registry`)
+SCENE_FORMATS: Registry[SceneFormat] = Registry("scene format", "svolsdf.scene.formats",
+                                                "register_scene_format", entry=_format_entry)
+
+#: ``@register_scene_format(name, detect, order, looks_for, title="")``: a function decorator
+#: registering the decorated ``read(path, lighting)`` (see `SceneFormat`)
+register_scene_format = SCENE_FORMATS.register
+#: the format registered as a name (InputError when none is)
+get_scene_format = SCENE_FORMATS.get
 
 
 def scene_formats() -> list[SceneFormat]:
     """The registered formats in detection order (by ``order``, then by name)."""
-    return sorted((f for _, f in _FORMATS.items()), key=lambda f: (f.order, f.name))
-
-
-def get_scene_format(name: str) -> SceneFormat:
-    """The format registered as ``name``.
-
-    Raises:
-        InputError: no format has that name.
-    """
-    return _FORMATS.get(name)
+    return sorted((f for _, f in SCENE_FORMATS.items()), key=lambda f: (f.order, f.name))
