@@ -38,7 +38,10 @@ FINGERPRINT = Path(__file__).parent / "data" / "outputs_fingerprint.json"
 
 # files whose bytes change from one run to the next by design (times, the log, the lock) or that
 # hold the scene's folder (compared with it replaced) or the run's bookkeeping (compared by part)
-_SKIPPED = {"log", "timing.json", ".svolsdf.lock", "stages.json"}
+_SKIPPED = {"log", "timing.json", ".svolsdf.lock", "stages.json", "run.json"}
+# TensorBoard's event files (written when tensorboard is installed) are named after the time and
+# the host, and hold the wall-clock time of each value
+_SKIPPED_FOLDERS = ("tensorboard",)
 _WITH_SCENE_PATH = {"config.yaml", "views.json"}
 
 
@@ -155,7 +158,8 @@ def fingerprint(out: Path, scene: Path, cfg) -> dict:
     files = {}
     for f in sorted(out.rglob("*")):
         rel = f.relative_to(out).as_posix()
-        if not f.is_file() or rel in _SKIPPED:
+        if not f.is_file() or rel in _SKIPPED or any(
+                part in _SKIPPED_FOLDERS for part in f.relative_to(out).parts[:-1]):
             continue
         files[rel] = _content(rel, f, scene)
     st = json.loads((out / "stages.json").read_text())
