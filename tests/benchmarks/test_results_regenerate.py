@@ -31,6 +31,7 @@ REGENERABLE = {
     "fast_preset_against_c184b53.md": "benchmarks/fast_preset.py",
     "input_views_dtu.md": "benchmarks/input_views_dtu.py",
     "novel_views_dtu.md": "benchmarks/novel_views_dtu.py",
+    "novel_views_ibr_holes.md": "benchmarks/novel_views_dtu.py",
     "ablation_synthetic.md": "benchmarks/experiment_results.py",
 }
 TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
