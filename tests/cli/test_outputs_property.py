@@ -168,7 +168,7 @@ def _stand_ins(mp: pytest.MonkeyPatch, f: dict) -> None:
     import svolsdf.calibrate.sfm as sfm
     import svolsdf.evaluate.scoring as scoring
     import svolsdf.scene.synthetic as synthetic
-    from svolsdf.pipeline.stages import Pipeline
+    from svolsdf.pipeline import Pipeline
 
     real_sfm, real_render = sfm._run_sfm, getattr(synthetic, "_render_scene", None)
 
@@ -284,7 +284,7 @@ def test_synth_keeps_a_file_the_user_put_in_its_image_folder(fx, tmp_path, capsy
 
 def test_demo_makes_its_scene_again_when_the_size_changes(fx, tmp_path, capsys):
     """A second ``svolsdf demo --size`` once reused the first size's scene and results."""
-    from svolsdf.pipeline.stages import Pipeline
+    from svolsdf.pipeline import Pipeline
 
     out = tmp_path / "demo"
     shutil.copytree(fx["earlier"]["demo"], out)

@@ -178,7 +178,7 @@ def _stand_ins(mp: pytest.MonkeyPatch, made: dict, empty_scores: bool) -> None:
     import svolsdf.evaluate.scoring as scoring
     import svolsdf.scene.synthetic as synthetic
     from svolsdf.io.paths import user_path
-    from svolsdf.pipeline.stages import Pipeline
+    from svolsdf.pipeline import Pipeline
 
     # the pipeline's checks, folder, lock and log run; its stages do not
     mp.setattr(Pipeline, "_run", lambda self, t: {"points": None, "mesh": None,

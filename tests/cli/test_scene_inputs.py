@@ -230,7 +230,7 @@ def _argv(command: str, scene: Path, out: Path, case: Case) -> list[str]:
 def _no_stage(mp: pytest.MonkeyPatch) -> None:
     """Every stage of reconstruct and the work of mvs fail the test when reached."""
     import svolsdf.commands.mvs as mvs
-    from svolsdf.pipeline.stages import Pipeline
+    from svolsdf.pipeline import Pipeline
 
     def reached(*a, **k):
         raise AssertionError("a stage ran")
