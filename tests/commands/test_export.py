@@ -136,10 +136,18 @@ def test_points_ply_has_outward_unit_normals(exported):
     p = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
     n = np.stack([v["nx"], v["ny"], v["nz"]], 1).astype(np.float64)
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-4)
+    from scipy.spatial import cKDTree
+
     gt = PlyData.read(str(scene / "gt_points.ply"))["vertex"].data
-    centre = np.stack([gt["x"], gt["y"], gt["z"]], 1).mean(0)  # the sphere's centre
+    g = np.stack([gt["x"], gt["y"], gt["z"]], 1).astype(np.float64)
+    centre = g.mean(0)  # the sphere's centre
+    radius = np.linalg.norm(g - centre, axis=1).mean()
+    # judged where the tiny run's points lie on the sphere (within 5 % of its radius): the
+    # others are the few-step field's noise, whose "outward" means nothing
+    on = cKDTree(g).query(p)[0] < 0.05 * radius
+    assert on.sum() > 100, on.sum()
     outward = ((p - centre) * n).sum(1) > 0
-    assert outward.mean() > 0.9, outward.mean()
+    assert outward[on].mean() > 0.95, outward[on].mean()
 
 
 def test_each_mesh_method_side_by_side_and_mesh_ply_kept(exported):

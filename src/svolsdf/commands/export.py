@@ -294,7 +294,8 @@ def _write_meshes(run, stage: Path, res: ExportResult) -> None:
         cfg.mesh.method, cfg.mesh.watertight = name, False
         log.info("export: the %s mesh", name)
         try:
-            vw, f, cols, info = build_mesh(_MeshContext(run, cfg, stage))
+            ctx = _MeshContext(run, cfg, stage)
+            vw, f, cols, info = build_mesh(ctx, ctx.model())
         except (RuntimeError, ValueError) as e:
             res.skipped[f"meshes/{name}.ply"] = " ".join(str(e).split())[:200]
             continue
