@@ -135,10 +135,13 @@ def test_missing_default_lpips_weights_still_score_geometry_and_other_image_metr
     import svolsdf.evaluate.lpips as lpips_module
     from svolsdf.errors import InputError as _InputError
 
-    def nowhere():
+    def nowhere(*args, **kwargs):
         raise _InputError("LPIPS weights not found; looked in nowhere")
 
+    # no whole LPIPS weights beside the repository, and torchvision's backbone not downloadable
     monkeypatch.setattr(lpips_module, "default_lpips_dir", nowhere)
+    monkeypatch.setattr(lpips_module, "backbone_file", nowhere)
+    monkeypatch.delenv(lpips_module.BACKBONE_ENV, raising=False)
     out, gt, _ = _run(tmp_path)
     main(["evaluate", str(out), "--gt-points", str(gt), "--no-report"])  # returns: exit 0
     printed = capsys.readouterr().out

@@ -169,8 +169,9 @@ def test_guide_network_enters_only_the_guided_stages_key(tiny_run, tmp_path):
 
 
 def test_mvs_scale_reaches_the_backbone_and_its_keys(tiny_run, tmp_path):
-    """mvs.scale: the plane sweep's scale, casmvsnet's x2_mvsres (1 or 2), refused by the
-    adapters; a changed scale changes every key (the stage-1 volumes differ)."""
+    """mvs.scale: the plane sweep's scale, casmvsnet's x2_mvsres (2) or its input size (any
+    other), refused by the adapters; a changed scale changes every key (the stage-1 volumes
+    differ)."""
     from dataclasses import replace
 
     _, _, p = tiny_run
@@ -185,9 +186,10 @@ def test_mvs_scale_reaches_the_backbone_and_its_keys(tiny_run, tmp_path):
         for s, x2 in ((1.0, False), (2.0, True)):
             p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", scale=s))
             assert backbone_kwargs(p.cfg)["x2_mvsres"] is x2
+        # any other scale (the paper's mid resolution needs 4/3) reaches it as the input size
         p.cfg = replace(base, mvs=replace(base.mvs, backbone="casmvsnet", scale=1.5))
-        with pytest.raises(InputError, match="1 or 2"):
-            backbone_kwargs(p.cfg)
+        kw = backbone_kwargs(p.cfg)
+        assert kw["scale"] == 1.5 and kw["x2_mvsres"] is False
         p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet", scale=2.0))
         with pytest.raises(InputError, match="mvs.scale"):
             backbone_kwargs(p.cfg)
