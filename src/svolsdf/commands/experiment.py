@@ -429,8 +429,6 @@ def experiment_plot(record: dict, path: str | Path) -> Path:
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    from svolsdf.io.images import save_figure
+
+    return save_figure(fig, path)

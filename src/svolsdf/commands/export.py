@@ -90,9 +90,8 @@ def check_finished_run(out: str | Path):
 
     out = input_dir(out, "run folder")
     run = RunFolder(out)
-    if not run.is_run():
-        missing = " and ".join(p.name for p in (run.config_file, run.views_file)
-                               if not p.is_file())
+    missing = run.missing_run_files()
+    if missing:
         raise InputError(f"{out}: not a run folder ({missing} missing); give the output folder "
                          "of svolsdf reconstruct")
     refuse_in_progress(out)

@@ -329,9 +329,6 @@ def benchmark_plot(rows: list[dict], path: Path, modes: list[str] | None = None)
         ax.grid(axis="y", alpha=0.3)
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    from svolsdf.io.images import save_figure
+
+    return save_figure(fig, path)

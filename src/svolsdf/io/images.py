@@ -24,6 +24,7 @@ __all__ = [
     "read_mask",
     "resize_image",
     "resize_mask",
+    "save_figure",
     "write_depth_preview",
     "write_image",
 ]
@@ -274,3 +275,16 @@ def write_depth_preview(path: str | Path, depth: Tensor, mask: Tensor | None = N
                         hi: float | None = None) -> Path:
     """Write :func:`depth_to_colormap` of an (H, W) depth map as an image file (atomic)."""
     return write_image(path, depth_to_colormap(depth, mask=mask, cmap=cmap, lo=lo, hi=hi))
+
+
+def save_figure(fig, path: str | Path, dpi: int = 100) -> Path:
+    """Write a matplotlib figure as a PNG beside ``path`` and move it into place (a reader never
+    sees half a picture), then close the figure; returns ``path``."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    plt.close(fig)
+    tmp.replace(path)
+    return path

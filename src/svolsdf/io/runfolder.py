@@ -226,6 +226,11 @@ class RunFolder:
         """A reconstruct wrote config.yaml and views.json here."""
         return self.config_file.is_file() and self.views_file.is_file()
 
+    def missing_run_files(self) -> str | None:
+        """What a run folder lacks here ("config.yaml and views.json", ...), None for a run."""
+        missing = [p.name for p in (self.config_file, self.views_file) if not p.is_file()]
+        return " and ".join(missing) or None
+
     def render_files(self, ibr: bool = False, views: Sequence[int] | None = None
                      ) -> dict[int, Path]:
         """{view id: OUT/renders/<id>.png} (OUT/renders_ibr with ``ibr``) sorted by id, only

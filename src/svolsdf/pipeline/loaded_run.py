@@ -92,9 +92,8 @@ class Run:
 
         out = input_dir(out, "run folder")
         rd = RunDir(out)
-        if not rd.is_run():
-            missing = " and ".join(p.name for p in (rd.config_file, rd.views_file)
-                                   if not p.is_file())
+        missing = rd.missing_run_files()
+        if missing:
             raise InputError(f"{out}: not a run folder ({missing} missing); run "
                              f"svolsdf reconstruct SCENE -o {out} first")
         run = cls(validate_config(load_config(rd.config_file)), out, progress=progress)

@@ -102,12 +102,9 @@ def snapshot_figure(folder: Path, cameras, path: Path, columns: int = 4) -> Path
         ax.imshow(pic)
         ax.set_title(f"step {int(re.sub(r'[^0-9]', '', f.stem))}", fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    from svolsdf.io.images import save_figure
+
+    return save_figure(fig, path)
 
 
 def write_snapshot_figure(p: StageContext) -> Path | None:
