@@ -6,6 +6,7 @@ written."""
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 from tests.pipeline.tiny_pipeline import (
@@ -27,16 +28,19 @@ def _times(run) -> dict:
     return json.loads((run / "timing.json").read_text())
 
 
-def test_from_fusion_reruns_fusion_and_mesh_alone(field_run, tmp_path):
+def test_from_fusion_reruns_fusion_and_mesh_alone(field_run, tmp_path, caplog):
     run = copy_run(field_run, tmp_path / "run")
     before = _times(run)
+    caplog.set_level(logging.INFO)
     upstream = {k: before[k] for k in ("mvs1", "field", "guide", "mvs23")}
     mesh = (run / "mesh.ply").read_bytes()
     cli(["reconstruct", "-o", run, "--from", "fusion", "--set", "mesh.method=tsdf",
          "--no-progress"])
     after = _times(run)
     assert {k: after[k] for k in upstream} == upstream  # read back, not run
-    assert after["fusion"] != before["fusion"] and after["mesh"]["method"] == "tsdf"
+    # fusion ran again (its timing record may repeat to the millisecond on a tiny scene)
+    assert any(r.message.startswith("fused ") for r in caplog.records), caplog.text
+    assert after["mesh"]["method"] == "tsdf"
     assert (run / "mesh.ply").read_bytes() != mesh
     assert "method: tsdf" in (run / "config.yaml").read_text()
 
