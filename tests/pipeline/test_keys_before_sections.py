@@ -1,6 +1,8 @@
 """Run folders made before the component sections (``mesh``, ``fusion``, ``guide``: issue 40)
 keep their finished stages: the config.yaml such a folder holds loads (its ``output.*`` names
-read as the new ones) and gives the stage keys its stages.json recorded.
+read as the new ones) and gives, under the key formula of those folders
+(`svolsdf.pipeline.legacy_keys`, by which the runner recognises them), the stage keys its
+stages.json recorded.
 
 The files in data/before_sections were written by commit 7eecc8d, the last with the flat
 ``output`` section: ``svolsdf synth scene --seed 7 --size 192x144``, then ``svolsdf reconstruct
@@ -19,7 +21,7 @@ import pytest
 
 import svolsdf
 from svolsdf.config import load_config
-from svolsdf.pipeline.keys import stage_keys
+from svolsdf.pipeline.legacy_keys import legacy_stage_keys as stage_keys
 
 DATA = Path(__file__).with_name("data") / "before_sections"
 RECORD = json.loads((DATA / "stage_keys.json").read_text())

@@ -63,6 +63,14 @@ def _rewritten(run: Path, stage: str, since_ns: int) -> bool:
     return all((run / n).stat().st_mtime_ns > since_ns for n in names)
 
 
+def _current_keys(run: Path) -> dict[str, str]:
+    from svolsdf.config import load_config
+    from svolsdf.pipeline.keys import stage_keys
+
+    views = json.loads((run / "views.json").read_text())["inputs"]
+    return stage_keys(load_config(run / "config.yaml"), views)
+
+
 def _rerun() -> None:
     cli(["reconstruct", "-o", "run", "--config", "run/config.yaml", "--no-progress"])
 
@@ -76,7 +84,18 @@ def test_an_old_run_folder_is_reused_without_computing_anything(old_run):
     assert _stage_times(old_run) == times  # no stage ran (each would have timed itself)
     state = json.loads((old_run / "stages.json").read_text())
     assert all(s in state for s in markers if s != "field_partial"), state
-    assert "running the stage" not in (old_run / "log").read_text()
+    log = (old_run / "log").read_text()
+    assert "running the stage" not in log
+    # recognised by the earlier key formula once: the markers now hold today's keys
+    keys = _current_keys(old_run)
+    assert {s: state[s] for s in markers if s != "field_partial"} == {
+        s: keys[s] for s in markers if s != "field_partial"}
+    line = next(x for x in log.splitlines() if "earlier release's formula" in x)
+    assert set(line.split("stage(s) ")[1].split(" finished")[0].split(", ")) == {
+        s for s in markers if s in state}  # field_partial too, while it is kept
+    _rerun()
+    assert (old_run / "log").read_text().count("earlier release's formula") == 1
+    assert _stage_times(old_run) == times
 
 
 def test_an_old_run_folder_killed_before_fusion_resumes_with_the_same_bytes(old_run):

@@ -197,13 +197,10 @@ def test_mvs_scale_reaches_the_backbone_and_its_keys(tiny_run, tmp_path):
         p.cfg = base
 
 
-def test_mvs_native_images_reaches_the_backbone_and_its_keys(tiny_run, monkeypatch):
+def test_mvs_native_images_reaches_the_backbone_and_its_keys(tiny_run):
     """mvs.native_images (`Scene.images_at`): passed to the plane sweep and casmvsnet, not to the
-    adapters; set, it changes every key; unset (the default), the keys are those from before the
-    option existed."""
+    adapters; set, it changes every key."""
     from dataclasses import replace
-
-    from svolsdf.mvs import backbone as bb
 
     _, _, p = tiny_run
     base = p.cfg
@@ -217,16 +214,6 @@ def test_mvs_native_images_reaches_the_backbone_and_its_keys(tiny_run, monkeypat
         assert backbone_kwargs(p.cfg)["native_images"] is True
         p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet", native_images=True))
         assert "native_images" not in backbone_kwargs(p.cfg)
-        p.cfg = base
-        sig = bb.backbone_signature
-
-        def without(name, weights=None, **cfg):  # the signature before the option existed
-            out = sig(name, weights=weights, **cfg)
-            out["config"].pop("native_images")
-            return out
-
-        monkeypatch.setattr(bb, "backbone_signature", without)
-        assert p.stage_keys() == before
     finally:
         p.cfg = base
 

@@ -45,6 +45,7 @@ __all__ = [
     "get_backbone",
     "takes_device",
     "backbone_signature",
+    "starts_from_depth",
     "backbone_options",
     "backbone_scale_problem",
     "backbone_config_class",
@@ -205,6 +206,12 @@ _backbone_class = BACKBONES.get
 def backbone_config_class(name: str) -> type | None:
     """The config dataclass of the backbone called ``name`` (None if it has none)."""
     return _backbone_class(name).config_class
+
+
+def starts_from_depth(name: str) -> bool:
+    """The backbone called ``name`` can start from a depth map (``can_start_from_depth``: its
+    guided stages read ``mvs.guide_network``)."""
+    return bool(_backbone_class(name).can_start_from_depth)
 
 
 def backbone_options(name: str, mvs) -> dict:

@@ -121,7 +121,10 @@ class Run:
                 raise InputError(f"{out}: a stage-1 volume in {stage1[0].parent} is unreadable "
                                  f"({' '.join(str(e).split())[:200]}); rerun svolsdf "
                                  f"reconstruct -o {out}: it computes it again") from None
-        if not self.dir.done("field", self.keys["field"]):
+        from svolsdf.pipeline.legacy_keys import legacy_stage_keys
+
+        if not (self.dir.done("field", self.keys["field"]) or self.dir.done(
+                "field", legacy_stage_keys(cfg, self.views)["field"])):  # an earlier formula's
             # a config or package change alters the stage hash; rendering never retrains
             log.warning("%s: the stored field was trained under another config hash (edited "
                         "config or newer package); rendering the stored field/model.pt as it "

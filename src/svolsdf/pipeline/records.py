@@ -143,6 +143,39 @@ class StageRecords:
         if self.dir.provenance(stage) != self.provenance(stage):
             self.dir.mark(stage, self.keys[stage], **self.provenance(stage))
 
+    def recognise_old_markers(self, stages: list) -> None:
+        """Mark with today's key each of ``stages`` (`Stage` objects that apply) whose marker
+        holds the key the earlier stage-key formula gives the current config
+        (`svolsdf.pipeline.legacy_keys`) and whose recorded output files are intact, with a line
+        in OUT/log: a run folder made before the keys came from the declarations keeps its
+        finished stages. The field's checkpoint marker (field_partial) follows the field's.
+        Run once, before the stages; a marker with any other key is left as it is."""
+        state = self.dir.state()
+        marked = {s.name: state.get(s.name) for s in stages}
+        if "field" in marked:
+            marked["field_partial"] = state.get("field_partial")
+        if all(k is None or k == self.keys[s.replace("_partial", "")]
+               for s, k in marked.items()):
+            return
+        from svolsdf.pipeline.legacy_keys import legacy_stage_keys
+
+        old = legacy_stage_keys(self.cfg, self.views)
+        outputs = {s.name: s.outputs(self) for s in stages}
+        renewed = []
+        for name, key in marked.items():
+            stage = name.replace("_partial", "")
+            if key is None or key != old[stage] or key == self.keys[stage]:
+                continue
+            if name == stage and not (all(f.is_file() for f in outputs[stage])
+                                      and self.dir.changed_output(stage) is None):
+                continue  # not intact: the stage runs again as under any other key
+            self.dir.mark(name, self.keys[stage])
+            renewed.append(name)
+        if renewed:
+            log.info("%s: stage(s) %s finished under the stage keys of an earlier release's "
+                     "formula; their markers now hold the current keys", self.out,
+                     ", ".join(renewed))
+
     def _time(self, stage: str, t0: float, **extra) -> None:
         """Record ``stage``'s time, peak memory and ``extra`` in OUT/timing.json, with why it ran
         again (``rerun``) when its earlier file could not be read (`reuse`)."""

@@ -180,6 +180,7 @@ class Pipeline(StageRecords, Run):
         self.input_keys = input_keys(self.cfg, manifest)
         self._input_changes = describe_changes(before, manifest)
         stages = [s for s in PIPELINE_STAGES if s.applies(self.cfg)]
+        self.recognise_old_markers(stages)  # a run folder marked by the earlier key formula
         if self.start is not None:
             stages = self._from_start(stages)
         save_config(self.cfg, self.dir.config_file)

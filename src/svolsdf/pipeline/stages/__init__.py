@@ -10,7 +10,7 @@
 7. ``mesh`` (`mesh.py`): the mesh the config asks for.
 """
 
-from svolsdf.pipeline.stages.base import Stage, StageResult
+from svolsdf.pipeline.stages.base import SCENE_OPTIONS, Stage, StageResult
 from svolsdf.pipeline.stages.field import Field
 from svolsdf.pipeline.stages.fusion import Fusion
 from svolsdf.pipeline.stages.guide import Guide
@@ -19,7 +19,7 @@ from svolsdf.pipeline.stages.mvs1 import MVS1
 from svolsdf.pipeline.stages.mvs23 import MVS23
 from svolsdf.pipeline.stages.unguided import Unguided
 
-__all__ = ["PIPELINE_STAGES", "Stage", "StageResult", "stage"]
+__all__ = ["PIPELINE_STAGES", "SCENE_OPTIONS", "Stage", "StageResult", "stage"]
 
 PIPELINE_STAGES: tuple[Stage, ...] = (MVS1(), Field(), Guide(), MVS23(), Unguided(), Fusion(),
                                       Mesh())

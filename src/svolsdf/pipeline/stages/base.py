@@ -12,7 +12,13 @@ from typing import Any, ClassVar
 
 from svolsdf.config import Config
 
-__all__ = ["Stage", "StageResult"]
+__all__ = ["SCENE_OPTIONS", "Stage", "StageResult"]
+
+#: The options the run's scene is loaded with (`svolsdf.pipeline.loaded_run.Run.load`): every
+#: stage reads them through the scene. The options that pick the input views (``scene.views``,
+#: ``scene.num_views``, ``scene.view_selection``) act through the views they pick, which enter
+#: every stage key themselves.
+SCENE_OPTIONS = ("scene.path", "scene.image_size", "scene.lighting")
 
 
 class StageResult:
@@ -45,14 +51,40 @@ class Stage:
     def reads(self, cfg: Config) -> tuple[str, ...]:
         """The options the stage reads for ``cfg``: ``section.option``, or ``section.*`` for
         every option of a section (a component that takes its whole section, as the `Trainer`
-        takes ``train``). `tests/pipeline/test_stage_key_reads.py` checks that they cover what
-        the stage is seen reading."""
+        takes ``train``). Their values enter the stage's key (`svolsdf.pipeline.keys`), but for
+        `key_ignores`. `tests/pipeline/test_stage_reads.py` checks that they cover what the
+        stage is seen reading."""
+        return ()
+
+    def uses(self, cfg: Config) -> tuple[str, ...]:
+        """The stages of `consumes` whose values the stage reads for ``cfg`` (all of them by
+        default): only their keys enter its key, so a stage that reads the fused points only for
+        some methods (the mesh) is not run again for a fusion option otherwise."""
+        return self.consumes
+
+    def key_ignores(self, cfg: Config) -> tuple[str, ...]:
+        """Options among `reads` (same notation) that cannot change what the stage computes for
+        ``cfg``: which side files it keeps or draws (``mvs.save_volumes``,
+        ``train.snapshot_every``), or a setting of a part that does not act in this config.
+        They stay out of its key, so changing them reuses the finished stage; an ``mvs`` option
+        among them is also taken at its default in the backbone's signature (`backbones`)."""
+        return ()
+
+    def backbones(self, cfg: Config) -> tuple[str, ...]:
+        """The networks the stage runs for ``cfg``: "mvs" (``mvs.backbone``) and/or "fusion"
+        (``fusion.network``). Their signatures (the backbone's whole config with its defaults,
+        the weights file's path, size and time: `svolsdf.mvs.backbone.backbone_signature`) enter
+        the stage's key, so a changed default or a replaced weights file runs it again."""
         return ()
 
     def declares(self, cfg: Config, option: str) -> bool:
         """``option`` (``section.option``) is among `reads` for ``cfg``."""
-        return any(option == r or (r.endswith(".*") and option.startswith(r[:-1]))
-                   for r in self.reads(cfg))
+        return _among(option, self.reads(cfg))
+
+    def keyed(self, cfg: Config, option: str) -> bool:
+        """``option`` enters the stage's key for ``cfg``: declared in `reads`, not in
+        `key_ignores`."""
+        return self.declares(cfg, option) and not _among(option, self.key_ignores(cfg))
 
     def outputs(self, ctx) -> list[Path]:
         """The files whose presence (with the stage's marker) means it finished."""
@@ -72,3 +104,10 @@ class Stage:
         """Compute the stage and write its files; ``inputs`` holds the value of each stage of
         `consumes`."""
         raise NotImplementedError
+
+
+def _among(option: str, declared: tuple[str, ...]) -> bool:
+    """``option`` is one of ``declared`` (``section.option``, or ``section.*``: every option of
+    the section and of its subsections)."""
+    return any(option == r or (r.endswith(".*") and option.startswith(r[:-1]))
+               for r in declared)

@@ -54,6 +54,17 @@ class Field(Stage):
     def reads(self, cfg):
         return ("field.*", "train.*", "scene.use_masks")
 
+    def key_ignores(self, cfg):
+        out = ["train.snapshot_every"]  # pictures of the surface as it trains
+        if not options.grid_from_sphere(cfg):  # the sphere start's settings
+            out += ["field.sphere_radius", "field.sphere_start_resolution",
+                    "train.grid_eikonal_weight", "train.lr_sdf_sphere"]
+        if not cfg.train.colour_steps:  # the colour phase's settings
+            out += ["train.colour_rays", "train.colour_object_fraction"]
+        if not cfg.field.background:
+            out.append("field.background_model")
+        return tuple(out)
+
     def outputs(self, ctx):
         return [ctx.dir.model]
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 
 from svolsdf.errors import InputError
+from svolsdf.pipeline import options
 from svolsdf.pipeline.stages.base import Stage, StageResult
 
 __all__ = ["Fusion"]
@@ -41,6 +42,9 @@ class Fusion(Stage):
     def reads(self, cfg):
         return ("fusion.*", "guide.low_weight_rule", "mvs.finer_stage_optimization",
                 "scene.use_masks", "train.ablation", "train.mode")
+
+    def backbones(self, cfg):
+        return ("fusion",) if options.wants_network(cfg) else ()
 
     def outputs(self, ctx):
         return [ctx.dir.points]

@@ -27,6 +27,20 @@ class Mesh(Stage):
         return ("mesh.*", "field.kind", "fusion.unguided", "mvs.finer_stage_optimization",
                 "mvs.width", "scene.use_masks", "train.ablation", "train.mode", "train.seed")
 
+    def uses(self, cfg):
+        points = _reads_points(cfg)
+        return ("mvs1", "field", *(("guide",) if cfg.mesh.cull_unseen else ()),
+                *(("mvs23",) if points or cfg.mvs.finer_stage_optimization else ()),
+                *(("unguided", "fusion") if points else ()))
+
+    def key_ignores(self, cfg):
+        out = [] if _reads_points(cfg) else ["fusion.unguided"]  # the observed depth's sets
+        if not cfg.mesh.cull_unseen:
+            out.append("mesh.cull_tol")
+        if not options.wants_mesh_fit(cfg):
+            out.append("mesh.fit_points")
+        return tuple(out)
+
     def outputs(self, ctx):
         return [ctx.dir.mesh(ctx.cfg.mesh.format)]
 
@@ -43,3 +57,11 @@ class Mesh(Stage):
         vw, f, cols, info = build_mesh(ctx, inputs["field"])
         save_mesh(path, vw, f, cols, fmt=ctx.cfg.mesh.format)
         return StageResult(path, vertices=int(len(vw)), faces=int(len(f)), **info)
+
+
+def _reads_points(cfg) -> bool:
+    """The mesh reads the fused points, and the observed depth where they confirm it
+    (`svolsdf.pipeline.mesh.build_mesh`): a method of the points, the fit to them, free-space
+    culling, support trimming."""
+    return (options.mesh_from_points(cfg) is not None or options.wants_mesh_fit(cfg)
+            or cfg.mesh.free_space or cfg.mesh.support > 0)

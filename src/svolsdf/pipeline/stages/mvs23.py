@@ -23,7 +23,20 @@ class MVS23(Stage):
     scene_inputs = ("images", "cameras")
 
     def reads(self, cfg):
-        return ("mvs.*", "guide.*", "train.*", "scene.use_masks")
+        # the finer-stage optimization trains the field further: the train section
+        return ("mvs.*", "guide.*", "scene.use_masks", "train.mode", "train.ablation",
+                *(("train.*",) if cfg.mvs.finer_stage_optimization else ()))
+
+    def key_ignores(self, cfg):
+        from svolsdf.mvs.backbone import starts_from_depth
+
+        if options.is_baseline(cfg):  # the guide itself: no MVS runs
+            return ("mvs.*",)
+        return ("mvs.save_volumes",  # which volumes are kept, not what they hold
+                *(() if starts_from_depth(cfg.mvs.backbone) else ("mvs.guide_network",)))
+
+    def backbones(self, cfg):
+        return () if options.is_baseline(cfg) else ("mvs",)
 
     def _files(self, ctx):
         return ctx.dir.view_files(ctx.dir.depth_dir, ctx.views)

@@ -24,6 +24,15 @@ class Unguided(Stage):
     def reads(self, cfg):
         return ("mvs.*", "scene.use_masks")
 
+    def key_ignores(self, cfg):
+        # centred on the stage-1 depth, not on a guide; its volumes are never kept; the
+        # optimizations act on the guided stages only
+        return ("mvs.guide_network", "mvs.save_volumes", "mvs.finer_stage_optimization",
+                "mvs.third_stage_optimization")
+
+    def backbones(self, cfg):
+        return ("mvs",)
+
     def _files(self, ctx):
         return ctx.dir.view_files(ctx.dir.unguided_dir / "depth", ctx.views)
 
