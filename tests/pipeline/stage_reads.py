@@ -1,11 +1,6 @@
-"""Which config options each pipeline stage reads: a recorder of attribute reads on the config
-dataclasses, tiny runs of the pipeline's modes under it, and the recorded table
-(stage_reads.json beside this file) that tests/pipeline/test_stage_key_reads.py checks the stage
-keys against (issue 40).
-
-Regenerate the table after a stage starts or stops reading an option:
-
-    PYTHONPATH=src python tests/pipeline/stage_reads.py
+"""Which config options each pipeline stage reads, and which earlier stages' outputs it loads: a
+recorder of attribute reads on the config dataclasses and tiny runs of the pipeline's modes under
+it, which tests/pipeline/test_stage_reads.py checks the stages' declarations against.
 
 How reads are recorded: while a run records, every config dataclass (`Config`, `SceneConfig`,
 ...) gets a ``__getattribute__`` that notes each read of one of its leaf fields ("train.steps";
@@ -28,8 +23,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import json
-import sys
 from collections import defaultdict
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -47,8 +40,6 @@ from svolsdf.config.schema import (
     TSDFConfig,
 )
 from svolsdf.pipeline.keys import STAGES
-
-TABLE = Path(__file__).with_name("stage_reads.json")
 
 SECTIONS = {Config: "", SceneConfig: "scene", MVSConfig: "mvs", FieldConfig: "field",
             TrainConfig: "train", GuideConfig: "guide", FusionConfig: "fusion",
@@ -305,21 +296,3 @@ def record_all(folder: Path) -> dict:
     for name, cfg in base_configs(scene).items():
         table[name] = record_run(cfg, folder / name)
     return table
-
-
-def load_table() -> dict:
-    return json.loads(TABLE.read_text())
-
-
-def main() -> None:
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as d:
-        table = record_all(Path(d))
-    TABLE.write_text(json.dumps(table, indent=1, sort_keys=True) + "\n")
-    print(f"wrote {TABLE}", file=sys.stderr)
-
-
-if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).parent))
-    main()

@@ -15,8 +15,9 @@ commit and record the fingerprint again:
         tests/pipeline/test_outputs_unchanged.py
 
 (which rewrites the JSON and then fails, so that a recording is never mistaken for a pass).
-The keys are those of the stage-key function run folders were made with
-(`svolsdf.pipeline.keys.stage_keys`): an old run folder is recognised by them.
+The keys are those of the stages' declarations (`svolsdf.pipeline.keys.stage_keys`), which the
+runner marks finished stages with; run folders marked by the earlier formula are recognised by
+`svolsdf.pipeline.legacy_keys` (test_old_run_folder.py, test_keys_before_sections.py).
 """
 
 from __future__ import annotations
@@ -96,7 +97,7 @@ def case_config(scene: Path | str, preset_name: str, sets: dict):
 
 
 def recorded_keys(cfg, views) -> dict[str, str]:
-    """The stage keys run folders were made with (the function that recognises them)."""
+    """The stage keys the runner marks a run folder's stages with."""
     from svolsdf.pipeline.keys import stage_keys
 
     return stage_keys(cfg, views)

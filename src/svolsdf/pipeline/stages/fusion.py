@@ -41,7 +41,9 @@ class Fusion(Stage):
 
     def reads(self, cfg):
         return ("fusion.*", "guide.low_weight_rule", "mvs.finer_stage_optimization",
-                "scene.use_masks", "train.ablation", "train.mode")
+                "scene.use_masks", "train.ablation", "train.mode",
+                # the fusion network's sources
+                *(("mvs.max_sources",) if options.wants_network(cfg) else ()))
 
     def backbones(self, cfg):
         return ("fusion",) if options.wants_network(cfg) else ()
