@@ -74,7 +74,8 @@ def option_value(cfg: Config, option: str) -> Any:
 
 def _signature(cfg: Config, network: str, stage) -> dict:
     """`backbone_signature` of the network ``network`` ("mvs" or "fusion") of ``cfg`` as
-    ``stage`` keys it: the ``mvs`` options of its `Stage.key_ignores` at their defaults."""
+    ``stage`` keys it: the ``mvs`` options of its `Stage.key_ignores` (and ``scene.use_masks``,
+    which the backbone's options read) at their defaults."""
     from svolsdf.mvs.backbone import backbone_signature
     from svolsdf.pipeline.builders import backbone_kwargs
 
@@ -84,6 +85,8 @@ def _signature(cfg: Config, network: str, stage) -> dict:
                     for f in dataclasses.fields(cfg.mvs)
                     if not stage.keyed(cfg, f"mvs.{f.name}")}
         keyed = dataclasses.replace(cfg, mvs=dataclasses.replace(cfg.mvs, **defaults))
+        if not stage.keyed(cfg, "scene.use_masks"):
+            keyed.scene = dataclasses.replace(cfg.scene, use_masks=type(cfg.scene)().use_masks)
         return backbone_signature(cfg.mvs.backbone, weights=cfg.mvs.weights,
                                   **backbone_kwargs(keyed))
     if network == "fusion":

@@ -23,11 +23,12 @@ class MVS1(Stage):
         return ("mvs.*", "scene.use_masks")
 
     def key_ignores(self, cfg):
-        # the options of stages 2-3 alone: the guide's start and the crop of the guided stages,
-        # their widths (stage 1 spans the whole depth range under every mvs.width), which of their
-        # volumes are kept, and the optimizations after them
-        return ("mvs.guide_network", "mvs.crop_to_masks", "mvs.width", "mvs.save_volumes",
-                "mvs.finer_stage_optimization", "mvs.third_stage_optimization")
+        # the options of stages 2-3 alone: the guide's start and the crop to the masks (which
+        # scene.use_masks turns off), their widths (stage 1 spans the whole depth range under
+        # every mvs.width), which of their volumes are kept, and the optimizations after them
+        return ("mvs.guide_network", "mvs.crop_to_masks", "scene.use_masks", "mvs.width",
+                "mvs.save_volumes", "mvs.finer_stage_optimization",
+                "mvs.third_stage_optimization")
 
     def backbones(self, cfg):
         return ("mvs",)
