@@ -28,8 +28,9 @@ log = logging.getLogger("svolsdf.config")
 #: option names of the flat ``output`` section, before the component sections -> their names
 #: now. Config files, run folders' config.yaml and ``--set`` still take the old names:
 #: `config_from_dict` and `apply_overrides` read them as the new ones and say so in one
-#: deprecation line; the stage keys hash the options under these old names (`legacy_layout`),
-#: so run folders made before the change keep their finished stages.
+#: deprecation line; the earlier stage-key formula, by which the runner recognises the run
+#: folders it marked, hashes the options under these old names (`legacy_layout`), so run folders
+#: made before the change keep their finished stages.
 RENAMED: dict[str, str] = {
     "output.mesh_method": "mesh.method",
     "output.mesh_resolution": "mesh.resolution",
@@ -123,8 +124,8 @@ def _upgrade(data: dict, where: str) -> dict:
 def legacy_layout(cfg: Config) -> dict:
     """``cfg`` as a nested dict in the layout before the component sections: the renamed options
     of `RENAMED` under their old ``output.*`` names (in their old order), the rest as
-    `dataclasses.asdict`. The stage keys hash this, so the keys of run folders made before the
-    renaming stay the same (`svolsdf.pipeline.keys.stage_keys`)."""
+    `dataclasses.asdict`. The earlier stage-key formula hashes this, so the run folders it marked
+    before the renaming are recognised (`svolsdf.pipeline.legacy_keys.legacy_stage_keys`)."""
     c = asdict(cfg)
     flat = _dotted(c)
     for section in ("guide", "fusion", "mesh"):

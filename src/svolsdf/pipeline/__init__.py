@@ -4,7 +4,8 @@
 
 Modules: ``runner`` (the `Pipeline`: order, reuse, marks, timing, lock, log, interrupts),
 ``stages`` (one declared `Stage` per file), ``loaded_run`` (`Run`), ``rundir`` (`RunDir`, the run
-folder's writing side, atomic saves), ``records`` (a stage's marker and files), ``keys``,
+folder's writing side, atomic saves), ``records`` (a stage's marker and files), ``keys`` (from
+the stages' declarations; ``legacy_keys``, the earlier formula, recognises old run folders),
 ``options`` (what a config turns on), ``builders``, ``views`` (input and test views),
 ``machine`` (device, threads, memory), and the stage helpers ``fusion_stage``, ``mesh``,
 ``finer`` and ``previews``.
