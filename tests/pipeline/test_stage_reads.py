@@ -251,6 +251,19 @@ def test_every_option_is_changed_in_some_config():
     assert set(leaf_options()) == set(config_options())
 
 
+def test_the_declarations_name_options_and_consumed_stages():
+    """What a stage reads, ignores and uses, for every recorded config, names options of `Config`
+    (or whole sections of them) and stages it consumes."""
+    every = set(config_options())
+    for name, cfg in base_configs(SCENE).items():
+        for s in PIPELINE_STAGES:
+            for o in s.reads(cfg) + s.key_ignores(cfg):
+                assert o in every or o.endswith(".*") and any(
+                    x.startswith(o[:-1]) for x in every), (name, s.name, o)
+            assert set(s.uses(cfg)) <= set(s.consumes), (name, s.name)
+            assert set(s.backbones(cfg)) <= {"mvs", "fusion"}, (name, s.name)
+
+
 def test_options_that_cannot_act_stay_out_of_the_keys():
     """What a stage reads without it changing the result stays out of its key: the pictures of
     the surface as the field trains, which stage-2/3 volumes are kept, where and how fast the
