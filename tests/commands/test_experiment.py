@@ -184,3 +184,32 @@ def test_record_renders_the_field_alone_table():
                {"scene": "s", "variant": "mse", "median_mm": 1.84, "within_2mm": 0.52}]}}
     md = experiment_markdown(rec)
     assert "## The field alone" in md and "| s | 1.58 (55 %) | 1.84 (52 %) |" in md
+
+
+def test_record_renders_the_pseudo_ground_truth_table():
+    """A record with ``pseudo_gt`` (benchmarks/experiment_results.py --pseudo-gt: DTU scans
+    scored against their many-view reference) renders one row per scene and variant, a
+    missing mesh as '-'."""
+    rec = {"experiment": "x", "description": None, "paper": None, "file": "x.yaml",
+           "command": "svolsdf benchmark", "commit": "abc1234", "version": "0",
+           "machine": {"cpu": "cpu", "cores": 2, "torch": "2"}, "date": "2026-12-07",
+           "scenes": ["dtu_scan65"], "view_sets": [[25, 22, 28]], "size": [768, 576],
+           "steps": None,
+           "variants": [{"name": n, "preset": "fast", "set": [], "config": None,
+                         "mode": "svolsdf", "tuned_on": "t"} for n in ("full", "mse")],
+           "plot": {"kind": "bars", "metric": "overall"},
+           "rows": [{"scene": "dtu_scan65", "mode": n, "status": "ok", "accuracy": None,
+                     "completeness": None, "overall": None, "time_s": 3.0}
+                    for n in ("full", "mse")],
+           "pseudo_gt": {"what": "Against the reference.", "rows": [
+               {"scene": "dtu_scan65", "variant": "full", "points_accuracy": 2.0,
+                "points_completeness": 1.82, "points_overall": 1.91,
+                "points_overall_dtu_rule": 1.75, "points_fscore": 0.789,
+                "mesh_overall": 2.14, "mesh_overall_dtu_rule": 2.04},
+               {"scene": "dtu_scan65", "variant": "mse", "points_accuracy": 2.1,
+                "points_completeness": 1.9, "points_overall": 2.0,
+                "points_overall_dtu_rule": 1.8, "points_fscore": 0.7}]}}
+    md = experiment_markdown(rec)
+    assert "## Against the pseudo ground truth" in md
+    assert "| dtu_scan65 | full | 2.00 | 1.82 | 1.91 | 1.75 | 0.79 | 2.14 | 2.04 |" in md
+    assert "| dtu_scan65 | mse | 2.10 | 1.90 | 2.00 | 1.80 | 0.70 | - | - |" in md

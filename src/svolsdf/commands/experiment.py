@@ -369,6 +369,19 @@ def experiment_markdown(record: dict) -> str:
               + (f", {m['gpu']}" if m.get("gpu") else "") + f", torch {m.get('torch', '?')}.",
               "", f"Command: `{record['command']}`"
               + (f" (experiment file `{record['file']}`)." if record.get("file") else ".")]
+    pgt = record.get("pseudo_gt")
+    if pgt:  # DTU scans without their STL: scored against a many-view reference
+        f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+        notes += ["", "## Against the pseudo ground truth", "", pgt["what"], "",
+                  "| scene | variant | points acc. | points comp. | points Chamfer | DTU rule "
+                  "| F | mesh Chamfer | mesh DTU rule |",
+                  "|---|---|" + "---:|" * 7]
+        for r in pgt["rows"]:
+            notes.append(f"| {r['scene']} | {r['variant']} | {f(r.get('points_accuracy'))} | "
+                         f"{f(r.get('points_completeness'))} | {f(r.get('points_overall'))} | "
+                         f"{f(r.get('points_overall_dtu_rule'))} | "
+                         f"{f(r.get('points_fscore'))} | {f(r.get('mesh_overall'))} | "
+                         f"{f(r.get('mesh_overall_dtu_rule'))} |")
     field = record.get("field_alone")
     if field:  # the guide depth against the ground truth, before stages 2-3 and fusion
         notes += ["", "## The field alone", "", field["what"], "",
