@@ -30,13 +30,18 @@ from svolsdf.errors import InputError
 from svolsdf.evaluate.points import nn_distances
 
 __all__ = ["above_plane", "blendedmvs_chamfer", "fit_ground_plane", "inside_masks", "protocol",
-           "relative_improvement"]
+           "protocol_scans", "relative_improvement"]
 
 
 @cache
 def _data() -> dict:
     return json.loads(resources.files("svolsdf.evaluate").joinpath(
         "data/blendedmvs_protocol.json").read_text())
+
+
+def protocol_scans() -> list[int]:
+    """The scan numbers the protocol lists (1-9)."""
+    return [int(k) for k in _data()["scans"]]
 
 
 def protocol(scan: int) -> dict:
