@@ -28,12 +28,13 @@ VIEWS = [0, 1, 2]  # view 2 has no mask: the runs use none, the evaluation the f
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """{"scene", "gt", "run" (mvs-only), "volsdf" (mode volsdf, 10 steps)}: seconds-long runs
-    of the BlendedMVS-layout scene, and its ground truth with the table (gt.ply)."""
+    """{"scene", "src" (the IDR synthetic scene it was written from), "gt", "run" (mvs-only),
+    "volsdf" (mode volsdf, 10 steps)}: seconds-long runs of the BlendedMVS-layout scene, and
+    its ground truth with the table (gt.ply)."""
     root = tmp_path_factory.mktemp("bmvs_runs")
     scene, src = write_bmvs_layout(root, "bmvs_synthetic")  # no scan in its name
     write_ground_truth(src, root / "gt.ply")
-    out = {"scene": scene, "gt": root / "gt.ply"}
+    out = {"scene": scene, "src": src, "gt": root / "gt.ply"}
     for name, mode in (("run", "mvs-only"), ("volsdf", "volsdf")):
         mesh = ("" if mode == "mvs-only" else  # the field's own coarse mesh: fast
                 "mesh: {resolution: 24, method: field, fit_points: 0, free_space: false, "
@@ -49,14 +50,16 @@ def runs(tmp_path_factory):
     return out
 
 
-def _direct(runs, run: str, max_dist: float = 20.0) -> tuple[dict, tuple]:
-    """The protocol's functions called on the files: (blendedmvs_chamfer's result, plane)."""
+def _direct(runs, run: str, max_dist: float = 20.0, masked_views: list[int] = MASKED,
+            masks=None) -> tuple[dict, tuple]:
+    """The protocol's functions called on the files: (blendedmvs_chamfer's result, plane);
+    the masks of ``masked_views`` from the layout's folder, or with ``masks`` the IDR scene's."""
     gt = read_ply(runs["gt"])["points"].astype(np.float64)
     pred = read_ply(runs[run] / "points.ply")["points"]
     centre = load_scene(runs["scene"], load_images=False).cameras.centers.numpy().mean(0)
     unit = max_dist / 20  # the plane's band and margin: 1 and 2 DTU-like millimetres
     plane = fit_ground_plane(gt, centre, threshold=unit)
-    ev = load_scene(runs["scene"], views=MASKED)
+    ev = load_scene(runs["scene"] if masks is None else masks, views=masked_views)
     masked = {"K": ev.cameras.K.numpy(), "w2c": ev.cameras.w2c.numpy(),
               "masks": [m[0].numpy() > 0.5 for m in ev.masks]}
     return blendedmvs_chamfer(pred, gt, plane, 2 * unit, max_dist, masked=masked), plane
@@ -119,6 +122,21 @@ def test_relative_improvement_over_a_volsdf_run_scored_the_same_way(runs, capsys
             f"{100 * rel['masked']:.1f} %") in printed
 
 
+def test_evaluation_masks_from_their_own_folder(runs, tmp_path):
+    # the released data keeps BlendedMVS' evaluation masks apart from the scans: --eval-masks
+    folder = tmp_path / "eval_mask"
+    folder.mkdir()
+    for v in (0, 4):
+        shutil.copy(runs["scene"] / "mask" / f"{v:08d}.png" if v in MASKED else
+                    runs["src"] / "mask" / f"{v:03d}.png", folder / f"{v:08d}.png")
+    m = _evaluate(runs, "--max-dist", 20, "--eval-masks", folder)
+    b = m["blendedmvs"]
+    assert b["masked_views"] == [0, 4] and b["masks_from"] == "--eval-masks"
+    res, _ = _direct(runs, "run", masked_views=[0, 4], masks=runs["src"])
+    _same(b["masked"], res["masked"])
+    _same(b["unmasked"], res["unmasked"])
+
+
 def test_the_cut_off_is_20_mm_at_the_scans_scale(runs):
     m = _evaluate(runs, "--scan", 3)
     b = m["blendedmvs"]
@@ -153,10 +171,16 @@ def test_a_run_without_points_is_refused(runs, tmp_path, capsys):
       "NOPE"], "--volsdf"),
     (["--gt-points", "GT", "--volsdf", "VOLSDF"], "add --protocol blendedmvs"),
     (["--protocol", "dtu"], "--protocol 'dtu': expected 'auto' or 'blendedmvs'"),
+    (["--gt-points", "GT", "--eval-masks", "MASKS"], "add --protocol blendedmvs"),
+    (["--protocol", "blendedmvs", "--gt-points", "GT", "--max-dist", "20", "--eval-masks",
+      "MASKS"], "masks of views [7] that scene"),
 ])
 def test_bad_input_exits_2_with_one_line_before_any_work(runs, capsys, tmp_path, argv, msg):
+    masks = tmp_path / "masks"  # view 7 is no view of the five-view scene
+    masks.mkdir()
+    shutil.copy(runs["scene"] / "mask" / "00000000.png", masks / "00000007.png")
     names = {"GT": runs["gt"], "RUN": runs["run"], "VOLSDF": runs["volsdf"],
-             "NOPE": tmp_path / "nope"}
+             "NOPE": tmp_path / "nope", "MASKS": masks}
     before = {p.name: p.stat().st_mtime_ns for p in runs["run"].iterdir()}
     with pytest.raises(SystemExit) as e:
         main(["evaluate", str(runs["run"]), *[str(names.get(a, a)) for a in argv]])

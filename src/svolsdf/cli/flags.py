@@ -76,6 +76,7 @@ EVALUATE_FLAGS: dict[str, str] = {
     "--threshold": "threshold", "--max-dist": "max_dist", "--lpips-net": "lpips_net",
     "--lpips-weights": "lpips_weights", "--ssim-data-range": "ssim_data_range",
     "--masks": "masks", "--report": "report", "--protocol": "protocol", "--volsdf": "volsdf",
+    "--eval-masks": "eval_masks",
 }
 
 

@@ -9,9 +9,11 @@ way (the same ground truth, plane, masks and cut-off, in the same call).
   world units instead. The ground plane's inlier band and its removal margin are 1/20 and 1/10
   of the cut-off (1 mm and 2 mm in DTU-like millimetres). Every number is in the run's world
   units; divide by ``relative_scale`` for DTU-like millimetres.
-- Masks: every view of the scene whose mask folder holds a mask (BlendedMVS' evaluation masks
-  cover the input and test views only: a partial folder), at the files' size; a scene without
-  masks has no masked score (null, with the reason).
+- Masks: the evaluation masks of ``--eval-masks`` (a folder of masks named by view id, for some
+  views only: the released data keeps BlendedMVS' masks of the input and test views apart from
+  the scans), else every view of the scene whose mask folder holds a mask (a partial folder
+  of the MVSNet/BlendedMVS layout); the cameras are scaled to the masks' size. Without either
+  there is no masked score (null, with the reason).
 - The plane faces the scene's cameras (their mean centre).
 
 `check_blendedmvs` refuses bad input before any work; `blendedmvs_geometry` fills metrics.json's
@@ -59,6 +61,8 @@ class BlendedMVSJob:
     """Distances beyond it are left out of the means (world units)."""
     volsdf: Path | None
     """The VolSDF run compared against, or None."""
+    eval_masks: dict[int, Path] | None = None
+    """{view id: mask file} of ``--eval-masks``; None: the scene's mask folder."""
 
     @property
     def relative_scale(self) -> float | None:
@@ -89,19 +93,20 @@ def _run_scene_or_refuse(run: RunFolder, scene: Path | None, option: str
 
 
 def check_blendedmvs(out: Path, gt_points: Path | None, dtu_gt: Path | None, scene: Path | None,
-                     scan: int | None, max_dist: float | None, volsdf: Path | None
-                     ) -> BlendedMVSJob:
+                     scan: int | None, max_dist: float | None, volsdf: Path | None,
+                     eval_masks: Path | None = None) -> BlendedMVSJob:
     """The options of ``--protocol blendedmvs``, checked before any work.
 
     Args:
         out: the run folder; scene: ``--scene`` (default the run's); scan, max_dist: ``--scan``,
-            ``--max-dist``; volsdf: ``--volsdf``.
+            ``--max-dist``; volsdf: ``--volsdf``; eval_masks: ``--eval-masks``.
 
     Raises:
         InputError: one line naming the option or file: no ``--gt-points`` (or ``--dtu-gt``
             beside it), a run without points.ply, no scene, no scale (neither a scan nor
             ``--max-dist``), a scan the protocol does not have, or a ``--volsdf`` folder that
-            is not a finished VolSDF run of the same scene and views.
+            is not a finished VolSDF run of the same scene and views, an ``--eval-masks`` folder
+            without masks of the scene's views.
     """
     from svolsdf.io.paths import input_dir
 
@@ -134,8 +139,29 @@ def check_blendedmvs(out: Path, gt_points: Path | None, dtu_gt: Path | None, sce
     if volsdf is not None:
         volsdf = input_dir(volsdf, "VolSDF run folder", "--volsdf")
         _check_volsdf_run(RunFolder(volsdf), scene_path, views)
+    masks = None if eval_masks is None else _eval_mask_files(eval_masks, scene_path)
     return BlendedMVSJob(scene=scene_path, views=views, scan=scan, max_dist=float(max_dist),
-                         volsdf=volsdf)
+                         volsdf=volsdf, eval_masks=masks)
+
+
+def _eval_mask_files(folder: Path, scene: Path) -> dict[int, Path]:
+    """``--eval-masks``: {view id: mask file}, every id a view of ``scene``."""
+    from svolsdf.io.paths import input_dir
+    from svolsdf.scene.formats._common import list_images, numbered
+    from svolsdf.scene.loaders import load_scene
+
+    folder = input_dir(folder, "evaluation mask folder", "--eval-masks")
+    try:
+        files = numbered(list_images(folder, "masks"))
+    except InputError as e:
+        raise InputError(f"--eval-masks: {e}") from None
+    have = set(load_scene(scene, load_images=False).view_ids)
+    unknown = sorted(set(files) - have)
+    if unknown:
+        raise InputError(f"--eval-masks {folder}: masks of views {unknown[:5]} that scene "
+                         f"{scene} does not have (its views: {min(have)}-{max(have)}); give "
+                         "the mask folder of this scan")
+    return dict(sorted(files.items()))
 
 
 def _check_volsdf_run(vrun: RunFolder, scene: Path, views: list[int] | None) -> None:
@@ -168,11 +194,28 @@ def _check_volsdf_run(vrun: RunFolder, scene: Path, views: list[int] | None) -> 
                          "views")
 
 
-def _evaluation_masks(scene_path: Path) -> tuple[dict | None, list[int]]:
-    """``{"K", "w2c", "masks"}`` of the scene's views with a mask file (`inside_masks`' inputs,
-    at the files' size), and those view ids; (None, []) when the scene has no masks."""
+def _evaluation_masks(scene_path: Path, files: dict[int, Path] | None = None
+                      ) -> tuple[dict | None, list[int]]:
+    """``{"K", "w2c", "masks"}`` of the views with an evaluation mask (`inside_masks`' inputs:
+    the cameras at the masks' size), and those view ids; (None, []) without masks.
+
+    Args:
+        files: {view id: mask file} (``--eval-masks``); None: the scene's mask folder.
+    """
     from svolsdf.scene.loaders import load_scene
 
+    if files is not None:
+        from svolsdf.io.images import read_mask
+
+        ids = sorted(files)
+        cams = load_scene(scene_path, views=ids, load_images=False).cameras
+        masks = [read_mask(files[v])[0].numpy() > 0.5 for v in ids]
+        h, w = masks[0].shape
+        if any(m.shape != (h, w) for m in masks):
+            raise InputError(f"--eval-masks: the masks are not all {w}x{h}")
+        cams = cams.resize(w, h)
+        return {"K": cams.K.numpy().astype(np.float64),
+                "w2c": cams.w2c.numpy().astype(np.float64), "masks": masks}, ids
     every = load_scene(scene_path, load_images=False)
     if "eval_mask_paths" in every.extras:  # a partial folder: the inputs' and tests' masks
         ids = sorted(int(v) for v in every.extras["eval_mask_paths"])
@@ -221,8 +264,9 @@ def blendedmvs_geometry(job: BlendedMVSJob, gt: np.ndarray, points: np.ndarray,
     unit = job.max_dist / BLENDEDMVS_MM  # one DTU-like millimetre
     plane = fit_ground_plane(gt, cams.centers.numpy().mean(0), threshold=unit)
     margin = 2.0 * unit
-    masked, masked_views = _evaluation_masks(job.scene)
-    no_masks = None if masked is not None else f"scene {job.scene} has no object masks"
+    masked, masked_views = _evaluation_masks(job.scene, job.eval_masks)
+    no_masks = None if masked is not None else (f"scene {job.scene} has no object masks (pass "
+                                                "--eval-masks FOLDER)")
 
     def score(pts: np.ndarray) -> tuple[dict, dict]:
         try:
@@ -239,7 +283,10 @@ def blendedmvs_geometry(job: BlendedMVSJob, gt: np.ndarray, points: np.ndarray,
              "relative_scale": job.relative_scale, "max_dist": job.max_dist,
              "plane": {"normal": [float(x) for x in plane[0]], "offset": float(plane[1]),
                        "inlier_band": unit, "margin": margin},
-             "masked_views": masked_views, "units": "world units of the run (divide by "
+             "masked_views": masked_views,
+             "masks_from": None if masked is None else (
+                 "--eval-masks" if job.eval_masks is not None else "the scene's mask folder"),
+             "units": "world units of the run (divide by "
              "relative_scale for DTU-like millimetres)"}
     if job.volsdf is not None:
         vpts = read_ply(RunFolder(job.volsdf).points)["points"]

@@ -38,7 +38,8 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
     blendedmvs: null, or with protocol "blendedmvs" {unmasked, masked: Chamfer blocks with
                 n_pred and n_gt, volsdf: {run, unmasked, masked} or null, relative_improvement:
                 {unmasked, masked} or null, scan, relative_scale, max_dist, plane, masked_views,
-                units} (`svolsdf.evaluate.blendedmvs_run`; ``chamfer`` holds the unmasked score)
+                masks_from, units} (`svolsdf.evaluate.blendedmvs_run`; ``chamfer`` holds the
+                unmasked score)
     settings: what was evaluated against what; ``image_region`` says where the image errors
                 are computed (inside the object mask where the scene has one)
 
@@ -129,6 +130,10 @@ class EvaluateConfig:
     volsdf: Path | None = None
     """A VolSDF run of the same scene and views (mode volsdf), scored the same way: the
     BlendedMVS protocol's relative improvement over it."""
+    eval_masks: Path | None = None
+    """Evaluation masks for the BlendedMVS protocol's masked score: a folder of masks named by
+    view id, for some views only (the released data's eval_mask/scanN/mask; default: the
+    scene's mask folder)."""
     lpips_net: Literal["vgg", "alex"] = "vgg"
     """LPIPS backbone, 'vgg' (the paper's) or 'alex'."""
     lpips_weights: Path | None = None
@@ -417,7 +422,7 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
         from svolsdf.evaluate.blendedmvs_run import check_blendedmvs
 
         bmvs = check_blendedmvs(out, cfg.gt_points, cfg.dtu_gt, cfg.scene, cfg.scan,
-                                cfg.max_dist, cfg.volsdf)
+                                cfg.max_dist, cfg.volsdf, cfg.eval_masks)
     prov = check_provenance(run, found)
     lp = None
     if cfg.lpips_weights is not None:  # weights asked for and unreadable: an error, not a null
@@ -436,6 +441,9 @@ def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
     if cfg.scan is not None and cfg.dtu_gt is None and cfg.protocol != "blendedmvs":
         raise InputError(f"--scan {cfg.scan}: only the DTU and BlendedMVS protocols use it; add "
                          "--dtu-gt ROOT or --protocol blendedmvs")
+    if cfg.eval_masks is not None and cfg.protocol != "blendedmvs":
+        raise InputError(f"--eval-masks {cfg.eval_masks}: only the BlendedMVS protocol's masked "
+                         "score reads them; add --protocol blendedmvs")
     if cfg.volsdf is not None and cfg.protocol != "blendedmvs":
         raise InputError(f"--volsdf {cfg.volsdf}: only the BlendedMVS protocol compares against "
                          "a VolSDF run; add --protocol blendedmvs")
