@@ -135,6 +135,23 @@ def test_evaluation_masks_from_their_own_folder(runs, tmp_path):
     res, _ = _direct(runs, "run", masked_views=[0, 4], masks=runs["src"])
     _same(b["masked"], res["masked"])
     _same(b["unmasked"], res["unmasked"])
+    # an empty mask of a view that sees the whole object: no masked score, and why; the
+    # unmasked score stands
+    from PIL import Image
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    Image.new("L", (96, 72)).save(empty / "00000000.png")
+    b = _evaluate(runs, "--max-dist", 20, "--eval-masks", empty)["blendedmvs"]
+    assert b["masked"]["overall"] is None
+    assert "0 ground-truth points above the ground plane and inside the evaluation masks" in \
+        b["masked"]["missing"]
+    _same(b["unmasked"], res["unmasked"])
+    # masks of two sizes: refused before any work
+    Image.new("L", (48, 36)).save(empty / "00000001.png")
+    with pytest.raises(SystemExit) as e:
+        _evaluate(runs, "--max-dist", 20, "--eval-masks", empty)
+    assert e.value.code == 2
 
 
 def test_the_cut_off_is_20_mm_at_the_scans_scale(runs):

@@ -146,6 +146,7 @@ def check_blendedmvs(out: Path, gt_points: Path | None, dtu_gt: Path | None, sce
 
 def _eval_mask_files(folder: Path, scene: Path) -> dict[int, Path]:
     """``--eval-masks``: {view id: mask file}, every id a view of ``scene``."""
+    from svolsdf.io.images import image_size
     from svolsdf.io.paths import input_dir
     from svolsdf.scene.formats._common import list_images, numbered
     from svolsdf.scene.loaders import load_scene
@@ -161,6 +162,11 @@ def _eval_mask_files(folder: Path, scene: Path) -> dict[int, Path]:
         raise InputError(f"--eval-masks {folder}: masks of views {unknown[:5]} that scene "
                          f"{scene} does not have (its views: {min(have)}-{max(have)}); give "
                          "the mask folder of this scan")
+    sizes = {image_size(p) for p in files.values()}  # one size: one scaling of the cameras
+    if len(sizes) > 1:
+        raise InputError(f"--eval-masks {folder}: masks of sizes "
+                         f"{', '.join(f'{w}x{h}' for w, h in sorted(sizes))}; give masks of "
+                         "one size")
     return dict(sorted(files.items()))
 
 
@@ -209,10 +215,8 @@ def _evaluation_masks(scene_path: Path, files: dict[int, Path] | None = None
 
         ids = sorted(files)
         cams = load_scene(scene_path, views=ids, load_images=False).cameras
-        masks = [read_mask(files[v])[0].numpy() > 0.5 for v in ids]
+        masks = [read_mask(files[v])[0].numpy() > 0.5 for v in ids]  # one size (checked)
         h, w = masks[0].shape
-        if any(m.shape != (h, w) for m in masks):
-            raise InputError(f"--eval-masks: the masks are not all {w}x{h}")
         cams = cams.resize(w, h)
         return {"K": cams.K.numpy().astype(np.float64),
                 "w2c": cams.w2c.numpy().astype(np.float64), "masks": masks}, ids
@@ -272,8 +276,12 @@ def blendedmvs_geometry(job: BlendedMVSJob, gt: np.ndarray, points: np.ndarray,
         try:
             r = blendedmvs_chamfer(pts, gt, plane, margin, job.max_dist, masked=masked)
         except InputError as e:  # no point above the plane or inside the masks: null, and why
-            return (_block(None, "blendedmvs", job.max_dist, str(e)),
-                    _block(None, "blendedmvs-masked", job.max_dist, str(e)))
+            null_masked = _block(None, "blendedmvs-masked", job.max_dist, str(e))
+            try:  # the masks left nothing: the unmasked score stands
+                r = blendedmvs_chamfer(pts, gt, plane, margin, job.max_dist)
+            except InputError:
+                return _block(None, "blendedmvs", job.max_dist, str(e)), null_masked
+            return _block(r["unmasked"], "blendedmvs", job.max_dist), null_masked
         return (_block(r["unmasked"], "blendedmvs", job.max_dist),
                 _block(r["masked"], "blendedmvs-masked", job.max_dist, no_masks))
 
