@@ -70,9 +70,9 @@ def _same(block: dict, res: dict) -> None:
         assert block[k] == pytest.approx(res[k], rel=1e-9), k
 
 
-def _evaluate(runs, *extra) -> dict:
+def _evaluate(runs, *extra, report: bool = False) -> dict:
     main(["evaluate", str(runs["run"]), "--protocol", "blendedmvs", "--gt-points",
-          str(runs["gt"]), "--no-report", *map(str, extra)])
+          str(runs["gt"]), "--report" if report else "--no-report", *map(str, extra)])
     return json.loads((runs["run"] / "metrics.json").read_text())
 
 
@@ -105,7 +105,7 @@ def test_masked_and_unmasked_chamfer_are_the_protocols(runs, capsys):
 
 
 def test_relative_improvement_over_a_volsdf_run_scored_the_same_way(runs, capsys):
-    m = _evaluate(runs, "--max-dist", 20, "--volsdf", runs["volsdf"])
+    m = _evaluate(runs, "--max-dist", 20, "--volsdf", runs["volsdf"], report=True)
     printed = capsys.readouterr().out
     b = m["blendedmvs"]
     ours, _ = _direct(runs, "run")
@@ -117,6 +117,9 @@ def test_relative_improvement_over_a_volsdf_run_scored_the_same_way(runs, capsys
         assert b["relative_improvement"][key] == pytest.approx(relative_improvement(
             ours[key]["overall"], theirs[key]["overall"]), rel=1e-9)
     rel = b["relative_improvement"]
+    page = (runs["run"] / "report.html").read_text()
+    assert "relative improvement over VolSDF (masked)" in page and \
+        "Chamfer overall (points, masked)" in page
     assert (f"relative improvement over VolSDF, (VolSDF - run) / VolSDF of the overall Chamfer "
             f"[BlendedMVS protocol]: unmasked {100 * rel['unmasked']:.1f} %, masked "
             f"{100 * rel['masked']:.1f} %") in printed
