@@ -133,7 +133,7 @@ def _field_mesh(p: StageContext, model, scene, use_masks: bool):
     # the fitted surface moved away from the rendered depth: the views' depth of the mesh
     # itself decides what they see
     mc = p.cfg.mesh
-    depths = "mesh" if fit else (lambda: _mesh_cull_depths(p, p.cfg.mvs.finer_stage_optimization))
+    depths = "mesh" if fit else (lambda: _mesh_cull_depths(p, options.refines_field(p.cfg)))
     v, vw, f = field_mesh(model, bounds, scene, mc.resolution, watertight=mc.watertight,
                           use_masks=use_masks, unseen=mc.cull_unseen, depths=depths,
                           rel_tol=mc.cull_tol, device=p.device, progress=p.progress)
