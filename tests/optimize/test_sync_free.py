@@ -47,7 +47,7 @@ def _trainer(kind: str, background: bool = False):
         cfg = TrainConfig(steps=4, rays=32, beta_start=0.05, anneal_rgb=2, smooth_weight=0.1,
                           colour_min_weight=1e-4, prior_floor=1e-4)
     else:  # the paper preset's pieces: MLP, error-bounded sampler (1 iteration in training)
-        model = VolSDFField(VolSDFFieldConfig(n_layers=2, skip_in=(), d_hidden=16,
+        model = VolSDFField(VolSDFFieldConfig(mlp_depth=2, skip_in=(), mlp_width=16,
                                               render_hidden=16, render_layers=1,
                                               sphere_clamp=not background))
         sampler = ErrorBoundSampler(ErrorBoundSamplerConfig(n_samples=8, n_samples_eval=16,

@@ -46,7 +46,7 @@ def _run(kind: str) -> tuple[list[float], list[float]]:
                           object_ray_fraction=0.5, prior_floor=1e-4)
         schedule = [(2, 12)]
     else:
-        model = VolSDFField(VolSDFFieldConfig(n_layers=2, skip_in=(), d_hidden=16,
+        model = VolSDFField(VolSDFFieldConfig(mlp_depth=2, skip_in=(), mlp_width=16,
                                               render_hidden=16, render_layers=1))
         model.laplace.beta_min = 0.02
         sampler = ErrorBoundSampler(ErrorBoundSamplerConfig(n_samples=8, n_samples_eval=16,

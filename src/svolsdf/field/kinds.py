@@ -299,7 +299,4 @@ def _mlp(i: FieldInputs):
     """The paper's VolSDF MLP (`VolSDFField`), ``mlp_depth`` x ``mlp_width``."""
     from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig
 
-    f = i.field
-    return VolSDFField(VolSDFFieldConfig(n_layers=f.mlp_depth, d_hidden=f.mlp_width,
-                                         render_hidden=f.mlp_width,
-                                         sphere_clamp=not f.background))
+    return VolSDFField(VolSDFFieldConfig.from_config(i.field))
