@@ -34,7 +34,7 @@ def backbone_kwargs(cfg: Config) -> dict:
 
     out = backbone_options(cfg.mvs.backbone, cfg.mvs)
     if not cfg.scene.use_masks:  # mvs.crop_to_masks crops to the masks the run uses
-        out.pop("crop_margin", None)
+        out.pop("crop_to_masks", None)
     return out
 
 
