@@ -42,7 +42,8 @@ def _trainer(kind: str, background: bool = False):
         model = GridSDFField(torch.tensor([[-0.8] * 3, [0.8] * 3]),
                              GridFieldConfig(resolution=12,
                                              sphere_clamp_scale=None if background else 20.0))
-        sampler = MVSGuidedSampler(prior, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+        sampler = MVSGuidedSampler(prior, GuidedSamplerConfig(samples_coarse=16, samples_uniform=8,
+                                                              samples_fine=8))
         # (the CPU's shortcuts on: host_branch False must leave them out)
         cfg = TrainConfig(steps=4, rays=32, beta_start=0.05, anneal_rgb=2, smooth_weight=0.1,
                           colour_min_weight=1e-4, prior_floor=1e-4)
