@@ -196,6 +196,8 @@ def test_filter_from_the_fusion_section():
     assert (cfg.dist, cfg.rel, cfg.min_views, cfg.conf, cfg.surface) == (0.5, 0.02, 2, 0.1, 0.003)
     assert (cfg.guided_dilation, cfg.unguided_dilation) == (4, 2)
     assert (cfg.use_masks, cfg.guided_depths, cfg.mask_dilation) == (False, False, 12)
+    # a field given instead of an option is taken, the option not read
+    assert FusionFilterConfig.from_config(f, guided_dilation=None).guided_dilation is None
 
 
 def test_fusion_extra_hypotheses_per_view():

@@ -116,10 +116,10 @@ class FusionFilterConfig:
         every option of the section that is a field here, under the same name (``dist``,
         ``rel``, ``min_views``, ``conf``, ``surface``, ``guided_dilation``,
         ``unguided_dilation``), and ``fields`` for the others (``use_masks``,
-        ``guided_depths``)."""
+        ``guided_depths``) or instead of an option (which is then not read)."""
         own = {f.name: getattr(fusion, f.name) for f in dataclasses.fields(cls)
-               if hasattr(fusion, f.name)}
-        return cls(**{**own, **fields})
+               if f.name not in fields and hasattr(fusion, f.name)}
+        return cls(**own, **fields)
 
 
 class FusedPoints(NamedTuple):

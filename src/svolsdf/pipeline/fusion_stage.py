@@ -58,9 +58,13 @@ def fuse(p: StageContext, path: Path) -> tuple[int, dict]:
     f = cfg.fusion
     # every mode's final depth within the same masks (the modes compared on one region): a
     # depth a guide made, guided stages 2-3 or a field's rendering, within guided_dilation; the
-    # MVS cascade's alone (mvs-only mode, the unguided set) within unguided_dilation
+    # MVS cascade's alone (mvs-only mode, the unguided set) within unguided_dilation; the
+    # dilation of a set the mode never fuses is not read (mvs-only fuses no depth a guide made,
+    # volsdf none of the cascade's own)
+    unused = {**({} if options.has_guide(cfg) else {"guided_dilation": None}),
+              **({"unguided_dilation": None} if options.is_baseline(cfg) else {})}
     fcfg = FusionFilterConfig.from_config(f, use_masks=cfg.scene.use_masks,
-                                          guided_depths=options.has_guide(cfg))
+                                          guided_depths=options.has_guide(cfg), **unused)
     # the refined surface after the finer-stage optimization
     sdir = p.dir.render_depth_dir(refined=options.refines_field(cfg))
     # the rendered guide is the surface (the soft-consistency ablation's guide is not). In
