@@ -49,7 +49,7 @@ def _toy_schedule(f, t, from_sphere):
     return [(t.steps // 2, 8)]
 
 
-def _toy_from_mvs(model, volumes, normalization, masks, unverified_weight):
+def _toy_from_mvs(model, volumes, normalization, masks, init_unverified_weight):
     _CALLS.append(("init_from_mvs",))
 
 
