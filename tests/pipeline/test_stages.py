@@ -71,7 +71,7 @@ def test_zero_level_lies_near_the_ground_truth(tiny_run, tiny_scene):
     init = p.build_model()
     init_grid_from_mvs(init, p.regressed_volumes1(), scene.normalization,
                        scene.masks if p.cfg.scene.use_masks else None,
-                       unverified_weight=p.cfg.field.init_unverified_weight)
+                       init_unverified_weight=p.cfg.field.init_unverified_weight)
     gt = observed_gt_points(tiny_scene, views)
     gt_u = scene.normalization.to_unit(torch.from_numpy(gt)).float()
     with torch.no_grad():
