@@ -178,6 +178,71 @@ def score(pred: np.ndarray, gt: np.ndarray, obj: np.ndarray) -> dict:
             "fscore": t["fscore"], "points": t["pred_points"]}
 
 
+def references(scene_dir: Path, out: Path, inputs: list[int], size: tuple[int, int],
+               n_src: int = 4, k: int = 8, min_views: int = 3, dilation: int = 12,
+               has_masks: bool = True, obs=None) -> tuple[dict, np.ndarray, float]:
+    """Steps 1-3: the pseudo ground truths of ``inputs``' run, each evened out at 0.1 % of the
+    first one's diagonal.
+
+    Returns:
+        ``({name: (points fused, (M, 3) points kept)}, (K, 3) object reference before
+        evening out (it sets the scale of `score`), its diagonal)``: with masks "object" and
+        "object and rim (<dilation> px)", without them "observed (DTU ObsMask)" (``obs``, the
+        loaded observation mask, keeps its points).
+    """
+    from svolsdf.evaluate.chamfer import greedy_radius_downsample, obs_mask_filter
+
+    depths = depth_maps(scene_dir, out, size, n_src)
+    dils = (0, dilation) if has_masks else (0,)
+    names = ({0: "object", dilation: f"object and rim ({dilation} px)"}
+             if has_masks else {0: "observed (DTU ObsMask)"})
+    tag = f"{size[0]}x{size[1]}"
+    refs = {}
+    for dil in dils:
+        cache = out / (f"pseudo_gt_{tag}_pairs{n_src}_k{k}_"
+                       f"min{min_views}_dil{dil if has_masks else 'none'}.npy")
+        if cache.is_file():
+            pts = np.load(cache)
+        else:
+            pts = fuse(scene_dir, depths, size, k, min_views, dil)
+            np.save(cache, pts)
+        keep = seen_by(pts, scene_dir, inputs, size)
+        if obs is not None:
+            keep &= obs_mask_filter(pts, obs)[1]
+        refs[names[dil]] = (len(pts), pts[keep])
+    obj = next(iter(refs.values()))[1]
+    diag = float(np.linalg.norm(obj.max(0) - obj.min(0)))
+    rng = np.random.default_rng(0)
+    for key, (n, pts) in refs.items():
+        pts = pts[rng.permutation(len(pts))]
+        refs[key] = (n, pts[greedy_radius_downsample(pts, 0.001 * diag)])
+    return refs, obj, diag
+
+
+def score_run(run: Path, refs: dict, obj: np.ndarray, diag: float, obs=None) -> dict:
+    """Step 4 for one run folder: ``{reference: {"points": score, "mesh": score}}`` of its
+    points.ply and (when it has one) mesh.ply's surface sampled at `mesh_density` (``refs``,
+    ``obj``, ``diag`` and ``obs`` as `references` returns and takes them)."""
+    from svolsdf.evaluate.chamfer import mesh_density, mesh_surface_points, obs_mask_filter
+    from svolsdf.io.ply import read_ply
+
+    pred = read_ply(run / "points.ply")["points"].astype(np.float64)
+    mesh = None
+    if (run / "mesh.ply").is_file():
+        m = read_ply(run / "mesh.ply")
+        mesh = mesh_surface_points(m["points"].astype(np.float64), m["faces"],
+                                   mesh_density(diag))
+    if obs is not None:  # DTU's accuracy counts only predictions inside the ObsMask
+        pred = pred[obs_mask_filter(pred, obs)[1]]
+        mesh = None if mesh is None else mesh[obs_mask_filter(mesh, obs)[1]]
+    out = {}
+    for key, (_, gt) in refs.items():
+        out[key] = {"points": score(pred, gt, obj)}
+        if mesh is not None:
+            out[key]["mesh"] = score(mesh, gt, obj)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", type=Path, default=SHARED / "data/dtu_scan65")
@@ -195,14 +260,7 @@ def main() -> None:
                     help="pixels at the working size; 12 as the runs' fusion (docs/method.md 6.3)")
     args = ap.parse_args()
 
-    from svolsdf.evaluate.chamfer import (
-        greedy_radius_downsample,
-        load_obs_mask,
-        mesh_density,
-        mesh_surface_points,
-        obs_mask_filter,
-    )
-    from svolsdf.io.ply import read_ply
+    from svolsdf.evaluate.chamfer import load_obs_mask
     from svolsdf.scene.loaders import load_scene
 
     try:
@@ -241,46 +299,15 @@ def main() -> None:
             sys.exit(f"{d}: input views {views} differ from the first run's {inputs}")
         inputs = views
     t0 = time.perf_counter()
-    # reference name -> (points fused, points kept); the first one sets the scale
-    dils = (0, args.mask_dilation) if has_masks else (0,)
-    names = ({0: "object", args.mask_dilation: f"object and rim ({args.mask_dilation} px)"}
-             if has_masks else {0: "observed (DTU ObsMask)"})
-    refs = {}
-    for dil in dils:
-        cache = args.out / (f"pseudo_gt_{args.size}_pairs{args.sources}_k{args.fuse_neighbours}_"
-                            f"min{args.min_views}_dil{dil if has_masks else 'none'}.npy")
-        if cache.is_file():
-            pts = np.load(cache)
-        else:
-            pts = fuse(args.scene, depths, size, args.fuse_neighbours, args.min_views, dil)
-            np.save(cache, pts)
-        keep = seen_by(pts, args.scene, inputs, size)
-        if obs is not None:
-            keep &= obs_mask_filter(pts, obs)[1]
-        refs[names[dil]] = (len(pts), pts[keep])
+    refs, obj, diag = references(args.scene, args.out, inputs, size, args.sources,
+                                 args.fuse_neighbours, args.min_views, args.mask_dilation,
+                                 has_masks, obs)
     t_fuse = time.perf_counter() - t0
-    obj = next(iter(refs.values()))[1]
-    diag = float(np.linalg.norm(obj.max(0) - obj.min(0)))
-    rng = np.random.default_rng(0)
-    for key, (n, pts) in refs.items():
-        pts = pts[rng.permutation(len(pts))]
-        refs[key] = (n, pts[greedy_radius_downsample(pts, 0.001 * diag)])
     rows = {}
     for name, d in runs.items():
-        pred = read_ply(d / "points.ply")["points"].astype(np.float64)
-        mesh = None
-        if (d / "mesh.ply").is_file():
-            m = read_ply(d / "mesh.ply")
-            mesh = mesh_surface_points(m["points"].astype(np.float64), m["faces"],
-                                       mesh_density(diag))
-        if obs is not None:  # DTU's accuracy counts only predictions inside the ObsMask
-            pred = pred[obs_mask_filter(pred, obs)[1]]
-            mesh = None if mesh is None else mesh[obs_mask_filter(mesh, obs)[1]]
-        for key, (_, gt) in refs.items():
-            rows[(name, key)] = {"points": score(pred, gt, obj)}
-            if mesh is not None:
-                rows[(name, key)]["mesh"] = score(mesh, gt, obj)
-            print(name, key, json.dumps(rows[(name, key)]), flush=True)
+        for key, r in score_run(d, refs, obj, diag, obs).items():
+            rows[(name, key)] = r
+            print(name, key, json.dumps(r), flush=True)
 
     region = ("inside the object masks" if has_masks else
               "inside DTU's observation mask (ObsMask, as DTU scores accuracy; the scan has no "

@@ -164,7 +164,7 @@ def build_trainer(run: Path, previous: set[str] = frozenset(), steps: int | None
     prior = MVSPrior(p.volumes1, scene.normalization, device=p.device)
     init_grid_from_mvs(model, p.regressed_volumes1(), scene.normalization,
                        scene.masks if cfg.scene.use_masks else None,
-                       unverified_weight=cfg.field.init_unverified_weight)
+                       init_unverified_weight=cfg.field.init_unverified_weight)
     if "features" in previous:
         model._features = types.MethodType(features_grid_sample, model)
     elif "corners" in previous:

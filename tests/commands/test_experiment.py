@@ -136,6 +136,10 @@ def test_command_line_preset_set_and_config_make_one_variant(tmp_path, monkeypat
     ("scenes: [synth_a]\nplot: {kind: sweep, x: train.gce_q}\nvariants: {a: {}}\n",
      "plot.x: variant a sets no number for train.gce_q"),
     ("scenes: [synth_a\n", "not a readable YAML file"),
+    ("scenes: [synth_a]\nscene_views: {other: [0, 1]}\nvariants: {a: {}}\n",
+     "scene_views.other: not one of the file's scenes"),
+    ("scenes: [synth_a]\nscene_views: {synth_a: [0]}\nvariants: {a: {}}\n",
+     "scene_views.synth_a: expected a list of at least two"),
 ])
 def test_bad_experiment_files_are_refused_before_any_work(tmp_path, monkeypatch, capsys, data,
                                                           text, msg):
@@ -149,6 +153,30 @@ def test_bad_experiment_files_are_refused_before_any_work(tmp_path, monkeypatch,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(exp) in err[0] and msg in err[0], err
     assert not seen and not out.exists()
+
+
+def test_scene_views_give_a_scene_its_own_inputs(tmp_path, monkeypatch, capsys, data):
+    # BlendedMVS' scans each have their own three input views: scene_views, in place of views
+    _fake(monkeypatch)
+    exp = tmp_path / "own.yaml"
+    exp.write_text("scenes: [synth_a]\nviews: [[0, 1, 2]]\nscene_views: {synth_a: [3, 1, 2]}\n"
+                   "size: 96x72\nsteps: 5\nvariants: {full: {preset: fast}}\n")
+    out = tmp_path / "out"
+    main(["benchmark", "--experiment", str(exp), "--data", str(data), "-o", str(out),
+          "--lpips-net", "alex", "--no-render"])
+    rec = json.loads((out / "experiment.json").read_text())
+    assert [r["views"] for r in rec["rows"]] == [[3, 1, 2]]
+    assert rec["scene_views"] == {"synth_a": [3, 1, 2]}
+    assert "synth_a: input views [3, 1, 2]" in (out / "experiment.md").read_text()
+    # a view the scene does not have: refused before any job, naming where it came from
+    exp.write_text("scenes: [synth_a]\nscene_views: {synth_a: [0, 9, 1]}\n"
+                   "variants: {full: {preset: fast}}\n")
+    with pytest.raises(SystemExit) as e:
+        main(["benchmark", "--experiment", str(exp), "--data", str(data), "-o",
+              str(tmp_path / "out2")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "scene_views 0 9 1" in err and "9" in err
+    assert not (tmp_path / "out2").exists()
 
 
 def test_experiment_contradicting_options_are_refused(tmp_path, capsys, data):
@@ -184,3 +212,32 @@ def test_record_renders_the_field_alone_table():
                {"scene": "s", "variant": "mse", "median_mm": 1.84, "within_2mm": 0.52}]}}
     md = experiment_markdown(rec)
     assert "## The field alone" in md and "| s | 1.58 (55 %) | 1.84 (52 %) |" in md
+
+
+def test_record_renders_the_pseudo_ground_truth_table():
+    """A record with ``pseudo_gt`` (benchmarks/experiment_results.py --pseudo-gt: DTU scans
+    scored against their many-view reference) renders one row per scene and variant, a
+    missing mesh as '-'."""
+    rec = {"experiment": "x", "description": None, "paper": None, "file": "x.yaml",
+           "command": "svolsdf benchmark", "commit": "abc1234", "version": "0",
+           "machine": {"cpu": "cpu", "cores": 2, "torch": "2"}, "date": "2026-12-07",
+           "scenes": ["dtu_scan65"], "view_sets": [[25, 22, 28]], "size": [768, 576],
+           "steps": None,
+           "variants": [{"name": n, "preset": "fast", "set": [], "config": None,
+                         "mode": "svolsdf", "tuned_on": "t"} for n in ("full", "mse")],
+           "plot": {"kind": "bars", "metric": "overall"},
+           "rows": [{"scene": "dtu_scan65", "mode": n, "status": "ok", "accuracy": None,
+                     "completeness": None, "overall": None, "time_s": 3.0}
+                    for n in ("full", "mse")],
+           "pseudo_gt": {"what": "Against the reference.", "rows": [
+               {"scene": "dtu_scan65", "variant": "full", "points_accuracy": 2.0,
+                "points_completeness": 1.82, "points_overall": 1.91,
+                "points_overall_dtu_rule": 1.75, "points_fscore": 0.789,
+                "mesh_overall": 2.14, "mesh_overall_dtu_rule": 2.04},
+               {"scene": "dtu_scan65", "variant": "mse", "points_accuracy": 2.1,
+                "points_completeness": 1.9, "points_overall": 2.0,
+                "points_overall_dtu_rule": 1.8, "points_fscore": 0.7}]}}
+    md = experiment_markdown(rec)
+    assert "## Against the pseudo ground truth" in md
+    assert "| dtu_scan65 | full | 2.00 | 1.82 | 1.91 | 1.75 | 0.79 | 2.14 | 2.04 |" in md
+    assert "| dtu_scan65 | mse | 2.10 | 1.90 | 2.00 | 1.80 | 0.70 | - | - |" in md

@@ -51,3 +51,18 @@ def test_the_files_set_what_their_tables_vary(tmp_path):
     vw = experiment_config(EXPERIMENTS / "views.yaml", out=tmp_path, data=tmp_path,
                            check_scenes=False)
     assert [len(v) for v in vw.view_sets] == [3, 6, 9]
+
+
+def test_the_blendedmvs_file_runs_each_scan_from_the_protocols_inputs(tmp_path):
+    from svolsdf.evaluate.blendedmvs import protocol, protocol_scans
+
+    cfg = experiment_config(EXPERIMENTS / "blendedmvs.yaml", out=tmp_path, data=tmp_path,
+                            check_scenes=False)
+    jobs = benchmark_jobs(cfg)
+    scans = sorted({int(j.scene.name.removeprefix("bmvs_scan")) for j in jobs})
+    assert scans == protocol_scans()
+    for j in jobs:
+        c = job_config(j)
+        assert c.scene.views == protocol(int(j.scene.name.removeprefix("bmvs_scan")))["inputs"]
+        assert c.field.background  # unbounded scenes: the paper's BlendedMVS setting
+        assert c.train.mode == {"full": "svolsdf", "volsdf": "volsdf"}[j.variant]

@@ -5,10 +5,9 @@ masked and unmasked Chamfer and the relative improvement."""
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
+from tests.evaluate.bmvs_layout import MASKED, table_points, write_bmvs_layout
 
 from svolsdf.errors import InputError
 from svolsdf.evaluate.blendedmvs import (
@@ -20,38 +19,13 @@ from svolsdf.evaluate.blendedmvs import (
     relative_improvement,
 )
 from svolsdf.io.ply import read_ply
-from svolsdf.scene.formats.mvsnet import write_cam_file
 from svolsdf.scene.loaders import load_scene
-
-MASKED = [0, 1, 3]  # the views whose masks the folder holds (BlendedMVS: inputs and tests)
 
 
 @pytest.fixture(scope="module")
 def bmvs(tmp_path_factory):
-    """(BlendedMVS-layout folder, IDR synthetic source): the synthetic scene's cameras as
-    cams/{id:08d}_cam.txt (world millimetres, z up, the table z = 0), its images as
-    blended_images/, its masks of views 0, 1 and 3 only."""
-    from svolsdf.scene.synthetic import SynthConfig, make_synthetic_scene
-
-    root = tmp_path_factory.mktemp("bmvs")
-    src = make_synthetic_scene(root / "synth", SynthConfig(
-        views=5, width=96, height=72, gt_points=6000, supersample=1, mesh_resolution=6.0,
-        seed=7))
-    s = load_scene(src, load_images=False)
-    dst = root / "bmvs_scan3"
-    (dst / "cams").mkdir(parents=True)
-    (dst / "blended_images").mkdir()
-    (dst / "mask").mkdir()
-    imgs = sorted((src / "image").iterdir())
-    masks = sorted((src / "mask").iterdir())
-    for k, vid in enumerate(s.view_ids):
-        near, far = (float(x) for x in s.depth_range[k])
-        write_cam_file(dst / "cams" / f"{vid:08d}_cam.txt", s.cameras.w2c[k].numpy(),
-                       s.cameras.K[k].numpy(), near, (far - near) / 192, 192, far)
-        shutil.copy(imgs[k], dst / "blended_images" / f"{vid:08d}.png")
-        if vid in MASKED:
-            shutil.copy(masks[k], dst / "mask" / f"{vid:08d}.png")
-    return dst, src
+    """(BlendedMVS-layout folder, IDR synthetic source): `write_bmvs_layout`."""
+    return write_bmvs_layout(tmp_path_factory.mktemp("bmvs"))
 
 
 def test_protocol_lists_the_papers_views():
@@ -77,9 +51,7 @@ def test_ground_plane_masks_and_chamfer_on_exact_ground_truth(bmvs):
     dst, src = bmvs
     gt = read_ply(src / "gt_points.ply")["points"].astype(np.float64)
     scene = load_scene(dst, load_images=False)
-    rng = np.random.default_rng(0)
-    # the table as ground-truth points, z = 0 (the synthetic scene's table top)
-    table = np.c_[rng.uniform(-300, 300, (4000, 2)), np.zeros(4000)]
+    table = table_points()  # the table as ground-truth points, z = 0
     full = np.r_[gt, table]
     centre = scene.cameras.centers.numpy().mean(0)
     n, d = fit_ground_plane(full, centre, threshold=1.0)

@@ -128,7 +128,8 @@ def _bg_trainer(out_dir, seed=0):
                          GridFieldConfig(resolution=8, sphere_clamp_scale=None))
     model.background = _tiny_bg(seed)
     cfg = TrainConfig(mode="volsdf", steps=2, rays=16, checkpoint_every=0)
-    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=8, n_uniform=4, n_fine=4))
+    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(samples_coarse=8, samples_uniform=4,
+                                                         samples_fine=4))
     return Trainer(model, _data(), cfg, sampler=sampler, out_dir=out_dir)
 
 
@@ -214,8 +215,8 @@ def test_sphere_map_learns_a_colour_per_direction_and_trains_at_the_grid_rate(tm
     model.background = SphereMapBackground(R_SPHERE)
     tr = Trainer(model, _data(), TrainConfig(mode="volsdf", steps=1, rays=16,
                                              checkpoint_every=0),
-                 sampler=MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=8, n_uniform=4,
-                                                                    n_fine=4)),
+                 sampler=MVSGuidedSampler(None, GuidedSamplerConfig(
+                     samples_coarse=8, samples_uniform=4, samples_fine=4)),
                  out_dir=tmp_path)
     lr = {id(p): g["lr"] for g in tr.optimizer.param_groups for p in g["params"]}
     assert all(lr[id(p)] == tr.cfg.lr_grid for p in model.background.parameters())
@@ -243,8 +244,8 @@ def test_colour_steps_train_only_the_colour_and_give_the_model_back_whole(tmp_pa
     cfg = TrainConfig(mode="volsdf", steps=2, rays=16, colour_steps=3, colour_rays=32,
                       checkpoint_every=0, beta_start=0.05, beta_end=0.01)
     tr = Trainer(model, _data(), cfg,
-                 sampler=MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=8, n_uniform=4,
-                                                                    n_fine=4)),
+                 sampler=MVSGuidedSampler(None, GuidedSamplerConfig(
+                     samples_coarse=8, samples_uniform=4, samples_fine=4)),
                  out_dir=tmp_path)
     tr.fit(steps=2, progress=False)
     sdf, beta = model.sdf_grid.detach().clone(), model.beta.detach().clone()

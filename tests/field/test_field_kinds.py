@@ -30,7 +30,7 @@ class _TinyMLP(VolSDFField):
 
 @register_field_kind("test-tiny-mlp")
 def _tiny(i: FieldInputs):
-    return _TinyMLP(VolSDFFieldConfig(n_layers=2, d_hidden=16, render_hidden=16, skip_in=()))
+    return _TinyMLP(VolSDFFieldConfig(mlp_depth=2, mlp_width=16, render_hidden=16, skip_in=()))
 
 
 #: what the toy kinds' hooks were called with
@@ -49,13 +49,13 @@ def _toy_schedule(f, t, from_sphere):
     return [(t.steps // 2, 8)]
 
 
-def _toy_from_mvs(model, volumes, normalization, masks, unverified_weight):
+def _toy_from_mvs(model, volumes, normalization, masks, init_unverified_weight):
     _CALLS.append(("init_from_mvs",))
 
 
 def _toy_build(i: FieldInputs):
     _CALLS.append(("build", i.from_sphere))
-    return _TinyMLP(VolSDFFieldConfig(n_layers=2, d_hidden=16, render_hidden=16, skip_in=()))
+    return _TinyMLP(VolSDFFieldConfig(mlp_depth=2, mlp_width=16, render_hidden=16, skip_in=()))
 
 
 register_field_kind("test-toy", check=_toy_check, schedule=_toy_schedule,
@@ -85,7 +85,8 @@ def test_builtin_kinds_are_built_as_configured():
 
     m = build_model(cfg, no_box)
     assert isinstance(m, VolSDFField)
-    assert (m.config.n_layers, m.config.d_hidden) == (6, 48)
+    assert (m.config.mlp_depth, m.config.mlp_width) == (6, 48)
+    assert m.colour_net.layers[0].weight.shape[0] == 48  # the colour network as wide
 
 
 def test_a_registered_kind_is_a_valid_choice_and_is_built():

@@ -22,7 +22,7 @@ def test_zero_level_moves_onto_the_points_and_far_outliers_are_ignored():
     target = _sphere_points(20_000, 0.5 + 1.5 * cell)  # 1.5 cells outside the initial sphere
     outliers = _sphere_points(500, 0.9, seed=1)  # far junk, as fusion leaves some
     before = field.sdf(target, clamp=False).abs().median()
-    res = fit_sdf_to_points(field, torch.cat([target, outliers]), steps=120, lr=3e-3,
+    res = fit_sdf_to_points(field, torch.cat([target, outliers]), fit_points=120, lr=3e-3,
                             batch=2048)
     after = field.sdf(target, clamp=False).abs()
     assert before > 1.4 * cell

@@ -82,7 +82,7 @@ def test_signed_distance_from_signs_known_values():
 
 
 def test_unverified_depth_places_a_surface_only_one_view_sees():
-    """With unverified_weight = 0 the back of the sphere (seen by one view) starts at the hull
+    """With init_unverified_weight = 0 the back of the sphere (seen by one view) starts at the hull
     the front views leave (inside up to the box); with a small weight, on the surface."""
     torch.manual_seed(0)
     norm = Normalization(torch.zeros(3, dtype=torch.float64), 1.0, 3.0)
@@ -93,7 +93,7 @@ def test_unverified_depth_places_a_surface_only_one_view_sees():
     res = {}
     for w, m in ((0.0, masks), (0.05, masks), (0.05, None)):
         model = _field()
-        init_grid_from_mvs(model, _volumes(eyes=ONE_SIDED), norm, masks=m, unverified_weight=w)
+        init_grid_from_mvs(model, _volumes(eyes=ONE_SIDED), norm, masks=m, init_unverified_weight=w)
         with torch.no_grad():
             res[w, m is None] = (model.sdf(back).abs().median(), model.sdf(back * 1.3).median())
     cell = float(model.cell_size.mean())

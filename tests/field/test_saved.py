@@ -37,7 +37,7 @@ def test_a_grid_field_round_trips_with_its_box_and_resolution(tmp_path):
 
 
 def test_a_field_without_a_grid_saves_no_box():
-    state = field_state(VolSDFField(VolSDFFieldConfig(n_layers=2, skip_in=(), d_hidden=8)))
+    state = field_state(VolSDFField(VolSDFFieldConfig(mlp_depth=2, skip_in=(), mlp_width=8)))
     assert state["grid_resolution"] is None and state["bounds"] is None
 
 

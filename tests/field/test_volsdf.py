@@ -80,7 +80,7 @@ def test_geometric_init_is_sphere_of_radius_bias():
 
 def test_sdf_and_grad_matches_finite_differences_and_clamp():
     torch.manual_seed(0)
-    cfg = VolSDFFieldConfig(n_layers=3, d_hidden=64, skip_in=(2,), multires=2, feature_dim=8)
+    cfg = VolSDFFieldConfig(mlp_depth=3, mlp_width=64, skip_in=(2,), multires=2, feature_dim=8)
     m = VolSDFField(cfg).double()
     x = torch.randn(5, 3, dtype=torch.float64) * 0.7
     s, g, _ = m.sdf_and_grad(x, create_graph=False)
@@ -106,7 +106,7 @@ def test_sdf_and_grad_matches_finite_differences_and_clamp():
 
 
 def test_colour_and_density_interfaces():
-    cfg = VolSDFFieldConfig(n_layers=2, d_hidden=64, skip_in=(), feature_dim=16,
+    cfg = VolSDFFieldConfig(mlp_depth=2, mlp_width=64, skip_in=(), feature_dim=16,
                             render_layers=2, render_hidden=32)
     m = VolSDFField(cfg)
     x = torch.randn(7, 3)

@@ -147,18 +147,18 @@ def test_a_depth_map_is_not_its_own_consistent_source():
     assert extra.stats["0:echo"]["points"] == 0
 
 
-def test_primary_and_alt_mask_dilation_narrow_only_their_hypothesis():
-    """primary_mask_dilation: the references of ``depths`` are kept inside masks dilated by it,
-    those of ``alt_depths`` inside masks dilated by mask_dilation (or alt_mask_dilation), each
+def test_guided_and_unguided_dilation_narrow_only_their_hypothesis():
+    """guided_dilation: the references of ``depths`` are kept inside masks dilated by it,
+    those of ``alt_depths`` inside masks dilated by mask_dilation (or unguided_dilation), each
     exactly the pixels of its own dilated mask (every depth is exact, so the geometry keeps
-    them all)."""
+    them all); with guided_depths False ``depths`` take unguided_dilation too."""
     cams = three_cameras()
     exact = {v: sphere_depth(c).float() for v, c in cams.items()}
     masks = {v: torch.zeros(40, 48) for v in cams}
     for m in masks.values():
         m[18:22, 22:26] = 1  # a small square in the middle of the sphere in every view
     both = {v: d.clone() for v, d in exact.items()}
-    cfg = FusionFilterConfig(mask_dilation=6, primary_mask_dilation=1)
+    cfg = FusionFilterConfig(mask_dilation=6, guided_dilation=1)
     out = fuse_depth_maps(exact, cams, masks=masks, cfg=cfg, alt_depths=both)
     for v in cams:
         wide = dilate_mask(masks[v], 6) & (exact[v] > 0)
@@ -170,14 +170,34 @@ def test_primary_and_alt_mask_dilation_narrow_only_their_hypothesis():
     same = fuse_depth_maps(exact, cams, masks=masks, cfg=FusionFilterConfig(mask_dilation=6),
                            alt_depths=both)
     assert all(same.stats[v]["points"] == same.stats[f"{v}:alt"]["points"] for v in cams)
-    # alt_mask_dilation narrows the second hypothesis alone
-    cfg = FusionFilterConfig(mask_dilation=6, alt_mask_dilation=1)
+    # unguided_dilation narrows the second hypothesis alone
+    cfg = FusionFilterConfig(mask_dilation=6, unguided_dilation=1)
     out = fuse_depth_maps(exact, cams, masks=masks, cfg=cfg, alt_depths=both)
     for v in cams:
         wide = dilate_mask(masks[v], 6) & (exact[v] > 0)
         narrow = dilate_mask(masks[v], 1) & (exact[v] > 0)
         assert out.stats[v]["points"] == int(wide.sum())
         assert out.stats[f"{v}:alt"]["points"] == int(narrow.sum())
+    # ... and the first too when it is the MVS cascade's alone (mvs-only)
+    cfg = FusionFilterConfig(mask_dilation=6, guided_dilation=3, unguided_dilation=1,
+                             guided_depths=False)
+    out = fuse_depth_maps(exact, cams, masks=masks, cfg=cfg)
+    for v in cams:
+        assert out.stats[v]["points"] == int((dilate_mask(masks[v], 1) & (exact[v] > 0)).sum())
+
+
+def test_filter_from_the_fusion_section():
+    """from_config: the filter reads the options of the fusion section under their names."""
+    from svolsdf.config import FusionConfig
+
+    f = FusionConfig(dist=0.5, rel=0.02, min_views=2, conf=0.1, surface=0.003,
+                     guided_dilation=4, unguided_dilation=2)
+    cfg = FusionFilterConfig.from_config(f, use_masks=False, guided_depths=False)
+    assert (cfg.dist, cfg.rel, cfg.min_views, cfg.conf, cfg.surface) == (0.5, 0.02, 2, 0.1, 0.003)
+    assert (cfg.guided_dilation, cfg.unguided_dilation) == (4, 2)
+    assert (cfg.use_masks, cfg.guided_depths, cfg.mask_dilation) == (False, False, 12)
+    # a field given instead of an option is taken, the option not read
+    assert FusionFilterConfig.from_config(f, guided_dilation=None).guided_dilation is None
 
 
 def test_fusion_extra_hypotheses_per_view():
@@ -199,7 +219,7 @@ def test_fusion_extra_hypotheses_per_view():
     masks = {v: torch.zeros(40, 48) for v in cams}
     for m in masks.values():
         m[18:22, 22:26] = 1
-    cfg = FusionFilterConfig(mask_dilation=6, primary_mask_dilation=1)
+    cfg = FusionFilterConfig(mask_dilation=6, guided_dilation=1)
     full = {v: d.clone() for v, d in exact.items()}
     out = fuse_depth_maps(full, cams, masks=masks, cfg=cfg, alt_depths=full,
                           extra_depths={"net": full})

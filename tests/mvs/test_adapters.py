@@ -133,7 +133,7 @@ def test_guided_prediction_is_followed_through_stages_2_and_3():
     images = {v: scene.images[i] for i, v in enumerate(scene.view_ids)}
     truth = {v: gt[v] for v in scene.view_ids}
     # off the truth by ~11 stage-3 intervals (0.5 x 3.5/192), inside the stage-2 range (16 of
-    # them each side), where guide_init=False's distribution must still find the truth
+    # them each side), where guide_network=False's distribution must still find the truth
     guide = {0: gt[0] + 0.1}
     st = _Starter(images, truth, conf=0.9)
     res1 = run_cascade(st, scene, stages=(1,), ref_ids=[0])
@@ -149,15 +149,15 @@ def test_guided_prediction_is_followed_through_stages_2_and_3():
     res_u = run_cascade(st, scene, prev={0: res1[1][0]}, stages=(2, 3), ref_ids=[0])
     assert st.calls == 2
     assert float((res_u[3][0].depth - gt[0]).abs().median()) < 0.02
-    # guide_init=False: one network call; the guide only centres the hypotheses, and the
+    # guide_network=False: one network call; the guide only centres the hypotheses, and the
     # distribution still sits on the unguided prediction (clipped to the guided range)
-    off = _Starter(images, truth, conf=0.9, guide_init=False)
+    off = _Starter(images, truth, conf=0.9, guide_network=False)
     v2 = run_cascade(off, scene, guide_depth=guide, stages=(2,), ref_ids=[0])[2][0]
     assert off.calls == 1
     small = F.interpolate(gt[0][None, None], size=v2.depth.shape, mode="bilinear",
                           align_corners=False)[0, 0]
     assert float((v2.depth - small).abs().median()) < 0.02
-    # an adapter that cannot start from a depth ignores guide_init
+    # an adapter that cannot start from a depth ignores guide_network
     plain = _Oracle(images, truth, conf=0.9)
     run_cascade(plain, scene, guide_depth=guide, stages=(2, 3), ref_ids=[0])
     assert plain.calls == 1

@@ -320,14 +320,14 @@ def test_calibrated_temperature():
 
 
 def test_crop_to_masks_runs_stages_2_3_in_the_mask_box_only(sphere_run, monkeypatch):
-    """crop_margin: stages 2-3 cost only the box around the dilated object mask; the depth
+    """crop_to_masks: stages 2-3 cost only the box around the dilated object mask; the depth
     there is the full run's (the same hypotheses, a little less context for the aggregation),
     outside it depth and confidence are 0; stage 1 is not cropped."""
     import dataclasses
 
     scene, gt, mask, full = sphere_run
     masked = dataclasses.replace(scene, masks=mask[:, None].float())
-    bb = PlaneSweepBackbone(crop_margin=4)
+    bb = PlaneSweepBackbone(crop_to_masks=4)
     shapes = []
     real = bb._cost_volume
 

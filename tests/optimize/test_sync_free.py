@@ -42,12 +42,13 @@ def _trainer(kind: str, background: bool = False):
         model = GridSDFField(torch.tensor([[-0.8] * 3, [0.8] * 3]),
                              GridFieldConfig(resolution=12,
                                              sphere_clamp_scale=None if background else 20.0))
-        sampler = MVSGuidedSampler(prior, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+        sampler = MVSGuidedSampler(prior, GuidedSamplerConfig(samples_coarse=16, samples_uniform=8,
+                                                              samples_fine=8))
         # (the CPU's shortcuts on: host_branch False must leave them out)
         cfg = TrainConfig(steps=4, rays=32, beta_start=0.05, anneal_rgb=2, smooth_weight=0.1,
                           colour_min_weight=1e-4, prior_floor=1e-4)
     else:  # the paper preset's pieces: MLP, error-bounded sampler (1 iteration in training)
-        model = VolSDFField(VolSDFFieldConfig(n_layers=2, skip_in=(), d_hidden=16,
+        model = VolSDFField(VolSDFFieldConfig(mlp_depth=2, skip_in=(), mlp_width=16,
                                               render_hidden=16, render_layers=1,
                                               sphere_clamp=not background))
         sampler = ErrorBoundSampler(ErrorBoundSamplerConfig(n_samples=8, n_samples_eval=16,

@@ -33,7 +33,8 @@ def _trainer(out_dir=None, **kw):
     torch.manual_seed(1)
     model = GridSDFField(torch.tensor([[-0.8] * 3, [0.8] * 3]), GridFieldConfig(resolution=12))
     cfg = TrainConfig(mode="volsdf", steps=6, rays=32, checkpoint_every=3, **kw)
-    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(samples_coarse=16, samples_uniform=8,
+                                                         samples_fine=8))
     return Trainer(model, _data(), cfg, sampler=sampler, out_dir=out_dir)
 
 
@@ -124,7 +125,8 @@ def test_object_ray_fraction_draws_that_share_inside_the_focus():
     data.focus = focus
     model = GridSDFField(torch.tensor([[-0.8] * 3, [0.8] * 3]), GridFieldConfig(resolution=12))
     cfg = TrainConfig(mode="volsdf", steps=6, rays=64, object_ray_fraction=0.75)
-    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(samples_coarse=16, samples_uniform=8,
+                                                         samples_fine=8))
     tr = Trainer(model, data, cfg, sampler=sampler)
     seen = set()
     for _ in range(30):
@@ -151,7 +153,8 @@ def test_resume_into_a_field_built_for_another_box_trains_the_loaded_grids(tmp_p
     model = GridSDFField(torch.tensor([[-1.1, -0.5, -0.8], [1.0, 0.5, 0.8]]),
                          GridFieldConfig(resolution=12))
     cfg = TrainConfig(mode="volsdf", steps=8, rays=32, checkpoint_every=3)
-    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+    sampler = MVSGuidedSampler(None, GuidedSamplerConfig(samples_coarse=16, samples_uniform=8,
+                                                         samples_fine=8))
     b = Trainer(model, _data(), cfg, sampler=sampler, out_dir=tmp_path / "a")
     assert model.grid_shape != a.model.grid_shape
     stored = torch.load(b.checkpoint_path(), weights_only=False)

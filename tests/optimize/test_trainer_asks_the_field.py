@@ -22,7 +22,7 @@ class _Declaring(VolSDFField):
     and hooks that record when they run."""
 
     def __init__(self):
-        super().__init__(VolSDFFieldConfig(n_layers=2, skip_in=(), d_hidden=16, render_hidden=16,
+        super().__init__(VolSDFFieldConfig(mlp_depth=2, skip_in=(), mlp_width=16, render_hidden=16,
                                            render_layers=1))
         self.calls: list[tuple] = []
 

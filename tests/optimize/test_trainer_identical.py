@@ -40,13 +40,14 @@ def _run(kind: str) -> tuple[list[float], list[float]]:
         model.background = _background()
         if kind == "grid-mvs":
             model.mvs_initialised = True  # (the start from the MVS surface's flag)
-        sampler = MVSGuidedSampler(prior, GuidedSamplerConfig(n_coarse=16, n_uniform=8, n_fine=8))
+        sampler = MVSGuidedSampler(prior, GuidedSamplerConfig(samples_coarse=16, samples_uniform=8,
+                                                              samples_fine=8))
         cfg = TrainConfig(steps=5, rays=32, beta_start=0.05, anneal_rgb=2, smooth_weight=0.1,
                           grid_eikonal_weight=0.1, colour_steps=2, colour_rays=16,
                           object_ray_fraction=0.5, prior_floor=1e-4)
         schedule = [(2, 12)]
     else:
-        model = VolSDFField(VolSDFFieldConfig(n_layers=2, skip_in=(), d_hidden=16,
+        model = VolSDFField(VolSDFFieldConfig(mlp_depth=2, skip_in=(), mlp_width=16,
                                               render_hidden=16, render_layers=1))
         model.laplace.beta_min = 0.02
         sampler = ErrorBoundSampler(ErrorBoundSamplerConfig(n_samples=8, n_samples_eval=16,

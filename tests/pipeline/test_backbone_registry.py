@@ -35,7 +35,7 @@ class _ToyConfig:
     plane sweep."""
 
     ndepths: tuple = (8, 4, 4)
-    width_mode: str = "paper"
+    width: str = "paper"
     inverse_depth: bool = False
     max_sources: int = 4
 

@@ -145,7 +145,7 @@ def test_planesweep_runs_where_it_is_told(scene):
     from svolsdf.scene.loaders import load_scene
 
     s = load_scene(scene, views=[0, 1, 2])
-    bb = get_backbone("planesweep", device=MARK, num_depths=(16, 8, 8), scale=1.0)
+    bb = get_backbone("planesweep", device=MARK, ndepths=(16, 8, 8), scale=1.0)
     assert bb.device == MARK
     (vol,) = bb.stage(1, s, ref_ids=[0])
     assert vol.depth.shape == (18, 24) and torch.isfinite(vol.depth).all()

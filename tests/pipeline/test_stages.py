@@ -71,7 +71,7 @@ def test_zero_level_lies_near_the_ground_truth(tiny_run, tiny_scene):
     init = p.build_model()
     init_grid_from_mvs(init, p.regressed_volumes1(), scene.normalization,
                        scene.masks if p.cfg.scene.use_masks else None,
-                       unverified_weight=p.cfg.field.init_unverified_weight)
+                       init_unverified_weight=p.cfg.field.init_unverified_weight)
     gt = observed_gt_points(tiny_scene, views)
     gt_u = scene.normalization.to_unit(torch.from_numpy(gt)).float()
     with torch.no_grad():
@@ -132,7 +132,11 @@ def test_backbone_defaults_and_weights_enter_the_stage_keys(tiny_run, monkeypatc
     assert all(after[k] != before[k] for k in before), (before, after)
     sig = backbone_signature("planesweep", sgm_p2=1.0)
     assert sig["config"]["sgm_p2"] == 1.0
-    assert set(sig["config"]) == {f.name for f in dataclasses.fields(NewDefaults)}
+    # every field, under the name the stage keys have always hashed it
+    names = planesweep.PlaneSweepBackbone.signature_names
+    assert set(sig["config"]) == {names.get(f.name, f.name)
+                                  for f in dataclasses.fields(NewDefaults)}
+    assert {"num_depths", "crop_margin"} <= set(sig["config"])
     # a replaced weights file changes the signature without loading it
     w = tmp_path / "w.pt"
     w.write_bytes(b"1")
@@ -160,7 +164,7 @@ def test_guide_network_enters_only_the_guided_stages_key(tiny_run, tmp_path):
         for g in (True, False):
             p.cfg = replace(base, mvs=replace(base.mvs, backbone="patchmatchnet",
                                               weights=str(w), guide_network=g))
-            assert backbone_kwargs(p.cfg)["guide_init"] is g
+            assert backbone_kwargs(p.cfg)["guide_network"] is g
             pm[g] = p.stage_keys()
     finally:
         p.cfg = base

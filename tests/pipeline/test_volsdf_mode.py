@@ -179,7 +179,8 @@ def test_volsdf_depth_is_fused_within_svolsdfs_masks(volsdf_run, monkeypatch):
     real = fusion_filter.fuse_depth_maps
 
     def spy(*args, **kwargs):
-        seen.append(args[5].primary_mask_dilation)  # (depths, cams, images, confs, masks, cfg)
+        cfg = args[5]  # (depths, cams, images, confs, masks, cfg)
+        seen.append(cfg.guided_dilation if cfg.guided_depths else None)
         return real(*args, **kwargs)
 
     monkeypatch.setattr(fusion_filter, "fuse_depth_maps", spy)

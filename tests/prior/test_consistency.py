@@ -135,7 +135,7 @@ def test_validity_rules_and_accumulation():
 
 @pytest.mark.parametrize("ref_view", [[0, 1, 2, 1, 0, 2, 2], [1] * 7])
 def test_label_is_lookups_p_prime_and_reads_sources_only_where_p_ref_counts(ref_view):
-    """MVSPrior.label: P' = P_ref * sum P_src bit for bit where P_ref > label_floor (with the
+    """MVSPrior.label: P' = P_ref * sum P_src bit for bit where P_ref > prior_floor (with the
     default 0: everywhere), 0 elsewhere; the source views are read only at those points."""
     vols = _volumes()
     for i, v in enumerate(vols):  # zero stretches, as a volume far from its peak has
@@ -155,7 +155,7 @@ def test_label_is_lookups_p_prime_and_reads_sources_only_where_p_ref_counts(ref_
     others = 2 if len(set(ref_view)) == 1 else 3  # a single ray view is not its own source
     assert sum(read) == n + others * (n - zero), (read, n, zero)
     floor = float(p_ref[p_ref > 0].median())
-    prior.label_floor = floor
+    prior.prior_floor = floor
     lab = prior.label(pts, ref)
     keep = p_ref > floor
     assert torch.equal(lab[keep], exact[keep]) and (lab[~keep] == 0).all()

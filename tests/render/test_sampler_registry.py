@@ -38,9 +38,11 @@ def test_builtin_samplers_are_built_as_configured():
     prior = object()
     s = build_sampler(cfg, prior)
     assert isinstance(s, MVSGuidedSampler)
-    assert (s.config.n_uniform, s.config.n_fine, s.config.n_coarse) == (20, 30, 64)
+    c = s.config
+    assert (c.samples_uniform, c.samples_fine, c.samples_coarse) == (20, 30, 64)
     r = build_sampler(cfg, prior, training=False)  # rendering: fewer probes, no prior
-    assert (r.config.n_coarse, r.config.n_uniform, r.config.n_fine) == (64, 16, 32)
+    c = r.config
+    assert (c.samples_coarse, c.samples_uniform, c.samples_fine) == (64, 16, 32)
     assert isinstance(build_sampler(preset("paper")), ErrorBoundSampler)
 
 

@@ -75,7 +75,8 @@ EVALUATE_FLAGS: dict[str, str] = {
     "--gt-points": "gt_points", "--dtu-gt": "dtu_gt", "--scan": "scan", "--scene": "scene",
     "--threshold": "threshold", "--max-dist": "max_dist", "--lpips-net": "lpips_net",
     "--lpips-weights": "lpips_weights", "--ssim-data-range": "ssim_data_range",
-    "--masks": "masks", "--report": "report",
+    "--masks": "masks", "--report": "report", "--protocol": "protocol", "--volsdf": "volsdf",
+    "--eval-masks": "eval_masks",
 }
 
 

@@ -200,7 +200,7 @@ def _check_run_memory(cfg) -> None:
         width, height = image_size(read_source(cfg.scene.path, cfg.scene.lighting).image_paths[0])
     except (InputError, OSError):
         return
-    size = working_size(width, height, size=cfg.scene.image_size)
+    size = working_size(width, height, image_size=cfg.scene.image_size)
     check_memory(cfg, size, len(cfg.scene.views) if cfg.scene.views else None,
                  labels=_RECONSTRUCT_OPTIONS)
 
@@ -407,7 +407,7 @@ def _check_mvs_inputs(cfg) -> None:
 
     check_output_folder(cfg.out, cfg.scene, "svolsdf mvs")
     probe = load_scene(cfg.scene, views=cfg.views, load_images=False)
-    size = working_size(probe.width, probe.height, size=cfg.size)
+    size = working_size(probe.width, probe.height, image_size=cfg.size)
     if len(probe) >= 2:  # fewer: run_mvs says so
         check_scene(load_scene(cfg.scene, views=cfg.views, load_images=False,
                                image_size=size), use_masks=False)

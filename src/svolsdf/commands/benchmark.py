@@ -112,6 +112,9 @@ class BenchmarkConfig:
     view_sets: list[list[int]] | None = None
     """Several input view sets for every scene, one job (and table row) each; replaces
     ``views``."""
+    scene_views: list[list[int] | None] | None = None
+    """Input views of particular scenes, one per scene of ``scenes`` (None: that scene takes
+    ``views`` / ``view_sets``): a dataset whose scans each have their own inputs (BlendedMVS)."""
     size: tuple[int, int] | None = None
     """Working image size (W, H) (default: the pipeline's)."""
     device: str | None = None
@@ -306,7 +309,11 @@ ROW_FILE = "benchmark_row.json"
 """A finished job's row in its run folder, with the job's `BenchmarkJob.key`."""
 
 
-def _view_sets(cfg: BenchmarkConfig) -> list[list[int] | None]:
+def _view_sets(cfg: BenchmarkConfig, scene: int | None = None) -> list[list[int] | None]:
+    """The input view sets of every scene, or with ``scene`` (an index into ``cfg.scenes``)
+    of that one (its own, ``scene_views``, when it has them)."""
+    if scene is not None and cfg.scene_views and cfg.scene_views[scene] is not None:
+        return [list(cfg.scene_views[scene])]
     if cfg.view_sets:
         return [list(v) for v in cfg.view_sets]
     return [list(cfg.views) if cfg.views else None]
@@ -343,13 +350,13 @@ def benchmark_jobs(cfg: BenchmarkConfig) -> list[BenchmarkJob]:
     ``OUT/<scene>/views-<a>-<b>-<c>/<mode>/`` (row label ``<scene> [a,b,c]``); an experiment's
     ``OUT/<scene>/<variant>/``.
     """
-    sets = _view_sets(cfg)
     threads = cfg.threads if cfg.threads is not None else job_threads(cfg.executor)
     jobs = []
     # absolute paths: a Ray worker on another node does not share this process's directory
     out = Path(cfg.out).absolute()
-    for scene, label in zip(cfg.scenes, _labels(cfg.scenes), strict=True):
+    for i, (scene, label) in enumerate(zip(cfg.scenes, _labels(cfg.scenes), strict=True)):
         scene = Path(scene).absolute()
+        sets = _view_sets(cfg, i)
         ev = {**_ground_truth(cfg, scene), "lpips_net": cfg.lpips_net,
               "lpips_weights": None if cfg.lpips_weights is None
               else Path(cfg.lpips_weights).absolute(), "report": cfg.report}

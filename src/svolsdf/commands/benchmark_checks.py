@@ -42,7 +42,10 @@ def validate_benchmark(cfg: BenchmarkConfig) -> None:
             from svolsdf.io.paths import input_file
 
             cfg.config = input_file(cfg.config, "config file", "--config")
-    for vs in cfg.view_sets or []:
+    if cfg.scene_views is not None and len(cfg.scene_views) != len(cfg.scenes):
+        raise InputError(f"benchmark: {len(cfg.scene_views)} scene view lists for "
+                         f"{len(cfg.scenes)} scenes")
+    for vs in [*(cfg.view_sets or []), *(v for v in cfg.scene_views or [] if v is not None)]:
         if not vs:
             raise InputError("benchmark: an empty input view set (give view ids, e.g. "
                              "--views '25 22 28; 23 24 33')")
@@ -87,11 +90,13 @@ def _check_view_sets(cfg: BenchmarkConfig) -> None:
     images), before any job starts; how many a set holds is the config's check."""
     from svolsdf.scene.loaders import load_scene
 
-    for views in _view_sets(cfg):
-        if views is None:
-            continue
-        label = "--views " + " ".join(map(str, views))
-        for scene in cfg.scenes:
+    for i, scene in enumerate(cfg.scenes):
+        for views in _view_sets(cfg, i):
+            if views is None:
+                continue
+            own = cfg.scene_views is not None and cfg.scene_views[i] is not None
+            label = ("the experiment's scene_views " if own else "--views ") + " ".join(
+                map(str, views))
             try:
                 load_scene(scene, views=views, load_images=False)
             except InputError as e:

@@ -9,6 +9,7 @@ The file (YAML)::
     description: ...                # optional, one paragraph for the table's heading
     scenes: [dtu_scan65, ...]       # folders, relative to --data (default: the current folder)
     views: [[25, 22, 28], ...]      # optional input view sets, one table row each
+    scene_views: {bmvs_scan1: [9, 10, 55], ...}   # optional: a scene's own inputs (not views)
     size: 768x576                   # optional working size
     steps: 300                      # optional optimization steps of every variant
     dtu_gt: dtu_gt                  # optional DTU ground truth, relative to --data
@@ -64,8 +65,8 @@ PRESET_TUNED_ON = {
 """The scenes each preset's choices were tuned on, for the record of an experiment whose
 variant does not say (`docs/presets.md` has the evidence)."""
 
-_TOP_KEYS = ("name", "description", "scenes", "views", "size", "steps", "dtu_gt", "variants",
-             "plot", "paper")
+_TOP_KEYS = ("name", "description", "scenes", "views", "scene_views", "size", "steps", "dtu_gt",
+             "variants", "plot", "paper")
 _VARIANT_KEYS = ("preset", "set", "config", "tuned_on")
 
 
@@ -83,6 +84,7 @@ def load_experiment(path: str | Path, data: str | Path | None = None,
 
     Returns:
         ``{"name", "description", "paper", "scenes": [Path], "view_sets": [[int]] | None,
+        "scene_views": [[int] | None] (one per scene) | None,
         "size": (W, H) | None, "steps": int | None, "dtu_gt": Path | None, "variants":
         [Variant], "plot": dict}``.
 
@@ -119,14 +121,28 @@ def load_experiment(path: str | Path, data: str | Path | None = None,
             if not d.is_dir():
                 raise bad("scenes", f"{s} is no folder under {root} (give the data folder "
                                     "with --data)")
+    def view_list(v) -> bool:
+        return (isinstance(v, list) and len(v) >= 2 and len(set(v)) == len(v)
+                and all(isinstance(i, int) and not isinstance(i, bool) for i in v))
+
     view_sets = spec.get("views")
     if view_sets is not None:
         if not isinstance(view_sets, list) or not view_sets or not all(
-                isinstance(v, list) and len(v) >= 2 and len(set(v)) == len(v)
-                and all(isinstance(i, int) and not isinstance(i, bool) for i in v)
-                for v in view_sets):
+                view_list(v) for v in view_sets):
             raise bad("views", "expected a list of view id lists, each of at least two "
                                "different ids, e.g. [[25, 22, 28]]")
+    scene_views = spec.get("scene_views")
+    if scene_views is not None:
+        if not isinstance(scene_views, dict) or not scene_views:
+            raise bad("scene_views", "expected a mapping SCENE: [view ids], e.g. "
+                                     "{bmvs_scan1: [9, 10, 55]}")
+        for s, v in scene_views.items():
+            if s not in scenes:
+                raise bad(f"scene_views.{s}", "not one of the file's scenes")
+            if not view_list(v):
+                raise bad(f"scene_views.{s}", "expected a list of at least two different "
+                                              "view ids, e.g. [9, 10, 55]")
+        scene_views = [scene_views.get(s) for s in scenes]
     size = spec.get("size")
     if size is not None:
         from svolsdf.scene.size import parse_size
@@ -160,7 +176,8 @@ def load_experiment(path: str | Path, data: str | Path | None = None,
             raise bad(key, "expected text")
     return {"name": spec.get("name") or path.stem, "description": spec.get("description"),
             "paper": spec.get("paper"), "scenes": scene_dirs,
-            "view_sets": [list(v) for v in view_sets] if view_sets else None, "size": size,
+            "view_sets": [list(v) for v in view_sets] if view_sets else None,
+            "scene_views": scene_views, "size": size,
             "steps": steps, "dtu_gt": dtu_gt, "variants": variants, "plot": plot}
 
 
@@ -250,7 +267,8 @@ def experiment_config(path: str | Path, out: Path, data: str | Path | None = Non
     dtu_gt = options.pop("dtu_gt", None)
     return BenchmarkConfig(
         scenes=spec["scenes"], out=out, variants=spec["variants"],
-        views=None, view_sets=spec["view_sets"], size=size or spec["size"],
+        views=None, view_sets=spec["view_sets"], scene_views=spec["scene_views"],
+        size=size or spec["size"],
         steps=steps if steps is not None else spec["steps"], dtu_gt=dtu_gt or spec["dtu_gt"],
         # the commit the jobs run from: taken now, since the checkout may move while they run
         experiment={"name": spec["name"], "description": spec["description"],
@@ -317,6 +335,8 @@ def write_experiment(cfg: BenchmarkConfig, rows: list[dict]) -> Path:
         "date": time.strftime("%Y-%m-%d", time.gmtime()),
         "scenes": list(dict.fromkeys(r["scene"] for r in rows)),
         "view_sets": cfg.view_sets or ([cfg.views] if cfg.views else None),
+        "scene_views": {Path(s).name: v for s, v in zip(cfg.scenes, cfg.scene_views or [],
+                                                         strict=False) if v is not None} or None,
         "size": list(cfg.size) if cfg.size else None, "steps": cfg.steps,
         "variants": [{"name": v.name, "preset": None if v.config else v.preset, "set": v.sets,
                       "config": Path(v.config).name if v.config else None,
@@ -360,8 +380,11 @@ def experiment_markdown(record: dict) -> str:
                      f"{' '.join(f'`{s}`' for s in v['set']) or '-'} | {v['mode']} | "
                      f"{v['tuned_on']} |")
     views = record.get("view_sets")
+    own = record.get("scene_views") or {}
     notes += ["", f"Scenes: {', '.join(record['scenes'])}"
-              + (f"; input view sets {views}" if views else "; the pipeline's input views")
+              + (f"; input view sets {views}" if views else
+                 "" if own else "; the pipeline's input views")
+              + "".join(f"; {s}: input views {v}" for s, v in own.items())
               + (f"; size {record['size'][0]}x{record['size'][1]}" if record.get("size") else "")
               + (f"; {record['steps']} steps" if record.get("steps") is not None else "") + ".",
               "", f"Commit {record['commit']} (svolsdf {record['version']}), {record['date']}; "
@@ -369,6 +392,19 @@ def experiment_markdown(record: dict) -> str:
               + (f", {m['gpu']}" if m.get("gpu") else "") + f", torch {m.get('torch', '?')}.",
               "", f"Command: `{record['command']}`"
               + (f" (experiment file `{record['file']}`)." if record.get("file") else ".")]
+    pgt = record.get("pseudo_gt")
+    if pgt:  # DTU scans without their STL: scored against a many-view reference
+        f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+        notes += ["", "## Against the pseudo ground truth", "", pgt["what"], "",
+                  "| scene | variant | points acc. | points comp. | points Chamfer | DTU rule "
+                  "| F | mesh Chamfer | mesh DTU rule |",
+                  "|---|---|" + "---:|" * 7]
+        for r in pgt["rows"]:
+            notes.append(f"| {r['scene']} | {r['variant']} | {f(r.get('points_accuracy'))} | "
+                         f"{f(r.get('points_completeness'))} | {f(r.get('points_overall'))} | "
+                         f"{f(r.get('points_overall_dtu_rule'))} | "
+                         f"{f(r.get('points_fscore'))} | {f(r.get('mesh_overall'))} | "
+                         f"{f(r.get('mesh_overall_dtu_rule'))} |")
     field = record.get("field_alone")
     if field:  # the guide depth against the ground truth, before stages 2-3 and fusion
         notes += ["", "## The field alone", "", field["what"], "",

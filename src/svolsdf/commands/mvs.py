@@ -129,7 +129,7 @@ def run_mvs(cfg: MVSJobConfig) -> dict:
         raise InputError(f"{cfg.scene}: MVS needs at least 2 views, got {len(probe)} "
                          f"({probe.view_ids})")
     W, H = working_size(*probe.extras.get("native_size", (probe.width, probe.height)),
-                        size=cfg.size)
+                        image_size=cfg.size)
     # weights errors before loading
     backbone = get_backbone(cfg.backbone, weights=cfg.weights, device=cfg.device)
     output_dir(out)  # before the cascade's minutes

@@ -1,5 +1,16 @@
 """Configs to and from YAML and the command line: load, save, dotted overrides (``--set``), and
-the commented YAML of `svolsdf config`."""
+the commented YAML of `svolsdf config`.
+
+An option has one name from the YAML file to the code: each component reads its own section
+under the section's names (``mvs.crop_to_masks`` is the plane sweep's ``crop_to_masks``,
+``fusion.guided_dilation`` the fusion filter's ``guided_dilation``; tests/test_option_names.py
+checks every hand-off). `RENAMED` is the one table of older names, and its purpose is reading
+old YAML files: config files, the config.yaml of run folders written before the component
+sections, and ``--set`` given an old name, all read as the new names with one deprecation line.
+No component uses the old names; `legacy_layout` lays a config out under them only for the
+earlier stage-key formula, by which the runner recognises the run folders written before the
+renaming (`svolsdf.pipeline.legacy_keys`).
+"""
 
 from __future__ import annotations
 
@@ -26,11 +37,11 @@ __all__ = ["load_config", "save_config", "config_from_dict", "apply_overrides", 
 log = logging.getLogger("svolsdf.config")
 
 #: option names of the flat ``output`` section, before the component sections -> their names
-#: now. Config files, run folders' config.yaml and ``--set`` still take the old names:
-#: `config_from_dict` and `apply_overrides` read them as the new ones and say so in one
-#: deprecation line; the earlier stage-key formula, by which the runner recognises the run
-#: folders it marked, hashes the options under these old names (`legacy_layout`), so run folders
-#: made before the change keep their finished stages.
+#: now: for reading old YAML files only (the module's docstring). Config files, run folders'
+#: config.yaml and ``--set`` still take the old names: `config_from_dict` and `apply_overrides`
+#: read them as the new ones and say so in one deprecation line; `legacy_layout` gives them to
+#: the earlier stage-key formula, which recognises run folders made before the change, so they
+#: keep their finished stages.
 RENAMED: dict[str, str] = {
     "output.mesh_method": "mesh.method",
     "output.mesh_resolution": "mesh.resolution",

@@ -10,7 +10,7 @@ from svolsdf.errors import InputError
 
 __all__ = ["MVS_SCALE_BY_BACKBONE", "PAPER_BACKBONE", "PRESETS", "RELEASED_SCAN_OVERRIDES",
            "backbone_provenance", "follow_backbone", "preset", "preset_mvs_scale",
-           "scene_overrides"]
+           "scene_overrides", "scene_scan"]
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ PAPER_BACKBONE = "casmvsnet"
 """The paper's MVS backbone: CasMVSNet with the DTU-trained cascade-stereo checkpoint."""
 
 
-def _scan_of(scene_path: str) -> tuple[str, int] | None:
+def scene_scan(scene_path: str) -> tuple[str, int] | None:
     """(dataset, scan) from a scene folder's name: ``bmvs_scan2`` or ``blendedmvs_scan2`` ->
     ("blendedmvs", 2); ``scan24`` or ``dtu_scan24`` -> ("dtu", 24); else None."""
     import re
@@ -121,7 +121,7 @@ def scene_overrides(cfg: Config, given: set[str] | frozenset = frozenset()) -> d
     (options the user set, which win). Returns {dotted key: value} of what it set."""
     if cfg.preset != "released" or not cfg.scene.path:
         return {}
-    scan = _scan_of(cfg.scene.path)
+    scan = scene_scan(cfg.scene.path)
     if scan is None:
         return {}
     out = {k: v for k, v in RELEASED_SCAN_OVERRIDES.get(scan[0], {}).get(scan[1], {}).items()

@@ -327,7 +327,7 @@ class FusionConfig:
     unguided_dilation: int | None = _limited(None, min=0)
     """Object-mask dilation, in pixels, for the MVS cascade's own depth: mvs-only mode's and the
     unguided set of ``fusion.unguided``; None = the released 12 px
-    (`svolsdf.fusion.filter.FusionFilterConfig.alt_mask_dilation`)."""
+    (`svolsdf.fusion.filter.FusionFilterConfig.unguided_dilation`)."""
     unguided: bool = False
     """Also run MVS stages 2-3 centred on the stage-1 depth, as the backbone alone does, and
     give every view that unguided depth as a second hypothesis: each hypothesis is a reference

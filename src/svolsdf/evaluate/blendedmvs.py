@@ -30,13 +30,18 @@ from svolsdf.errors import InputError
 from svolsdf.evaluate.points import nn_distances
 
 __all__ = ["above_plane", "blendedmvs_chamfer", "fit_ground_plane", "inside_masks", "protocol",
-           "relative_improvement"]
+           "protocol_scans", "relative_improvement"]
 
 
 @cache
 def _data() -> dict:
     return json.loads(resources.files("svolsdf.evaluate").joinpath(
         "data/blendedmvs_protocol.json").read_text())
+
+
+def protocol_scans() -> list[int]:
+    """The scan numbers the protocol lists (1-9)."""
+    return [int(k) for k in _data()["scans"]]
 
 
 def protocol(scan: int) -> dict:
@@ -137,10 +142,10 @@ def blendedmvs_chamfer(pred: np.ndarray, gt: np.ndarray, plane: tuple[np.ndarray
     gt = np.asarray(gt, np.float64)
     pred, gt = pred[above_plane(pred, plane, margin)], gt[above_plane(gt, plane, margin)]
 
-    def score(a: np.ndarray, b: np.ndarray) -> dict:
+    def score(a: np.ndarray, b: np.ndarray, where: str = "above the ground plane") -> dict:
         if not len(a) or not len(b):
             raise InputError(f"BlendedMVS Chamfer: {len(a)} predicted and {len(b)} ground-"
-                             "truth points above the ground plane")
+                             f"truth points {where}")
         d_ab, d_ba = nn_distances(a, b), nn_distances(b, a)
         acc = float(d_ab[d_ab < max_dist].mean()) if (d_ab < max_dist).any() else float("nan")
         comp = float(d_ba[d_ba < max_dist].mean()) if (d_ba < max_dist).any() else float("nan")
@@ -150,7 +155,8 @@ def blendedmvs_chamfer(pred: np.ndarray, gt: np.ndarray, plane: tuple[np.ndarray
     out = {"unmasked": score(pred, gt), "masked": None}
     if masked is not None:
         args = (masked["K"], masked["w2c"], masked["masks"])
-        out["masked"] = score(pred[inside_masks(pred, *args)], gt[inside_masks(gt, *args)])
+        out["masked"] = score(pred[inside_masks(pred, *args)], gt[inside_masks(gt, *args)],
+                              "above the ground plane and inside the evaluation masks")
     return out
 
 

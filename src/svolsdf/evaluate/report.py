@@ -62,6 +62,30 @@ METRIC_INFO = {
 
 
 # --------------------------------------------------------------------------- tables
+def _blendedmvs_rows(b: dict | None, u: str) -> list[tuple]:
+    """The BlendedMVS protocol's rows beside the unmasked Chamfer (`chamfer`): the masked
+    score, the VolSDF run's and the relative improvement over it."""
+    if not b:
+        return []
+    rows = []
+    masked = b["masked"]
+    proto = f"; protocol: {protocol_label('blendedmvs-masked')}"
+    for k in ("accuracy", "completeness", "overall"):
+        rows.append((f"Chamfer {k} (points, masked)", masked.get(k), u,
+                     METRIC_INFO[k] + proto if masked.get("overall") is not None else
+                     str(masked.get("missing"))))
+    v = b.get("volsdf")
+    if v:
+        for key in ("unmasked", "masked"):
+            rows.append((f"VolSDF Chamfer overall ({key})", v[key].get("overall"), u,
+                         f"the VolSDF run {v['run']} scored the same way"))
+        for key, x in (b.get("relative_improvement") or {}).items():
+            rows.append((f"relative improvement over VolSDF ({key})", x, "ratio",
+                         "(VolSDF - run) / VolSDF of the overall Chamfer, the paper's "
+                         "BlendedMVS number (positive: better than VolSDF)"))
+    return rows
+
+
 def _metrics_table(metrics: dict, units: str | None) -> str:
     u = units_label(units)
     rows = []
@@ -75,6 +99,7 @@ def _metrics_table(metrics: dict, units: str | None) -> str:
             "overall") is not None else ""
         for k in ("accuracy", "completeness", "overall"):
             rows.append((f"Chamfer {k} ({src})", blk.get(k), u, METRIC_INFO[k] + proto))
+    rows += _blendedmvs_rows(metrics.get("blendedmvs"), u)
     ratio = metrics.get("mesh_over_points") or {}
     for k in ("accuracy", "completeness", "overall"):
         if ratio.get(k) is not None:

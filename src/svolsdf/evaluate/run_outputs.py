@@ -291,6 +291,11 @@ PROTOCOLS = {
                     "--gt-points cloud",
     "synthetic": "the synthetic scene's own ground truth, only the part the input views see, "
                  "distances clipped at 5 % of its diagonal (the benchmarks' protocol)",
+    "blendedmvs": "BlendedMVS protocol, unmasked: the ground plane fitted to --gt-points and "
+                  "removed from both clouds, distances beyond max_dist left out (docs/method.md "
+                  "8.2)",
+    "blendedmvs-masked": "BlendedMVS protocol, masked: as unmasked, both clouds kept inside the "
+                         "evaluation masks of the views that see them (docs/method.md 8.2)",
 }
 """What each Chamfer ``protocol`` of metrics.json measures. Numbers of two protocols differ on
 the same reconstruction (the whole ground truth against the part the inputs see; a cut-off or
@@ -325,6 +330,7 @@ def metric_lines(m: dict) -> list[str]:
         if key == "chamfer_mesh" and c.get("density"):
             line += f" (its surface, sampled every {c['density']:.3g})"
         lines.append(line)
+    lines += _blendedmvs_lines(m.get("blendedmvs"), num)
     region = (m.get("settings") or {}).get("image_region")
     views = m.get("views") or {}
     for key, what, ids in (
@@ -346,6 +352,34 @@ def metric_lines(m: dict) -> list[str]:
     return lines
 
 
+def _blendedmvs_lines(b: dict | None, num) -> list[str]:
+    """The BlendedMVS protocol's masked score, the VolSDF run's scores and the relative
+    improvement over it (`svolsdf.evaluate.blendedmvs_run`); the unmasked score is the
+    ``chamfer`` line."""
+    if not b:
+        return []
+
+    def chamfer(blk: dict) -> str:
+        if blk["overall"] is None:
+            return f"null ({blk['missing']})"
+        return (f"accuracy {num(blk['accuracy'])}, completeness {num(blk['completeness'])}, "
+                f"overall {num(blk['overall'])}")
+
+    lines = [f"points.ply Chamfer [{protocol_label('blendedmvs-masked')}]: "
+             f"{chamfer(b['masked'])}"]
+    v = b.get("volsdf")
+    if v:
+        for key in ("unmasked", "masked"):
+            lines.append(f"VolSDF run {v['run']} Chamfer [{protocol_label(v[key]['protocol'])}]"
+                         f": {chamfer(v[key])}")
+        rel = b["relative_improvement"]
+        vals = ", ".join(f"{k} " + ("null" if rel[k] is None else f"{100 * rel[k]:.1f} %")
+                         for k in ("unmasked", "masked"))
+        lines.append(f"relative improvement over VolSDF, (VolSDF - run) / VolSDF of the overall "
+                     f"Chamfer [BlendedMVS protocol]: {vals}")
+    return lines
+
+
 def run_kind_note(run: RunFolder) -> str | None:
     """Why an output folder of ``svolsdf mvs`` (mvs.json, no config.yaml) lacks renders and a
     mesh: the MVS job makes neither. None for other folders."""
@@ -364,7 +398,7 @@ def empty_metrics() -> dict:
             "views": {"inputs": None, "novel_scored": [], "input_scored": []},
             "mesh_source": None,
             "mesh_over_points": {"accuracy": None, "completeness": None, "overall": None},
-            "missing": {}, "timing": {}, "settings": {}}
+            "blendedmvs": None, "missing": {}, "timing": {}, "settings": {}}
 
 
 def empty_images(missing: str | None = None) -> dict:

@@ -35,13 +35,20 @@ Writes OUT/metrics.json with fixed keys (null when not computable)::
                 images.psnr, ...: no points.ply, no ground truth, a scene folder that moved,
                 ...); the Chamfer blocks keep their own reason under ``missing`` too
     timing: {..timing.json.., evaluate_seconds}
+    blendedmvs: null, or with protocol "blendedmvs" {unmasked, masked: Chamfer blocks with
+                n_pred and n_gt, volsdf: {run, unmasked, masked} or null, relative_improvement:
+                {unmasked, masked} or null, scan, relative_scale, max_dist, plane, masked_views,
+                masks_from, units} (`svolsdf.evaluate.blendedmvs_run`; ``chamfer`` holds the
+                unmasked score)
     settings: what was evaluated against what; ``image_region`` says where the image errors
                 are computed (inside the object mask where the scene has one)
 
 and OUT/report.html (`svolsdf.evaluate.run_report`).
 
 Geometry: with ``dtu_gt`` the DTU protocol (docs/method.md 8.1), with ``gt_points`` the generic
-two-way Chamfer, and otherwise, for a scene written by ``svolsdf synth``, its own ground truth
+two-way Chamfer, or with ``protocol`` "blendedmvs" the paper's BlendedMVS protocol (docs/method.md
+8.2: ground plane removed, masked and unmasked, relative to a ``volsdf`` run), and otherwise,
+for a scene written by ``svolsdf synth``, its own ground truth
 (`svolsdf.evaluate.synthetic.synthetic_chamfer`, the benchmarks' protocol: F-score at 0.5 % and
 distances clipped at 5 % of its diagonal). Otherwise the F-score threshold defaults to 1% of the
 ground truth's bounding-box diagonal (DTU: of the STL points above the plane), a scale-free
@@ -105,7 +112,8 @@ class EvaluateConfig:
     dtu_gt: Path | None = None
     """DTU ground-truth root (ObsMask/, Points/stl/); selects the DTU protocol."""
     scan: int | None = None
-    """DTU scan number (default: from the scene)."""
+    """Scan number: DTU's with dtu_gt, BlendedMVS' (1-9, its scale) with the blendedmvs protocol
+    (default: from the scene folder's name)."""
     scene: Path | None = None
     """Scene folder for ground-truth images (default: from OUT/config.yaml)."""
     views: list[int] | None = None
@@ -113,7 +121,19 @@ class EvaluateConfig:
     threshold: float | None = None
     """F-score threshold in world units (default: 1% of the ground truth's bbox diagonal)."""
     max_dist: float | None = None
-    """Generic Chamfer cut-off (default none; the DTU protocol always uses 20 mm)."""
+    """Chamfer cut-off in world units (default: none for the generic Chamfer, 20 mm at the scan's
+    scale for the BlendedMVS protocol; the DTU protocol always uses 20 mm)."""
+    protocol: Literal["auto", "blendedmvs"] = "auto"
+    """Chamfer protocol: auto (the one the ground truth implies) or blendedmvs (the paper's
+    BlendedMVS protocol against the gt_points cloud: its ground plane removed, masked and
+    unmasked). The BlendedMVS protocol is docs/method.md 8.2's."""
+    volsdf: Path | None = None
+    """A VolSDF run of the same scene and views (mode volsdf), scored the same way: the
+    BlendedMVS protocol's relative improvement over it."""
+    eval_masks: Path | None = None
+    """Evaluation masks for the BlendedMVS protocol's masked score: a folder of masks named by
+    view id, for some views only (the released data's eval_mask/scanN/mask; default: the
+    scene's mask folder)."""
     lpips_net: Literal["vgg", "alex"] = "vgg"
     """LPIPS backbone, 'vgg' (the paper's) or 'alex'."""
     lpips_weights: Path | None = None
@@ -134,10 +154,16 @@ class EvaluateConfig:
 
 def _geometry(cfg: EvaluateConfig, scan: int | None, points, mesh, metrics: dict,
               notes: list[str], scene_path: Path | None = None,
-              input_views: list[int] | None = None) -> str | None:
+              input_views: list[int] | None = None, bmvs=None) -> str | None:
     """Chamfer / F-score into ``metrics``; returns why there is no ground-truth geometry (None
-    when there is)."""
-    if cfg.dtu_gt is not None:
+    when there is). ``bmvs``: the BlendedMVS protocol's job (`check_blendedmvs`), or None."""
+    if bmvs is not None:
+        from svolsdf.evaluate.blendedmvs_run import blendedmvs_geometry
+
+        metrics["settings"]["gt_points"] = str(cfg.gt_points)
+        blendedmvs_geometry(bmvs, load_gt_points(cfg.gt_points), points[0], metrics, notes)
+        metrics["chamfer_mesh"]["missing"] = "the BlendedMVS protocol scores points.ply only"
+    elif cfg.dtu_gt is not None:
         if scan is None:
             raise InputError("--dtu-gt needs --scan N (the scene does not name its DTU scan)")
         files = ch.find_dtu_files(cfg.dtu_gt, scan)
@@ -207,7 +233,7 @@ def _missing(metrics: dict, points, mesh, no_gt: str | None, kind: str | None = 
     `run_kind_note`)."""
     for key, have, name in (("chamfer", points, "points.ply"), ("chamfer_mesh", mesh, "mesh.ply")):
         blk = metrics[key]
-        if blk["overall"] is not None:
+        if blk["overall"] is not None or blk.get("missing"):  # scored, or null with its reason
             continue
         if have is None:
             blk["missing"] = (f"no {name} in the run folder" if key == "chamfer" else
@@ -223,7 +249,9 @@ def _missing(metrics: dict, points, mesh, no_gt: str | None, kind: str | None = 
     if metrics["chamfer"]["missing"] is not None:
         out["chamfer"] = out["fscore"] = metrics["chamfer"]["missing"]
     elif metrics["fscore"] is None:
-        out["fscore"] = "the F-score is not a finite number"
+        out["fscore"] = ("the BlendedMVS protocol has no F-score"
+                         if metrics["chamfer"]["protocol"] == "blendedmvs" else
+                         "the F-score is not a finite number")
     if metrics["chamfer_mesh"]["missing"] is not None:
         out["chamfer_mesh"] = metrics["chamfer_mesh"]["missing"]
     for key in ("images", "images_ibr"):
@@ -389,6 +417,12 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
     run = RunFolder(out)
     found = check_run_folder(run, cfg.scene)
     _check_evaluate_options(cfg, out)
+    bmvs = None
+    if cfg.protocol == "blendedmvs":
+        from svolsdf.evaluate.blendedmvs_run import check_blendedmvs
+
+        bmvs = check_blendedmvs(out, cfg.gt_points, cfg.dtu_gt, cfg.scene, cfg.scan,
+                                cfg.max_dist, cfg.volsdf, cfg.eval_masks)
     prov = check_provenance(run, found)
     lp = None
     if cfg.lpips_weights is not None:  # weights asked for and unreadable: an error, not a null
@@ -397,13 +431,22 @@ def evaluate_run(cfg: EvaluateConfig) -> dict:
         lp = LPIPS(cfg.lpips_net, cfg.lpips_weights)
     output_dir(out, "run folder")  # metrics.json goes there: fail before the work
     with folder_lock(out, "svolsdf evaluate"):
-        return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}), lp)
+        return _evaluate_run(replace(cfg, extra={**cfg.extra, "provenance": prov}), lp, bmvs)
 
 
 def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
     """Options that evaluate could not honour are errors, not silently ignored."""
-    if cfg.scan is not None and cfg.dtu_gt is None:
-        raise InputError(f"--scan {cfg.scan}: only the DTU protocol uses it; add --dtu-gt ROOT")
+    if cfg.protocol not in ("auto", "blendedmvs"):
+        raise InputError(f"--protocol {cfg.protocol!r}: expected 'auto' or 'blendedmvs'")
+    if cfg.scan is not None and cfg.dtu_gt is None and cfg.protocol != "blendedmvs":
+        raise InputError(f"--scan {cfg.scan}: only the DTU and BlendedMVS protocols use it; add "
+                         "--dtu-gt ROOT or --protocol blendedmvs")
+    if cfg.eval_masks is not None and cfg.protocol != "blendedmvs":
+        raise InputError(f"--eval-masks {cfg.eval_masks}: only the BlendedMVS protocol's masked "
+                         "score reads them; add --protocol blendedmvs")
+    if cfg.volsdf is not None and cfg.protocol != "blendedmvs":
+        raise InputError(f"--volsdf {cfg.volsdf}: only the BlendedMVS protocol compares against "
+                         "a VolSDF run; add --protocol blendedmvs")
     if cfg.dtu_gt is not None and cfg.gt_points is not None:
         raise InputError("--dtu-gt and --gt-points: give one ground truth")
     if cfg.lpips_net not in ("vgg", "alex"):
@@ -414,8 +457,9 @@ def _check_evaluate_options(cfg: EvaluateConfig, out: Path) -> None:
             raise InputError(f"{name} {v}: expected a number > 0")
 
 
-def _evaluate_run(cfg: EvaluateConfig, lp=None) -> dict:
-    """`evaluate_run` once its checks passed and the lock is held (``lp``: `_images`)."""
+def _evaluate_run(cfg: EvaluateConfig, lp=None, bmvs=None) -> dict:
+    """`evaluate_run` once its checks passed and the lock is held (``lp``: `_images`; ``bmvs``:
+    the BlendedMVS protocol's job, `_geometry`)."""
     t0 = time.perf_counter()
     out = Path(cfg.out)
     from svolsdf.io.ply import read_ply
@@ -448,7 +492,7 @@ def _evaluate_run(cfg: EvaluateConfig, lp=None) -> dict:
         m = re.search(r"scan(\d+)", str(scene_path))
         scan = int(m.group(1)) if m else None
     t_geo = time.perf_counter()
-    no_gt = _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views)
+    no_gt = _geometry(cfg, scan, points, mesh, metrics, notes, scene_path, input_views, bmvs)
     log.info("geometry metrics in %.1fs", time.perf_counter() - t_geo)
     _missing(metrics, points, mesh, no_gt, run_kind_note(run))
 

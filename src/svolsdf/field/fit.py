@@ -33,7 +33,7 @@ __all__ = ["fit_sdf_to_points"]
 log = logging.getLogger(__name__)
 
 
-def fit_sdf_to_points(model, points: Tensor, steps: int = 300, lr: float = 5e-4,
+def fit_sdf_to_points(model, points: Tensor, fit_points: int = 300, lr: float = 5e-4,
                       batch: int = 32768, trunc_cells: float = 3.0,
                       eikonal_weight: float = 0.1, smooth_weight: float = 0.0,
                       seed: int = 0) -> dict[str, float]:
@@ -43,7 +43,7 @@ def fit_sdf_to_points(model, points: Tensor, steps: int = 300, lr: float = 5e-4,
         model: a `svolsdf.field.grid.GridSDFField` (anything with ``sdf_grid``, ``cell_size``,
             ``sdf_and_grad(x, create_graph, clamp)`` and ``smoothness_loss()``).
         points: (N, 3) float unit-frame points (the fused points, ``Normalization.to_unit``).
-        steps: Adam steps.
+        fit_points: Adam steps (``mesh.fit_points``).
         lr: learning rate of the SDF grid (per node, unit-frame units; keep it well below a
             cell, as `TrainConfig.lr_sdf`).
         batch: points per step.
@@ -74,14 +74,14 @@ def fit_sdf_to_points(model, points: Tensor, steps: int = 300, lr: float = 5e-4,
             return float(model.sdf(sub, clamp=False).abs().median()) / cell
 
     before = median_dist()
-    if len(pts) == 0 or steps <= 0:
+    if len(pts) == 0 or fit_points <= 0:
         return {"median_before": before, "median_after": before, "inliers": 0.0}
     requires = {id(p): p.requires_grad for p in model.parameters()}
     for p in model.parameters():
         p.requires_grad_(p is grid)
     opt = torch.optim.Adam([grid], lr=lr)
     try:
-        for _ in range(steps):
+        for _ in range(fit_points):
             idx = torch.randint(len(pts), (min(batch, len(pts)),), generator=gen, device=dev)
             p = pts[idx]
             s, g, _ = model.sdf_and_grad(p, create_graph=True, clamp=False)
@@ -107,6 +107,6 @@ def fit_sdf_to_points(model, points: Tensor, steps: int = 300, lr: float = 5e-4,
     after = float(d.median()) / cell
     inliers = float((d < tau).float().mean())
     log.info("surface fitted to %d fused points in %d steps: median distance %.2f -> %.2f "
-             "cells, %.0f%% within %.0f cells", len(pts), steps, before, after, 100 * inliers,
+             "cells, %.0f%% within %.0f cells", len(pts), fit_points, before, after, 100 * inliers,
              trunc_cells)
     return {"median_before": before, "median_after": after, "inliers": inliers}

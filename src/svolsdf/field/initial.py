@@ -7,9 +7,9 @@ signed distance built from the stage-1 depth maps:
 
 1. Each view's expected depth (docs/method.md 2.4) is kept where it is geometrically consistent with
    at least one other view (the fusion test of docs/method.md 6.3, at the stage-1 resolution) and,
-   when the scene has them, inside the (dilated) object mask. With ``unverified_weight`` w > 0 (the
-   fast preset) and masks, the depths inside the mask that fail the test still vote, with w times
-   their confidence (without masks they would be mostly background): a part
+   when the scene has them, inside the (dilated) object mask. With ``init_unverified_weight``
+   w > 0 (the fast preset) and masks, the depths inside the mask that fail the test still vote,
+   with w times their confidence (without masks they would be mostly background): a part
    of the object that only one view sees has no consistent depth, and without its own votes it
    starts at the hull the other views' free space leaves, in front of the true surface, where
    three views' losses cannot move it (benchmarks/results/history/fast_preset.md, notes of
@@ -109,7 +109,7 @@ def signed_distance_from_signs(inside: np.ndarray, spacing: tuple[float, float, 
 @torch.no_grad()
 def init_grid_from_mvs(model, volumes: list[ProbabilityVolume], normalization: Normalization,
                        masks: Tensor | None = None, trunc_cells: float = 4.0,
-                       chunk: int = 1 << 18, unverified_weight: float = 0.0) -> float:
+                       chunk: int = 1 << 18, init_unverified_weight: float = 0.0) -> float:
     """Set ``model.sdf_grid`` (a `GridSDFField`) from stage-1 MVS depth (module docstring).
 
     Args:
@@ -119,13 +119,14 @@ def init_grid_from_mvs(model, volumes: list[ProbabilityVolume], normalization: N
         masks: optional (V, 1, H, W) masks of the same views.
         trunc_cells: truncation in grid cells.
         chunk: nodes per projection batch.
-        unverified_weight: vote weight (times the confidence) of the depths that fail the
+        init_unverified_weight: vote weight (times the confidence) of the depths that fail the
             consistency test (module docstring, step 1); 0 = they do not vote.
 
     Returns:
         the share of nodes inside the initial surface.
     """
-    depths, weights = consistent_depths(volumes, masks, unverified_weight=unverified_weight)
+    depths, weights = consistent_depths(volumes, masks,
+                                        unverified_weight=init_unverified_weight)
     cell = float(model.cell_size.mean())
     trunc = trunc_cells * cell * normalization.scale
     shape = model.grid_shape

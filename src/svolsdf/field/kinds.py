@@ -53,7 +53,7 @@ FieldFactory = Callable[[FieldInputs], Any]
 #: `svolsdf.config.validate` words it as ``key = value with other = value: why``
 Refusal = tuple[str, Any, str, Any, str]
 
-#: (model, stage-1 volumes, normalization, (V, 1, H, W) masks or None, unverified_weight)
+#: (model, stage-1 volumes, normalization, (V, 1, H, W) masks or None, init_unverified_weight)
 MVSStart = Callable[[Any, list, Any, "torch.Tensor | None", float], Any]
 
 #: (FieldConfig, TrainConfig, from_sphere) -> [(step, resolution)], ascending steps
@@ -74,8 +74,9 @@ class FieldKind(DeclaresOptions):
     Attributes:
         build: `FieldInputs` -> a fresh `SurfaceModel`.
         init_from_mvs: writes the stage-1 MVS surface into a freshly built model, in place:
-            ``fn(model, volumes, normalization, masks, unverified_weight)`` (field.init "mvs" in
-            svolsdf mode; the model is then built in the MVS box, ``from_sphere`` False). None:
+            ``fn(model, volumes, normalization, masks, init_unverified_weight)`` (field.init
+            "mvs" in svolsdf mode; the model is then built in the MVS box, ``from_sphere``
+            False). None:
             the kind always starts from VolSDF's sphere, and field.init "mvs" is refused in
             svolsdf mode.
         sphere_options: the kind started from a sphere reads the sphere start's options
@@ -148,14 +149,15 @@ def starts_from_mvs(field_cfg: Any, train_cfg: Any) -> bool:
 
 # --------------------------------------------------------------------------- built in
 def _grid_from_mvs(model, volumes: list, normalization, masks: torch.Tensor | None,
-                   unverified_weight: float) -> None:
+                   init_unverified_weight: float) -> None:
     """The grid's start from the stage-1 MVS surface (`svolsdf.field.initial.init_grid_from_mvs`:
     ``model.sdf_grid`` set in place from ``volumes`` in the unit frame of ``normalization``,
     voting inside ``masks`` (V, 1, H, W) where given, the unconfirmed depths at
-    ``unverified_weight``)."""
+    ``init_unverified_weight``, ``field.init_unverified_weight``)."""
     from svolsdf.field.initial import init_grid_from_mvs
 
-    init_grid_from_mvs(model, volumes, normalization, masks, unverified_weight=unverified_weight)
+    init_grid_from_mvs(model, volumes, normalization, masks,
+                       init_unverified_weight=init_unverified_weight)
 
 
 def grid_resolution_schedule(f, t, from_sphere: bool) -> list[tuple[int, int]]:
@@ -299,7 +301,4 @@ def _mlp(i: FieldInputs):
     """The paper's VolSDF MLP (`VolSDFField`), ``mlp_depth`` x ``mlp_width``."""
     from svolsdf.field.volsdf import VolSDFField, VolSDFFieldConfig
 
-    f = i.field
-    return VolSDFField(VolSDFFieldConfig(n_layers=f.mlp_depth, d_hidden=f.mlp_width,
-                                         render_hidden=f.mlp_width,
-                                         sphere_clamp=not f.background))
+    return VolSDFField(VolSDFFieldConfig.from_config(i.field))

@@ -24,10 +24,12 @@ __all__ = ["VolSDFFieldConfig", "SDFNetwork", "IDRRenderingNetwork", "VolSDFFiel
 class VolSDFFieldConfig:
     """Constants of the paper preset's field (docs/method.md 5.2-5.4)."""
 
-    n_layers: int = 8
-    """Number of hidden layers of width ``d_hidden`` in the SDF MLP (paper: 8)."""
-    d_hidden: int = 256
-    """Hidden width of the SDF MLP (paper: 256)."""
+    mlp_depth: int = 8
+    """Number of hidden layers of width ``mlp_width`` in the SDF MLP (paper: 8;
+    ``field.mlp_depth``)."""
+    mlp_width: int = 256
+    """Hidden width of the SDF MLP, and of the colour network unless ``render_hidden`` says
+    otherwise (paper: 256; ``field.mlp_width``)."""
     multires: int = 6
     """Positional-encoding frequencies of the SDF input (paper: 6, giving 39 channels)."""
     skip_in: tuple[int, ...] = (4,)
@@ -53,14 +55,22 @@ class VolSDFFieldConfig:
     """Positional-encoding frequencies of the view direction (S-VolSDF: 1; VolSDF: 4)."""
     render_layers: int = 4
     """Hidden layers of the IDR colour network (paper: 4)."""
-    render_hidden: int = 256
-    """Hidden width of the IDR colour network (paper: 256)."""
+    render_hidden: int | None = None
+    """Hidden width of the IDR colour network; None: ``mlp_width`` (paper: 256 both)."""
     beta_init: float = 0.1
     """Initial Laplace beta_param (paper: 0.1)."""
     beta_min: float = 1e-4
     """beta = |beta_param| + beta_min (paper: 1e-4)."""
     extra: dict = field(default_factory=dict)
     """Unused; reserved so that configs written by later versions still load."""
+
+    @classmethod
+    def from_config(cls, field) -> VolSDFFieldConfig:
+        """The paper's field for a run's field section ``field`` (a
+        `svolsdf.config.FieldConfig`): ``mlp_depth`` x ``mlp_width``, the sphere clamp off
+        under a ``background`` model (docs/method.md 5.5), the paper's constants otherwise."""
+        return cls(mlp_depth=field.mlp_depth, mlp_width=field.mlp_width,
+                   sphere_clamp=not field.background)
 
 
 def _maybe_wn(lin: nn.Linear, on: bool) -> nn.Module:
@@ -187,7 +197,7 @@ class VolSDFField(SurfaceModel):
     """The paper preset's :class:`SurfaceModel` (docs/method.md 5.2-5.4).
 
     Example:
-        >>> m = VolSDFField(VolSDFFieldConfig(n_layers=2, d_hidden=64, skip_in=()))
+        >>> m = VolSDFField(VolSDFFieldConfig(mlp_depth=2, mlp_width=64, skip_in=()))
         >>> sdf, grad, feat = m.sdf_and_grad(torch.zeros(5, 3), create_graph=False)
         >>> sdf.shape, grad.shape, feat.shape
         (torch.Size([5]), torch.Size([5, 3]), torch.Size([5, 256]))
@@ -200,12 +210,15 @@ class VolSDFField(SurfaceModel):
         self.radius = float(c.radius)
         self.feature_dim = c.feature_dim
         self.sdf_net = SDFNetwork(
-            d_in=3, d_out=1, feature_dim=c.feature_dim, d_hidden=c.d_hidden, n_layers=c.n_layers,
+            d_in=3, d_out=1, feature_dim=c.feature_dim, d_hidden=c.mlp_width,
+            n_layers=c.mlp_depth,
             skip_in=tuple(c.skip_in), multires=c.multires, geometric_init=c.geometric_init,
             bias=c.bias, softplus_beta=c.softplus_beta, use_weight_norm=c.use_weight_norm,
         )
         self.colour_net = IDRRenderingNetwork(
-            feature_dim=c.feature_dim, d_hidden=c.render_hidden, n_layers=c.render_layers,
+            feature_dim=c.feature_dim,
+            d_hidden=c.mlp_width if c.render_hidden is None else c.render_hidden,
+            n_layers=c.render_layers,
             multires_view=c.multires_view, use_weight_norm=c.use_weight_norm,
         )
         self.laplace = LaplaceDensity(c.beta_init, c.beta_min)

@@ -25,6 +25,7 @@ helpers (`svolsdf.geometry.masks`) live in `svolsdf.geometry`, below every stage
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -78,19 +79,24 @@ class FusionFilterConfig:
     """Radius in pixels of the disk the masks are dilated with, at the mask's native resolution,
     before they are resized to the depth resolution (docs/method.md 6.3)."""
 
-    primary_mask_dilation: int | None = None
-    """Dilation radius for the references of ``depths`` (the first hypothesis) when it should
-    differ from ``mask_dilation``; None = ``mask_dilation`` for every reference. The pipeline
-    sets it for every mode (`svolsdf.pipeline.options.mask_dilation`): a field's depth, guided
-    or rendered, takes ``fusion.guided_dilation`` (near the silhouette a guided depth inherits
-    the field's errors, which are one 3D surface and so pass the multi-view check), the MVS
-    cascade's alone ``fusion.unguided_dilation``."""
+    guided_dilation: int | None = None
+    """Dilation radius for the references of a depth a guide made (``fusion.guided_dilation``):
+    ``depths`` (the first hypothesis) with ``guided_depths``, and every set of
+    ``extra_depths``; None = ``mask_dilation``. The pipeline's field-guided stages 2-3 and
+    the field's rendered depth: near the silhouette they inherit the field's errors, which are
+    one 3D surface and so pass the multi-view check."""
 
-    alt_mask_dilation: int | None = None
-    """Dilation radius for the references of ``alt_depths`` (the second hypothesis); None =
-    ``mask_dilation``. The pipeline narrows it for the unguided stages 2-3 in the fast preset
-    (``fusion.unguided_dilation``): as a second hypothesis beside the guided depth,
-    its points in the rim between the object and the dilated mask were mostly background."""
+    unguided_dilation: int | None = None
+    """Dilation radius for the references of the MVS cascade's own depth
+    (``fusion.unguided_dilation``): ``alt_depths`` (the second hypothesis), and ``depths``
+    without ``guided_depths``; None = ``mask_dilation``. The fast preset narrows it: as a
+    second hypothesis beside the guided depth, the unguided points in the rim between the
+    object and the dilated mask were mostly background."""
+
+    guided_depths: bool = True
+    """``depths`` were made from a guide (MVS stages 2-3 centred on it, or a field's rendered
+    depth itself) and take ``guided_dilation``; False: the MVS cascade's alone (the pipeline's
+    mvs-only mode), which take ``unguided_dilation``."""
 
     surface: float = 0.0
     """With ``surface_depths`` (the optimized surface's depth rendered in each reference view): a
@@ -103,6 +109,17 @@ class FusionFilterConfig:
     estimate_normals: bool = False
     """Also return per-point normals, from finite differences of the fused depth map's
     back-projected points, oriented towards the reference camera."""
+
+    @classmethod
+    def from_config(cls, fusion, **fields) -> FusionFilterConfig:
+        """The filter of a run's fusion section ``fusion`` (a `svolsdf.config.FusionConfig`):
+        every option of the section that is a field here, under the same name (``dist``,
+        ``rel``, ``min_views``, ``conf``, ``surface``, ``guided_dilation``,
+        ``unguided_dilation``), and ``fields`` for the others (``use_masks``,
+        ``guided_depths``) or instead of an option (which is then not read)."""
+        own = {f.name: getattr(fusion, f.name) for f in dataclasses.fields(cls)
+               if f.name not in fields and hasattr(fusion, f.name)}
+        return cls(**own, **fields)
 
 
 class FusedPoints(NamedTuple):
@@ -189,8 +206,8 @@ def fuse_depth_maps(
     that agrees, ``depths`` before ``alt_depths``). The points of both are returned, the
     ``depths`` references' first. ``extra_depths`` adds further named hypotheses the same way
     (after ``alt_depths``; the pipeline's ``fusion.network``); they are guided by the
-    field, so their references take ``cfg.primary_mask_dilation`` as ``depths`` does;
-    ``alt_depths``' references take ``cfg.alt_mask_dilation`` (when set).
+    field, so their references take ``cfg.guided_dilation`` (when set) as ``depths`` does;
+    ``alt_depths``' references take ``cfg.unguided_dilation`` (when set).
 
     Depth maps may be at another resolution than the cameras, images and masks: cameras are
     resized to the depth size (`Cameras.resize`), masks are dilated at their own resolution and
@@ -266,9 +283,9 @@ def fuse_depth_maps(
             extra_confidences = {k: move(d) for k, d in extra_confidences.items()}
     # view id -> its hypotheses, primary first; each set's stats suffix and its mask dilation
     # (the field-guided sets take the primary one)
-    primary = cfg.mask_dilation if cfg.primary_mask_dilation is None \
-        else cfg.primary_mask_dilation
-    second = cfg.mask_dilation if cfg.alt_mask_dilation is None else cfg.alt_mask_dilation
+    guided = cfg.mask_dilation if cfg.guided_dilation is None else cfg.guided_dilation
+    second = cfg.mask_dilation if cfg.unguided_dilation is None else cfg.unguided_dilation
+    primary = guided if cfg.guided_depths else second
     sets = [("", primary)] + ([(":alt", second)] if use_alt else []) + \
         [(f":{k}", primary) for k in extra_depths]
     hyps = {v: [depths[v]] + ([alt_depths[v]] if use_alt else [])

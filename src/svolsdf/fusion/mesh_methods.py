@@ -175,8 +175,8 @@ def _poisson(m: MeshInputs) -> MeshResult:
 
     o = m.mesh
     return poisson_mesh(m.points, m.colours, m.model, m.scene, o.poisson.depth, o.poisson.trim,
-                        use_masks=m.use_masks, unseen=o.cull_unseen,
-                        rel_tol=o.cull_tol, device=m.device)
+                        use_masks=m.use_masks, cull_unseen=o.cull_unseen,
+                        cull_tol=o.cull_tol, device=m.device)
 
 
 @register_mesh_method("tsdf", needs_observed=True, options=_tsdf_options)
@@ -191,7 +191,7 @@ def _tsdf(m: MeshInputs) -> MeshResult:
     trunc = float(o.tsdf.truncation_steps * m.depth_step.mean())
     vw, f, c = points_tsdf_mesh(m.points, m.colours, m.scene, m.observed, trunc=trunc,
                                 resolution=o.tsdf.resolution, use_masks=m.use_masks,
-                                unseen=o.cull_unseen, rel_tol=o.cull_tol)
+                                cull_unseen=o.cull_unseen, cull_tol=o.cull_tol)
     if o.tsdf.fill_holes > 0:  # the small holes from the Poisson surface (docs/meshing.md)
         from svolsdf.fusion.meshing import fill_small_holes
         from svolsdf.fusion.observe import point_spacing

@@ -460,20 +460,21 @@ def colors_from_images(
 
 
 def save_mesh(path, vertices: Tensor, faces: Tensor, vertex_colors: Tensor | None = None,
-              fmt: str | None = None) -> Path:
-    """Write a mesh atomically as binary PLY (default) or OBJ (``fmt="obj"`` or a .obj path).
+              format: str | None = None) -> Path:
+    """Write a mesh atomically as binary PLY (default) or OBJ (``format="obj"`` or a .obj path).
 
     Args:
         path: output file.
         vertices: (V, 3) world points; faces: (F, 3); vertex_colors: (V, 3) uint8 or [0, 1].
-        fmt: "ply" or "obj"; default from the suffix (PLY unless it is .obj).
+        format: "ply" or "obj" (``mesh.format``); default from the suffix (PLY unless it is
+            .obj).
 
     Returns:
         The written path.
     """
     vertices, faces = _check_mesh(vertices, faces)
     path = Path(path)
-    fmt = (fmt or ("obj" if path.suffix.lower() == ".obj" else "ply")).lower()
+    fmt = (format or ("obj" if path.suffix.lower() == ".obj" else "ply")).lower()
     if fmt == "ply":
         return write_mesh_ply(path, vertices, faces, vertex_colors)
     if fmt == "obj":

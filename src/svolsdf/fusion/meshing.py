@@ -35,9 +35,9 @@ def field_mesh(
     resolution: int,
     watertight: bool = False,
     use_masks: bool = True,
-    unseen: bool = False,
+    cull_unseen: bool = False,
     depths: Callable[[], Tensor | None] | str | None = "mesh",
-    rel_tol: float = 0.01,
+    cull_tol: float = 0.01,
     device=None,
     progress: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -52,8 +52,9 @@ def field_mesh(
         scene: the input views (world cameras, masks at the cameras' size, normalization).
         resolution: marching-cubes cells along the box's longest side.
         use_masks: cull by the scene's masks when it has them.
-        unseen, rel_tol: `cull_to_views`'s visibility culling.
-        depths: what the views see for ``unseen``: a callable returning (N, H, W) z-depth maps
+        cull_unseen, cull_tol: `cull_to_views`'s visibility culling (its ``unseen`` and
+            ``rel_tol``; ``mesh.cull_unseen``, ``mesh.cull_tol``).
+        depths: what the views see for ``cull_unseen``: a callable returning (N, H, W) z-depth maps
             or None, or "mesh" (`cull_to_views`).
         device: where the SDF is evaluated.
 
@@ -85,10 +86,10 @@ def field_mesh(
         vw, f, idx = largest_component(vw, f, return_index=True)
         return v[idx], vw, f
     masks = scene.masks if use_masks else None
-    if unseen and callable(depths):
+    if cull_unseen and callable(depths):
         depths = depths()
-    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths=depths,
-                               rel_tol=rel_tol)
+    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=cull_unseen, depths=depths,
+                               rel_tol=cull_tol)
     return v[idx], vw, f
 
 
@@ -113,8 +114,8 @@ def poisson_mesh(
     depth: int,
     trim: float,
     use_masks: bool = True,
-    unseen: bool = False,
-    rel_tol: float = 0.01,
+    cull_unseen: bool = False,
+    cull_tol: float = 0.01,
     device=None,
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """The screened Poisson surface of fused points, normals oriented by the input cameras and,
@@ -127,7 +128,7 @@ def poisson_mesh(
         model: the field (``sdf`` on unit-frame points), for the normals' orientation.
         scene: the input views (world cameras, masks, normalization).
         depth, trim: `svolsdf.fusion.poisson.poisson_surface`'s octree depth and trim.
-        use_masks, unseen, rel_tol: as `field_mesh`.
+        use_masks, cull_unseen, cull_tol: as `field_mesh`.
         device: where the field's gradient is evaluated.
 
     Returns:
@@ -153,8 +154,8 @@ def poisson_mesh(
     # every part: a Poisson surface trimmed by sample density has no floaters, and separate
     # parts of the object are separate components (the largest alone dropped 15 % of a
     # synthetic object's surface; docs/table1.md, "History of the table")
-    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
-                               rel_tol=rel_tol, largest=False)
+    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=cull_unseen, depths="mesh",
+                               rel_tol=cull_tol, largest=False)
     bar.update()
     bar.close()
     return vw, f, (None if c is None else c[idx])
@@ -199,8 +200,8 @@ def points_tsdf_mesh(
     trunc: float,
     resolution: int,
     use_masks: bool = True,
-    unseen: bool = False,
-    rel_tol: float = 0.01,
+    cull_unseen: bool = False,
+    cull_tol: float = 0.01,
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """The TSDF mesh of the observed final depth (`svolsdf.fusion.tsdf.tsdf_mesh`), culled like
     the Poisson mesh (every component kept); vertex colours of the nearest fused point.
@@ -212,7 +213,7 @@ def points_tsdf_mesh(
             (`svolsdf.fusion.observe.observed_depths`).
         trunc: truncation distance, world units; resolution: voxels along the box's longest
             side.
-        use_masks, unseen, rel_tol: as `field_mesh`.
+        use_masks, cull_unseen, cull_tol: as `field_mesh`.
 
     Returns:
         vw (V, 3) world vertices, faces (F, 3), colours (V, 3) or None.
@@ -229,8 +230,8 @@ def points_tsdf_mesh(
         c = torch.from_numpy(np.asarray(colours)[nn])
     vw, f = torch.from_numpy(v).float(), torch.from_numpy(f)
     masks = scene.masks if use_masks else None
-    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=unseen, depths="mesh",
-                               rel_tol=rel_tol, largest=False)
+    vw, f, idx = cull_to_views(vw, f, scene.cameras, masks, unseen=cull_unseen, depths="mesh",
+                               rel_tol=cull_tol, largest=False)
     return vw, f, (None if c is None else c[idx])
 
 

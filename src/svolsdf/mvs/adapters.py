@@ -24,7 +24,7 @@ stage's depth at stages 2-3 like the cascade.
 
 A network that can start from a depth map (``can_start_from_depth``: PatchmatchNet) is also run a
 second time when stage 2 gets a guide depth (the optimized surface's rendered depth, docs/method.md
-6.1), starting from that guide instead of its own initialisation (``AdapterConfig.guide_init``).
+6.1), starting from that guide instead of its own initialisation (``AdapterConfig.guide_network``).
 That is this family's form of S-VolSDF's guidance: the surface replaces the network's coarse
 estimate, as it replaces CasMVSNet's stage-1 depth. Stages 2 and 3 of that cascade then centre
 their Laplacian on the guided prediction. Without it, a guide only moves the hypotheses, and the
@@ -152,7 +152,7 @@ class AdapterConfig:
 
     ndepths: tuple[int, int, int] = STAGE_DEPTHS
     """Hypotheses per stage (docs/method.md 0)."""
-    width_mode: str = "paper"
+    width: str = "paper"
     """Finer-stage search width, "paper", "released" or "half-default"
     (`svolsdf.mvs.hypotheses.WIDTHS`)."""
     inverse_depth: bool = False
@@ -171,7 +171,7 @@ class AdapterConfig:
     seed: int = 0
     """A network that draws random initial samples (PatchmatchNet) draws them for view ``v``
     under the seed ``seed + v``, with the global random state left as it was: runs repeat."""
-    guide_init: bool = True
+    guide_network: bool = True
     """A network that can start from a depth map (PatchmatchNet) reruns from the guide depth
     when stage 2 gets one, and stages 2-3 follow that prediction (module docstring). False: the
     network runs once per view, unguided, and the guide only centres the hypotheses. Points
@@ -187,12 +187,13 @@ class DepthConfidenceAdapter(MVSBackbone):
     """
 
     config_class = AdapterConfig
+    signature_names = {"width": "width_mode", "guide_network": "guide_init"}
     can_start_from_depth: bool = False
-    """True when :meth:`predict` uses ``init_depth`` (see `AdapterConfig.guide_init`)."""
+    """True when :meth:`predict` uses ``init_depth`` (see `AdapterConfig.guide_network`)."""
 
     def __init__(self, config: AdapterConfig | None = None, **cfg):
         self.config = config or AdapterConfig(**cfg)
-        interval_ratio(2, self.config.width_mode)  # validates the name
+        interval_ratio(2, self.config.width)  # validates the name
         if not 0 < self.config.b_min <= self.config.b_max:
             raise InputError(
                 f"Laplacian scales must satisfy 0 < b_min <= b_max, got "
@@ -227,14 +228,14 @@ class DepthConfidenceAdapter(MVSBackbone):
         Args:
             guide: optional (H', W') world z-depth the network starts from (resized to the
                 size the network runs at); only used when ``can_start_from_depth`` and
-                ``config.guide_init``, else the unguided prediction is returned.
+                ``config.guide_network``, else the unguided prediction is returned.
         """
         key = (id(scene.images), tuple(scene.view_ids))
         if self._pred_key != key or scene.images is None:
             if scene.images is None:
                 raise InputError(f"{scene.path}: the scene was loaded without images")
             self._pred, self._pred_key = {"images": scene.images}, key  # keep id() alive
-        use_guide = guide is not None and self.can_start_from_depth and self.config.guide_init
+        use_guide = guide is not None and self.can_start_from_depth and self.config.guide_network
         cache = vid
         if use_guide:
             guide = torch.as_tensor(guide, dtype=torch.float32).cpu()
@@ -280,7 +281,7 @@ class DepthConfidenceAdapter(MVSBackbone):
         Hypotheses: stage 1 planes over the depth range; stages 2-3 centred on
         ``guide_depth[view]`` or ``prev[view].depth`` (docs/method.md 2.5). Probabilities:
         :func:`laplacian_prob` with scale from the confidence (module docstring), on the
-        network's prediction: the guided one (`AdapterConfig.guide_init`) when this stage has a
+        network's prediction: the guided one (`AdapterConfig.guide_network`) when this stage has a
         guide, or when ``prev[view]`` is a volume this adapter made from the guided one; else
         the unguided one.
         """
@@ -316,7 +317,7 @@ class DepthConfidenceAdapter(MVSBackbone):
                         f"stage {k} of view {vid} needs a guide depth or the previous volume"
                     )
                 centre = _resize(centre.cpu(), Wk, Hk)
-                r = interval_ratio(k, self.config.width_mode)
+                r = interval_ratio(k, self.config.width)
                 depths = guided_hypotheses(centre, D, r * base_interval(near, far))
             spacing = (depths[-1] - depths[0]) / (D - 1)
             b = spacing * confidence_scale(c, self.config.b_min, self.config.b_max)

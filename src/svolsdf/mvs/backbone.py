@@ -83,18 +83,24 @@ class MVSBackbone(ABC):
     config_class: type | None = None
     #: it can start a stage from a given depth map (``fusion.network``; PatchmatchNet can)
     can_start_from_depth: bool = False
+    #: config fields under the names the earlier stage-key formula hashed them (`signature`;
+    #: `svolsdf.pipeline.legacy_keys`): a field renamed to its option's name keeps the name it
+    #: had when run folders were written, so that formula still recognises their MVS stages
+    signature_names: dict[str, str] = {}
 
     @classmethod
     def signature(cls, weights=None, **cfg) -> dict:
         """Everything that decides this backbone's output, for cache keys (`svolsdf.pipeline`).
 
-        The full config with its defaults (so that a changed default invalidates cached volumes)
-        and, with weights, the file's resolved path, size and modification time.
+        The full config with its defaults (so that a changed default invalidates cached volumes),
+        its fields under `signature_names`, and, with weights, the file's resolved path, size
+        and modification time.
         """
         try:
             conf = asdict(cls.config_class(**cfg)) if cls.config_class is not None else dict(cfg)
         except TypeError as e:
             raise InputError(f"{cls.name} backbone: {e}") from None
+        conf = {cls.signature_names.get(k, k): v for k, v in conf.items()}
         sig: dict = {"backbone": cls.name, "config": conf}
         if weights is not None:
             from svolsdf.io.paths import user_path
@@ -122,27 +128,29 @@ class MVSBackbone(ABC):
     @classmethod
     def options(cls, mvs) -> dict:
         """This backbone's ``**cfg`` keywords from the run's MVS section ``mvs`` (a
-        `svolsdf.config.MVSConfig`): the names the learned cascades share (``ndepths``,
-        ``width_mode``, ``inverse_depth``, ``max_sources``) and, where the config class has
-        them, ``x2_mvsres`` (``mvs.scale`` 1 or 2), ``native_images`` and ``guide_init``
-        (``mvs.guide_network``). A backbone whose config names them otherwise overrides it.
+        `svolsdf.config.MVSConfig`): every field of its config class that is an option of the
+        section, under the same name (``ndepths``, ``width``, ``inverse_depth``,
+        ``max_sources``, ``native_images``, ``guide_network``, ``crop_to_masks``, ...; a
+        backbone without a config class takes the first four), but ``scale``, whose None
+        means the backbone's own size: set, it gives ``x2_mvsres`` (``mvs.scale`` 1 or 2)
+        where the config class has it. A backbone that reads ``mvs.scale`` otherwise
+        overrides this.
 
         Raises:
             InputError: ``mvs.scale`` this backbone cannot run at.
         """
-        conf = cls.config_class
-        kw = {"ndepths": tuple(int(x) for x in mvs.ndepths), "width_mode": mvs.width,
-              "inverse_depth": mvs.inverse_depth, "max_sources": mvs.max_sources}
         why = cls.scale_problem(mvs.scale)
         if why is not None:
             raise InputError(f"mvs.scale = {mvs.scale}: {why}; leave mvs.scale unset for the "
                              "backbone's own size")
-        if mvs.scale is not None:
+        conf = cls.config_class
+        names = ([f.name for f in fields(conf)] if conf is not None and is_dataclass(conf)
+                 else ["ndepths", "width", "inverse_depth", "max_sources"])
+        kw = {n: getattr(mvs, n) for n in names if n != "scale" and hasattr(mvs, n)}
+        if "ndepths" in kw:
+            kw["ndepths"] = tuple(int(x) for x in kw["ndepths"])
+        if mvs.scale is not None and "x2_mvsres" in names:
             kw["x2_mvsres"] = float(mvs.scale) == 2.0
-        if hasattr(conf, "native_images"):
-            kw["native_images"] = mvs.native_images
-        if hasattr(conf, "guide_init"):  # the depth + confidence adapters' option
-            kw["guide_init"] = mvs.guide_network
         return kw
 
     @classmethod

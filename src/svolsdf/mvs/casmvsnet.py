@@ -94,7 +94,7 @@ class CasMVSNetConfig:
 
     ndepths: tuple[int, int, int] = STAGE_DEPTHS
     """Hypotheses per stage (docs/method.md 0: 192, 32, 8). Each must be divisible by 8."""
-    width_mode: str = "released"
+    width: str = "released"
     """Finer-stage search width: "released" (r = 0.5, 0.5, what the checkpoint was run with in
     the released S-VolSDF code), "paper" (the same, the paper's explicit numbers) or
     "half-default" (r = 1, 0.5); see `svolsdf.mvs.hypotheses`."""
@@ -133,6 +133,7 @@ class CasMVSNetBackbone(MVSBackbone):
     """
 
     config_class = CasMVSNetConfig
+    signature_names = {"width": "width_mode"}
 
     @classmethod
     def scale_problem(cls, scale: float | None) -> str | None:
@@ -153,7 +154,7 @@ class CasMVSNetBackbone(MVSBackbone):
         self.config = config or CasMVSNetConfig(**cfg)
         if any(d % 8 or d < 8 for d in self.config.ndepths):
             raise InputError(f"CasMVSNet ndepths must be multiples of 8, got {self.config.ndepths}")
-        interval_ratio(2, self.config.width_mode)  # validates the name
+        interval_ratio(2, self.config.width)  # validates the name
         self.model = model.to(self.config.device).eval()
         self._cache: tuple | None = None
 
@@ -210,7 +211,7 @@ class CasMVSNetBackbone(MVSBackbone):
         Stage 1: ``ndepths[0]`` planes over each view's depth range. Stages 2-3: hypotheses centred
         on ``guide_depth[view]`` or else ``prev[view].depth``, bilinearly upsampled to the network
         input size and resized to the stage (docs/method.md 2.5), interval r * Δ̄ with r from
-        ``width_mode``.
+        ``width``.
         """
         if k not in (1, 2, 3):
             raise ValueError(f"stage must be 1, 2 or 3, got {k}")
@@ -236,7 +237,7 @@ class CasMVSNetBackbone(MVSBackbone):
                 if s > 1:
                     centre = F.interpolate(centre[None, None], size=(Hk, Wk), mode="bilinear",
                                            align_corners=False)[0, 0]
-                r = interval_ratio(k, self.config.width_mode)
+                r = interval_ratio(k, self.config.width)
                 depths = guided_hypotheses(centre, D, r * base_interval(near, far))
             order = [i] + [scene.index(v) for v in
                            select_sources(scene, vid, self.config.max_sources)]

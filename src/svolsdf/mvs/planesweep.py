@@ -75,7 +75,7 @@ log = logging.getLogger(__name__)
 class PlaneSweepConfig:
     """Configuration of the plane-sweep backbone."""
 
-    num_depths: tuple[int, int, int] = (192, 32, 8)
+    ndepths: tuple[int, int, int] = (192, 32, 8)
     """Hypotheses per stage (docs/method.md 2.5)."""
     width: str = "paper"
     """Finer-stage search width: "paper" (r = 0.5, 0.5), "released" (the same) or
@@ -142,7 +142,7 @@ class PlaneSweepConfig:
     larger (`Scene.images_at`): a 1600x1200 DTU photo gives stage 3 its own detail at 1536x1152.
     False: the working-size images upsampled, as the released code (docs/method.md 9.2.2); the two
     score the same on dtu_scan65 (`svolsdf.config.MVSConfig.native_images`)."""
-    crop_margin: int | None = None
+    crop_to_masks: int | None = None
     """Stages 2-3 (the per-pixel hypotheses) only inside the box around the reference's object
     mask dilated by this many pixels at the working size (`mvs.crop_to_masks`); outside it the
     stage's depth and confidence are 0 (no depth) and its probabilities 0. None, or a scene
@@ -357,6 +357,7 @@ class PlaneSweepBackbone(MVSBackbone):
 
     name = "planesweep"
     config_class = PlaneSweepConfig
+    signature_names = {"ndepths": "num_depths", "crop_to_masks": "crop_margin"}
 
     @classmethod
     def scale_problem(cls, scale: float | None) -> str | None:
@@ -366,15 +367,12 @@ class PlaneSweepBackbone(MVSBackbone):
 
     @classmethod
     def options(cls, mvs) -> dict:
-        """`PlaneSweepConfig`'s keywords from the run's MVS section ``mvs``: its planes per stage
-        (``num_depths``), ``width``, ``native_images``, ``scale`` when set, and the shared
-        ``inverse_depth`` and ``max_sources``."""
-        return {"num_depths": tuple(int(x) for x in mvs.ndepths), "width": mvs.width,
-                "native_images": mvs.native_images, "inverse_depth": mvs.inverse_depth,
-                "max_sources": mvs.max_sources,
-                **({"scale": float(mvs.scale)} if mvs.scale is not None else {}),
-                **({"crop_margin": int(mvs.crop_to_masks)}
-                   if getattr(mvs, "crop_to_masks", None) is not None else {})}
+        """`MVSBackbone.options`, with ``scale`` when ``mvs.scale`` is set (the sweep runs at
+        any scale; unset, its own default)."""
+        kw = super().options(mvs)
+        if mvs.scale is not None:
+            kw["scale"] = float(mvs.scale)
+        return kw
 
     def __init__(self, config: PlaneSweepConfig | None = None,
                  device: torch.device | str | None = None, **fields) -> None:
@@ -460,13 +458,13 @@ class PlaneSweepBackbone(MVSBackbone):
             near, far = (float(x) for x in scene.depth_range[r])
             if k == 1:
                 depths = stage_hypotheses(1, near, far, cams.height, cams.width,
-                                          num_depths=self.cfg.num_depths[0],
+                                          num_depths=self.cfg.ndepths[0],
                                           inverse=self.cfg.inverse_depth,
                                           device=self.device).contiguous()
             else:
                 centre = self._centre(k, vid, cams.width, cams.height, guide_depth, prev)
                 depths = stage_hypotheses(k, near, far, cams.height, cams.width, guide=centre,
-                                          num_depths=self.cfg.num_depths[k - 1],
+                                          num_depths=self.cfg.ndepths[k - 1],
                                           width_mode=self.cfg.width)
                 depths = depths.clamp_min(self.cfg.min_depth_ratio * near)
             src = [scene.index(s) for s in select_sources(scene, vid, self.cfg.max_sources)]
@@ -491,9 +489,9 @@ class PlaneSweepBackbone(MVSBackbone):
 
     def _crop_box(self, scene: Scene, r: int, W: int, H: int) -> tuple[int, int, int, int] | None:
         """(x0, y0, x1, y1) at the stage's size W x H: the box of view index r's object mask
-        dilated by ``crop_margin`` working-size pixels; None without a margin, masks, or an
+        dilated by ``crop_to_masks`` working-size pixels; None without a margin, masks, or an
         object in the mask."""
-        m = self.cfg.crop_margin
+        m = self.cfg.crop_to_masks
         if m is None or scene.masks is None:
             return None
         mask = scene.masks[r].reshape(scene.masks.shape[-2:]) > 0.5

@@ -150,7 +150,7 @@ class Trainer:
         # (`MVSPrior.label`) read sizes or flags on the host where that costs nothing
         self.host_branch = torch.device(self.device).type == "cpu"
         if prior is not None:
-            prior.label_floor = cfg.prior_floor  # (the sampler reads the same prior)
+            prior.prior_floor = cfg.prior_floor  # (the sampler reads the same prior)
 
     # ------------------------------------------------------------------ setup
     def _build_optimizer(self) -> None:

@@ -34,7 +34,7 @@ def backbone_kwargs(cfg: Config) -> dict:
 
     out = backbone_options(cfg.mvs.backbone, cfg.mvs)
     if not cfg.scene.use_masks:  # mvs.crop_to_masks crops to the masks the run uses
-        out.pop("crop_margin", None)
+        out.pop("crop_to_masks", None)
     return out
 
 
@@ -85,9 +85,9 @@ def build_model(cfg: Config, bounds: Callable[[], torch.Tensor]):
     return model
 
 
-def attach_background(model, kind: str, which: str = "nerf++") -> None:
+def attach_background(model, kind: str, background_model: str = "nerf++") -> None:
     """``model.background``: the NeRF++ inverted-sphere background (docs/method.md 5.5), or
-    with ``which`` = "sphere_map" the colour map on the bounding sphere
+    with ``background_model`` = "sphere_map" the colour map on the bounding sphere
     (`svolsdf.field.background.SphereMapBackground`, trained at the grid rate).
 
     A submodule of the field, so it moves with ``model.to(device)``, is saved in its
@@ -107,7 +107,7 @@ def attach_background(model, kind: str, which: str = "nerf++") -> None:
     )
     from svolsdf.field.kinds import get_field_kind
 
-    if which == "sphere_map":
+    if background_model == "sphere_map":
         model.background = SphereMapBackground(float(model.radius))
         return
     bcfg = BackgroundConfig(radius=float(model.radius), **get_field_kind(kind).background)

@@ -55,17 +55,18 @@ def fuse(p: StageContext, path: Path) -> tuple[int, dict]:
 
     scene = p.load()
     cfg, out, views = p.cfg, p.out, p.views
-    f = cfg.fusion  # the filter's options have the same names as the config's
-    fcfg = FusionFilterConfig(dist=f.dist, rel=f.rel, min_views=f.min_views, conf=f.conf,
-                              surface=f.surface, use_masks=cfg.scene.use_masks)
+    f = cfg.fusion
     # every mode's final depth within the same masks (the modes compared on one region): a
-    # field's depth, guided or rendered, within fusion.guided_dilation, the MVS cascade's alone
-    # within unguided_dilation
-    fcfg.primary_mask_dilation = options.mask_dilation(cfg)
-    if options.guided_mvs(cfg):  # the unguided set, when fusion.unguided adds it
-        fcfg.alt_mask_dilation = f.unguided_dilation
+    # depth a guide made, guided stages 2-3 or a field's rendering, within guided_dilation; the
+    # MVS cascade's alone (mvs-only mode, the unguided set) within unguided_dilation; the
+    # dilation of a set the mode never fuses is not read (mvs-only fuses no depth a guide made,
+    # volsdf none of the cascade's own)
+    unused = {**({} if options.has_guide(cfg) else {"guided_dilation": None}),
+              **({"unguided_dilation": None} if options.is_baseline(cfg) else {})}
+    fcfg = FusionFilterConfig.from_config(f, use_masks=cfg.scene.use_masks,
+                                          guided_depths=options.has_guide(cfg), **unused)
     # the refined surface after the finer-stage optimization
-    sdir = p.dir.render_depth_dir(refined=bool(cfg.mvs.finer_stage_optimization))
+    sdir = p.dir.render_depth_dir(refined=options.refines_field(cfg))
     # the rendered guide is the surface (the soft-consistency ablation's guide is not). In
     # volsdf mode OUT/depth is that guide itself: it must not count as its own consistent
     # source, so VolSDF's points pass the same multi-view check as every other mode's

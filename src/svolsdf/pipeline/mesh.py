@@ -133,10 +133,10 @@ def _field_mesh(p: StageContext, model, scene, use_masks: bool):
     # the fitted surface moved away from the rendered depth: the views' depth of the mesh
     # itself decides what they see
     mc = p.cfg.mesh
-    depths = "mesh" if fit else (lambda: _mesh_cull_depths(p, p.cfg.mvs.finer_stage_optimization))
+    depths = "mesh" if fit else (lambda: _mesh_cull_depths(p, options.refines_field(p.cfg)))
     v, vw, f = field_mesh(model, bounds, scene, mc.resolution, watertight=mc.watertight,
-                          use_masks=use_masks, unseen=mc.cull_unseen, depths=depths,
-                          rel_tol=mc.cull_tol, device=p.device, progress=p.progress)
+                          use_masks=use_masks, cull_unseen=mc.cull_unseen, depths=depths,
+                          cull_tol=mc.cull_tol, device=p.device, progress=p.progress)
     return vw, f, field_mesh_colours(model, v, f, device=p.device)
 
 
@@ -166,7 +166,7 @@ def _surface_fitted_to_points(p: StageContext, model):
     pts = read_ply(_fused_points(p))["points"]
     unit = scene.normalization.to_unit(torch.from_numpy(pts).double()).float()
     fitted = copy.deepcopy(model)
-    fit_sdf_to_points(fitted, unit.to(p.device), steps=p.cfg.mesh.fit_points,
+    fit_sdf_to_points(fitted, unit.to(p.device), fit_points=p.cfg.mesh.fit_points,
                       seed=p.cfg.train.seed)
     save_field(p.dir.surface_model, fitted)
     return fitted

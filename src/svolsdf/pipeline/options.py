@@ -10,8 +10,8 @@ from svolsdf.optimize import modes
 
 __all__ = ["field_from_mvs", "field_kind", "fits_to_mvs_depth", "grid_from_sphere",
            "guide_from_consistency", "guided_mvs", "has_field", "has_guide", "is_baseline",
-           "mask_dilation", "mesh_from_points", "mesh_method", "runs_mvs1", "uses_prior",
-           "wants_mesh_fit", "wants_network", "wants_unguided"]
+           "mask_dilation", "mesh_from_points", "mesh_method", "refines_field", "runs_mvs1",
+           "uses_prior", "wants_mesh_fit", "wants_network", "wants_unguided"]
 
 
 def is_baseline(cfg: Config) -> bool:
@@ -35,6 +35,13 @@ def mask_dilation(cfg: Config) -> int | None:
     if cfg.train.mode == "mvs-only":
         return cfg.fusion.unguided_dilation
     return cfg.fusion.guided_dilation
+
+
+def refines_field(cfg: Config) -> bool:
+    """The field is optimized again after MVS stage 2 against the stage-2 volumes
+    (``mvs.finer_stage_optimization``, docs/method.md 9.2.13): the refined field and its
+    rendered depth (OUT/field/stage2) are then the surface's, where they were written."""
+    return bool(cfg.mvs.finer_stage_optimization)
 
 
 def has_guide(cfg: Config) -> bool:

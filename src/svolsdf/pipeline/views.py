@@ -60,7 +60,28 @@ def auto_views(scene: Scene, n: int = 3) -> list[int]:
 
 
 def test_views(scene: Scene, inputs: list[int]) -> list[int]:
-    """Held-out views: DTU's 15-view exclusion protocol on DTU scans, else every other view."""
+    """Held-out views: DTU's 15-view exclusion protocol on DTU scans, the protocol's test views
+    on a BlendedMVS scan run from its input views (`_blendedmvs_test_views`), else every other
+    view."""
     if _is_dtu49(scene):
         return [v for v in range(49) if v not in DTU_TRAIN_IDS and v not in DTU_EXCLUDED_IDS]
+    bmvs = _blendedmvs_test_views(scene, inputs)
+    if bmvs is not None:
+        return bmvs
     return [v for v in scene.view_ids if v not in inputs]
+
+
+def _blendedmvs_test_views(scene: Scene, inputs: list[int]) -> list[int] | None:
+    """The BlendedMVS protocol's test views (docs/method.md 8.2) of a scan whose folder names
+    it (``bmvs_scan3``, as the released preset reads it) when the run's inputs are the
+    protocol's and the scene has every test view; else None."""
+    from svolsdf.config.presets import scene_scan
+    from svolsdf.evaluate.blendedmvs import protocol, protocol_scans
+
+    found = scene_scan(str(scene.path))
+    if found is None or found[0] != "blendedmvs" or found[1] not in protocol_scans():
+        return None
+    p = protocol(found[1])
+    if sorted(inputs) != sorted(p["inputs"]) or not set(p["test"]) <= set(scene.view_ids):
+        return None
+    return list(p["test"])

@@ -118,7 +118,7 @@ class MVSPrior:
         sources: for each view (the volumes' order) the indices of its source views, whose
             P_src enter the sum (``train.prior_sources = selected``: the MVS's selected sources,
             `svolsdf.mvs.backbone.select_sources`); None: every other view (docs/method.md 3).
-        label_floor: `label` reads the source views only at points where P_ref exceeds it
+        prior_floor: `label` reads the source views only at points where P_ref exceeds it
             (0: where P_ref > 0, which leaves P' exact; the trainer sets ``train.prior_floor``).
 
     Example:
@@ -129,12 +129,12 @@ class MVSPrior:
 
     def __init__(self, volumes: list[ProbabilityVolume], normalization: Normalization,
                  align_quirk: bool = False, quirk_image_size: tuple[int, int] | None = None,
-                 device=None, label_floor: float = 0.0,
+                 device=None, prior_floor: float = 0.0,
                  sources: list[list[int]] | None = None):
         if not volumes:
             raise ValueError("MVSPrior: no probability volumes given")
         self.align_quirk = bool(align_quirk)
-        self.label_floor = float(label_floor)
+        self.prior_floor = float(prior_floor)
         # `label`'s skipping reads which points pass on the host (a sync on a GPU); the
         # trainer sets False where its steps must not wait for the device
         self.host_reads = True
@@ -237,9 +237,9 @@ class MVSPrior:
     @torch.no_grad()
     def label(self, points: Tensor, ref_view: Tensor) -> Tensor:
         """P' = P_ref * sum_j P_src^j at ray samples (docs/method.md 3), the ray's own view read
-        first and the source views only where P_ref > ``label_floor``: P' is left at 0 where
-        P_ref <= label_floor, which with the default 0 is P' exactly (`lookup`'s P_ref * P_src,
-        bit for bit) and otherwise drops less than label_floor * (views - 1) per point. About a
+        first and the source views only where P_ref > ``prior_floor``: P' is left at 0 where
+        P_ref <= prior_floor, which with the default 0 is P' exactly (`lookup`'s P_ref * P_src,
+        bit for bit) and otherwise drops less than prior_floor * (views - 1) per point. About a
         third of a step's samples have P_ref = 0 (outside the view's frustum or depth range),
         half have P_ref < 1e-4. With ``host_reads`` False every view is read at every point
         (no data-dependent sizes: no device-host synchronisation) and P' is exact.
@@ -272,7 +272,7 @@ class MVSPrior:
                 else:
                     sel = (ref == i).nonzero()[:, 0]
                     p_ref[sel] = self.view_lookup(i, pts[sel])[0]
-            idx = (p_ref > self.label_floor).nonzero()[:, 0]
+            idx = (p_ref > self.prior_floor).nonzero()[:, 0]
             q, rq = pts[idx], ref[idx]
             p_src = torch.zeros(len(idx), device=pts.device)
             valid = torch.zeros(len(idx), dtype=torch.bool, device=pts.device)

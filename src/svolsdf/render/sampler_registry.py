@@ -80,13 +80,12 @@ def _mvs(s: SamplerInputs):
     training, a lighter one without it for rendering)."""
     from svolsdf.render.guided import GuidedSamplerConfig, MVSGuidedSampler
 
-    t = s.train
     if s.training:
-        gc = GuidedSamplerConfig(n_uniform=t.samples_uniform, n_fine=t.samples_fine)
+        gc = GuidedSamplerConfig.from_config(s.train)
     else:
         # rendering: a converged field needs fewer probes
         # (benchmarks/results/history/render_speed.md)
-        gc = GuidedSamplerConfig(n_coarse=64, n_uniform=16, n_fine=32)
+        gc = GuidedSamplerConfig(samples_coarse=64, samples_uniform=16, samples_fine=32)
     return MVSGuidedSampler(s.prior if s.training else None, gc)
 
 

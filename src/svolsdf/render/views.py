@@ -82,26 +82,26 @@ def render_field_views(model, sampler, cameras_unit: Cameras,
     return {k: torch.stack(v) for k, v in res.items()}
 
 
-def guide_pixels(masks: torch.Tensor | None, dilation: int | None) -> torch.Tensor | None:
+def guide_pixels(masks: torch.Tensor | None, mask_dilation: int | None) -> torch.Tensor | None:
     """(V, H, W) bool: the pixels whose guide depth is rendered, the object masks dilated by
-    ``dilation`` px (``guide.mask_dilation``; None: every pixel, as released; also
+    ``mask_dilation`` px (``guide.mask_dilation``; None: every pixel, as released; also
     without masks).
 
     Args:
         masks: (V, 1, H, W) object masks at the cameras' size, or None.
     """
-    if dilation is None or masks is None:
+    if mask_dilation is None or masks is None:
         return None
     from svolsdf.geometry import dilate_mask
 
     m = masks[:, 0] > 0.5  # (V, H, W) at the working size, as the cameras
     # a view whose mask is empty is rendered whole (its guide then follows the rule alone)
-    return torch.stack([dilate_mask(m[i], int(dilation)) if bool(m[i].any())
+    return torch.stack([dilate_mask(m[i], int(mask_dilation)) if bool(m[i].any())
                         else torch.ones_like(m[i]) for i in range(len(m))])
 
 
 def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int], scale: float,
-                 rule: str, volumes: list[ProbabilityVolume] | None = None
+                 low_weight_rule: str, volumes: list[ProbabilityVolume] | None = None
                  ) -> dict[int, torch.Tensor]:
     """The guide z-depth (world) of each input view from its rendering, with docs/method.md 6.1's
     rule for pixels of accumulated weight < 0.2.
@@ -110,8 +110,9 @@ def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int]
         depth: (V, H, W) rendered unit-frame z-depth; opacity: (V, H, W) sum of the weights.
         view_ids: the V views' ids.
         scale: the normalization's scale (unit -> world).
-        rule: ``guide.low_weight_rule``: "max" (the map's maximum depth, docs/method.md 6.1),
-            "mvs" (the stage-1 MVS depth of ``volumes``) or anything else (kept as rendered).
+        low_weight_rule: ``guide.low_weight_rule``: "max" (the map's maximum depth,
+            docs/method.md 6.1), "mvs" (the stage-1 MVS depth of ``volumes``) or anything else
+            (kept as rendered).
         volumes: the V stage-1 volumes with their regressed depth, for "mvs" (None: kept).
 
     Returns:
@@ -121,10 +122,10 @@ def guide_depths(depth: torch.Tensor, opacity: torch.Tensor, view_ids: list[int]
     for i, v in enumerate(view_ids):
         d = depth[i] * scale
         low = opacity[i] < 0.2
-        if rule == "max":
+        if low_weight_rule == "max":
             # docs/method.md 6.1: pixels with sum w < 0.2 get the map's maximum depth
             d = torch.where(low, d[~low].max() if (~low).any() else d.max(), d)
-        elif rule == "mvs" and volumes is not None:
+        elif low_weight_rule == "mvs" and volumes is not None:
             m = volumes[i].depth[None, None]
             m = F.interpolate(m, size=d.shape, mode="bilinear")[0, 0]
             d = torch.where(low, m, d)

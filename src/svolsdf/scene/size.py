@@ -36,16 +36,17 @@ def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
     return w, h
 
 
-def working_size(width: int, height: int, size: tuple[int, int] | list[int] | None = None,
+def working_size(width: int, height: int, image_size: tuple[int, int] | list[int] | None = None,
                  max_width: int = DEFAULT_MAX_WIDTH) -> tuple[int, int]:
     """(W, H) to work at for images of ``width`` x ``height``.
 
-    ``size`` when given (as the user asked, unrounded); else at most ``max_width`` wide, never
-    upsampled, the aspect kept, both sides multiples of 8 (rounded down when not shrinking, to
-    the nearest when shrinking), so that the cascade's stages halve the size exactly.
+    ``image_size`` [W, H] when given (``scene.image_size``, as the user asked, unrounded); else
+    at most ``max_width`` wide, never upsampled, the aspect kept, both sides multiples of 8
+    (rounded down when not shrinking, to the nearest when shrinking), so that the cascade's
+    stages halve the size exactly.
     """
-    if size is not None:
-        return int(size[0]), int(size[1])
+    if image_size is not None:
+        return int(image_size[0]), int(image_size[1])
     if width <= max_width:
         return max(8, width - width % 8), max(8, height - height % 8)
     s = max_width / width

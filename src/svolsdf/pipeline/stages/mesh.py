@@ -55,7 +55,7 @@ class Mesh(Stage):
 
         path = self.outputs(ctx)[0]
         vw, f, cols, info = build_mesh(ctx, inputs["field"])
-        save_mesh(path, vw, f, cols, fmt=ctx.cfg.mesh.format)
+        save_mesh(path, vw, f, cols, format=ctx.cfg.mesh.format)
         return StageResult(path, vertices=int(len(vw)), faces=int(len(f)), **info)
 
 
