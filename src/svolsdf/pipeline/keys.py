@@ -26,10 +26,13 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from svolsdf.config import Config
 from svolsdf.pipeline.options import wants_mesh_fit, wants_unguided
+
+if TYPE_CHECKING:  # the stages import this module (field.py through loaded_run): no cycle
+    from svolsdf.pipeline.stages import Stage
 
 __all__ = ["STAGES", "config_options", "describe_changes", "input_keys", "input_manifest",
            "option_value", "stage_keys"]
@@ -72,7 +75,7 @@ def option_value(cfg: Config, option: str) -> Any:
     return functools.reduce(getattr, option.split("."), cfg)
 
 
-def _signature(cfg: Config, network: str, stage) -> dict:
+def _signature(cfg: Config, network: str, stage: Stage) -> dict:
     """`backbone_signature` of the network ``network`` ("mvs" or "fusion") of ``cfg`` as
     ``stage`` keys it: the ``mvs`` options of its `Stage.key_ignores` (and ``scene.use_masks``,
     which the backbone's options read) at their defaults."""
