@@ -339,7 +339,7 @@ def test_two_evaluations_at_once_one_is_refused(mvs_run, tmp_path):
     (["evaluate", "RUN", "--scene", "RUN"], "no known scene layout"),
     (["report", "RUN", "--scene", "NOWHERE"], "NOWHERE"),
     (["evaluate", "RUN", "--views", "99"], "no renders/<id>.png of view(s) [99]"),
-    (["evaluate", "RUN", "--scan", "9"], "--scan 9: only the DTU protocol"),
+    (["evaluate", "RUN", "--scan", "9"], "--scan 9: only the DTU and BlendedMVS protocols"),
 ])
 def test_options_evaluate_and_report_cannot_honour_exit_2(mvs_run, tmp_path, capsys, argv, msg):
     out = _copy(mvs_run, tmp_path / "run")
