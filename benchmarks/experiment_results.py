@@ -130,7 +130,9 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
                      "input views see), in mm: accuracy, completeness, their mean clipped at 5 % "
                      "of the reference's diagonal, and the DTU rule (distances beyond it left "
                      "out). The reference carries PatchmatchNet's errors: compare variants, not "
-                     "absolute values.", "rows": rows},
+                     "absolute values. Scored by `python benchmarks/experiment_results.py --run "
+                     "OUT --results NAME.json --pseudo-gt DATA --pgt-cache CACHE`.",
+             "rows": rows},
             {"what": "Guide depth of the input views against the depth of the pseudo ground "
                      "truth's points each view sees, inside the object masks: median absolute "
                      "error in mm (share of pixels within 2 mm); the field alone, before stages "

@@ -34,6 +34,7 @@ REGENERABLE = {
     "novel_views_ibr_holes.md": "benchmarks/novel_views_dtu.py",
     "colour_ceiling.md": "benchmarks/colour_ceiling.py",
     "ablation_synthetic.md": "benchmarks/experiment_results.py",
+    "ablation_dtu.md": "benchmarks/experiment_results.py",
 }
 TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
 
