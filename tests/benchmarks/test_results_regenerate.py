@@ -35,6 +35,7 @@ REGENERABLE = {
     "colour_ceiling.md": "benchmarks/colour_ceiling.py",
     "ablation_synthetic.md": "benchmarks/experiment_results.py",
     "ablation_dtu.md": "benchmarks/experiment_results.py",
+    "ablation_synthetic_long.md": "benchmarks/experiment_results.py",
 }
 TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
 
