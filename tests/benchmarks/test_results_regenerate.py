@@ -37,6 +37,7 @@ REGENERABLE = {
     "ablation_dtu.md": "benchmarks/experiment_results.py",
     "ablation_synthetic_long.md": "benchmarks/experiment_results.py",
     "fusion_thresholds.md": "benchmarks/experiment_results.py",
+    "stages.md": "benchmarks/experiment_results.py",
 }
 TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
 
