@@ -241,3 +241,20 @@ def test_record_renders_the_pseudo_ground_truth_table():
     assert "## Against the pseudo ground truth" in md
     assert "| dtu_scan65 | full | 2.00 | 1.82 | 1.91 | 1.75 | 0.79 | 2.14 | 2.04 |" in md
     assert "| dtu_scan65 | mse | 2.10 | 1.90 | 2.00 | 1.80 | 0.70 | - | - |" in md
+
+
+def test_plot_of_a_record_without_chamfer_shows_the_pseudo_ground_truth(monkeypatch, tmp_path):
+    """DTU scans without their STL have no Chamfer in the rows: the bars show the one against
+    the pseudo ground truth (``pseudo_gt``), not empty bars."""
+    import svolsdf.commands.experiment as exp
+
+    seen = {}
+    monkeypatch.setattr(exp, "benchmark_plot",
+                        lambda rows, path, names: seen.setdefault("rows", rows))
+    rec = {"variants": [{"name": "full"}], "plot": {"kind": "bars"},
+           "rows": [{"scene": "dtu_scan65", "mode": "full", "status": "ok", "overall": None}],
+           "pseudo_gt": {"rows": [{"scene": "dtu_scan65", "variant": "full",
+                                   "points_accuracy": 2.0, "points_completeness": 1.82,
+                                   "points_overall": 1.91}]}}
+    exp.experiment_plot(rec, tmp_path / "x.png")
+    assert seen["rows"][0]["overall"] == 1.91 and seen["rows"][0]["accuracy"] == 2.0
