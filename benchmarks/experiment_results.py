@@ -29,6 +29,17 @@ from svolsdf.commands.experiment import (  # noqa: E402
 )
 
 
+def row_paths(row: dict, run: Path, data: Path) -> tuple[str, Path, Path]:
+    """(scene folder name, the row's run folder, its scene folder) of a benchmark row: with
+    several view sets the row's scene label is ``"<scene> [a,b,c]"`` and its runs sit in
+    ``OUT/<scene>/views-a-b-c/<variant>/`` (`svolsdf.commands.benchmark`)."""
+    name, sep, ids = row["scene"].partition(" [")
+    folder = run / name
+    if sep:
+        folder = folder / ("views-" + "-".join(ids.rstrip("]").split(",")))
+    return name, folder / row["mode"], data / name
+
+
 def field_alone(record: dict, run: Path, data: Path) -> dict:
     """Each run's guide depth (OUT/<scene>/<variant>/field/render_depth/<view>.npy: the
     field's rendered depth, or the soft-consistency-only ablation's consistency depth) against
@@ -42,8 +53,8 @@ def field_alone(record: dict, run: Path, data: Path) -> dict:
     for r in record["rows"]:
         if r.get("status", "ok") != "ok" or r.get("run_mode") != "svolsdf":
             continue
-        folder = run / r["scene"] / r["mode"] / "field" / "render_depth"
-        scene = data / r["scene"]
+        _, folder, scene = row_paths(r, run, data)
+        folder = folder / "field" / "render_depth"
         errs = []
         for v in r["views"]:
             guide = np.load(folder / f"{v}.npy")
@@ -87,22 +98,21 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
     for r in record["rows"]:
         if r.get("status", "ok") != "ok":
             continue
-        scene_dir = data / r["scene"]
+        name, folder, scene_dir = row_paths(r, run, data)
         probe = load_scene(scene_dir, load_images=False)
         if not probe.extras.get("dtu") or not probe.extras.get("mask_paths"):
             continue
         key = (r["scene"], tuple(r["views"]))
         if key not in refs_of:
-            refs_of[key] = references(scene_dir, cache / r["scene"], list(r["views"]), size)
+            refs_of[key] = references(scene_dir, cache / name, list(r["views"]), size)
         refs, obj, diag = refs_of[key]
-        folder = run / r["scene"] / r["mode"]
         s = score_run(folder, {"object": refs["object"]}, obj, diag)["object"]
         rows.append({"scene": r["scene"], "variant": r["mode"],
                      **{f"points_{k}": round(float(v), 4) for k, v in s["points"].items()},
                      **{f"mesh_{k}": round(float(v), 4) for k, v in s.get("mesh", {}).items()}})
         if r.get("run_mode") != "svolsdf":
             continue
-        full = np.load(sorted((cache / r["scene"]).glob("pseudo_gt_*_dil0.npy"))[0])
+        full = np.load(sorted((cache / name).glob("pseudo_gt_*_dil0.npy"))[0])
         sc = load_scene(scene_dir, views=list(r["views"]), image_size=size)
         errs = []
         for i, v in enumerate(r["views"]):
