@@ -39,6 +39,7 @@ REGENERABLE = {
     "fusion_thresholds.md": "benchmarks/experiment_results.py",
     "stages.md": "benchmarks/experiment_results.py",
     "gce_q.md": "benchmarks/experiment_results.py",
+    "views_cpu.md": "benchmarks/experiment_results.py",
 }
 TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
 
