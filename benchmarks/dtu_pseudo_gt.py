@@ -180,7 +180,8 @@ def score(pred: np.ndarray, gt: np.ndarray, obj: np.ndarray) -> dict:
 
 def references(scene_dir: Path, out: Path, inputs: list[int], size: tuple[int, int],
                n_src: int = 4, k: int = 8, min_views: int = 3, dilation: int = 12,
-               has_masks: bool = True, obs=None) -> tuple[dict, np.ndarray, float]:
+               has_masks: bool = True, obs=None, depths: dict | None = None
+               ) -> tuple[dict, np.ndarray, float]:
     """Steps 1-3: the pseudo ground truths of ``inputs``' run, each evened out at 0.1 % of the
     first one's diagonal.
 
@@ -188,11 +189,12 @@ def references(scene_dir: Path, out: Path, inputs: list[int], size: tuple[int, i
         ``({name: (points fused, (M, 3) points kept)}, (K, 3) object reference before
         evening out (it sets the scale of `score`), its diagonal)``: with masks "object" and
         "object and rim (<dilation> px)", without them "observed (DTU ObsMask)" (``obs``, the
-        loaded observation mask, keeps its points).
+        loaded observation mask, keeps its points). ``depths``: `depth_maps`' result when the
+        caller has it (else read from ``out``).
     """
     from svolsdf.evaluate.chamfer import greedy_radius_downsample, obs_mask_filter
 
-    depths = depth_maps(scene_dir, out, size, n_src)
+    depths = depth_maps(scene_dir, out, size, n_src) if depths is None else depths
     dils = (0, dilation) if has_masks else (0,)
     names = ({0: "object", dilation: f"object and rim ({dilation} px)"}
              if has_masks else {0: "observed (DTU ObsMask)"})
@@ -301,7 +303,7 @@ def main() -> None:
     t0 = time.perf_counter()
     refs, obj, diag = references(args.scene, args.out, inputs, size, args.sources,
                                  args.fuse_neighbours, args.min_views, args.mask_dilation,
-                                 has_masks, obs)
+                                 has_masks, obs, depths)
     t_fuse = time.perf_counter() - t0
     rows = {}
     for name, d in runs.items():

@@ -40,6 +40,26 @@ def row_paths(row: dict, run: Path, data: Path) -> tuple[str, Path, Path]:
     return name, folder / row["mode"], data / name
 
 
+def _at_pixels(a, h: int, w: int):
+    """(h, w) nearest samples of the 2D array ``a`` at the pixel centres of an (h, w) grid."""
+    import numpy as np
+
+    iy = ((np.arange(h) + 0.5) * a.shape[0] / h).astype(int)
+    ix = ((np.arange(w) + 0.5) * a.shape[1] / w).astype(int)
+    return a[np.ix_(iy, ix)]
+
+
+def _field_row(row: dict, errs: list) -> dict:
+    """A field-alone row: the median absolute guide-depth error (mm) over the input views'
+    ``errs`` (1D arrays) and the share within 2 mm."""
+    import numpy as np
+
+    e = np.concatenate(errs)
+    return {"scene": row["scene"], "variant": row["mode"],
+            "median_mm": round(float(np.median(e)), 4),
+            "within_2mm": round(float((e < 2.0).mean()), 4)}
+
+
 def field_alone(record: dict, run: Path, data: Path) -> dict:
     """Each run's guide depth (OUT/<scene>/<variant>/field/render_depth/<view>.npy: the
     field's rendered depth, or the soft-consistency-only ablation's consistency depth) against
@@ -61,16 +81,10 @@ def field_alone(record: dict, run: Path, data: Path) -> dict:
             gt = np.load(scene / "gt_depth" / f"{v:03d}.npy")
             mask = read_mask(scene / "mask" / f"{v:03d}.png")[0].numpy() > 0.5
             if guide.shape != gt.shape:  # a stage-1 size guide: the exact depth at its pixels
-                h, w = guide.shape
-                iy = ((np.arange(h) + 0.5) * gt.shape[0] / h).astype(int)
-                ix = ((np.arange(w) + 0.5) * gt.shape[1] / w).astype(int)
-                gt, mask = gt[np.ix_(iy, ix)], mask[np.ix_(iy, ix)]
+                gt, mask = _at_pixels(gt, *guide.shape), _at_pixels(mask, *guide.shape)
             ok = mask & (gt > 0) & np.isfinite(guide)
             errs.append(np.abs(guide[ok] - gt[ok]))
-        e = np.concatenate(errs)
-        rows.append({"scene": r["scene"], "variant": r["mode"],
-                     "median_mm": round(float(np.median(e)), 4),
-                     "within_2mm": round(float((e < 2.0).mean()), 4)})
+        rows.append(_field_row(r, errs))
     return {"what": "Guide depth of the input views against the exact depth inside the object "
                     "masks: median absolute error in mm (share of pixels within 2 mm); the "
                     "field alone, before stages 2-3 and fusion.", "rows": rows}
@@ -94,7 +108,7 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
     from svolsdf.scene.loaders import load_scene
 
     size = tuple(record["size"]) if record.get("size") else (768, 576)
-    rows, field_rows, refs_of = [], [], {}
+    rows, field_rows, refs_of, clouds = [], [], {}, {}
     for r in record["rows"]:
         if r.get("status", "ok") != "ok":
             continue
@@ -112,7 +126,9 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
                      **{f"mesh_{k}": round(float(v), 4) for k, v in s.get("mesh", {}).items()}})
         if r.get("run_mode") != "svolsdf":
             continue
-        full = np.load(sorted((cache / name).glob("pseudo_gt_*_dil0.npy"))[0])
+        if name not in clouds:  # the whole object reference, before the inputs' cut
+            clouds[name] = np.load(sorted((cache / name).glob("pseudo_gt_*_dil0.npy"))[0])
+        full = clouds[name]
         sc = load_scene(scene_dir, views=list(r["views"]), image_size=size)
         errs = []
         for i, v in enumerate(r["views"]):
@@ -126,14 +142,9 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
             zb.scatter_reduce_(0, (vv * w + u)[ok], z[0][ok], reduce="amin")
             gt = zb.reshape(h, w).numpy()
             mask = sc.masks[i, 0].numpy()
-            iy = ((np.arange(h) + 0.5) * mask.shape[0] / h).astype(int)
-            ix = ((np.arange(w) + 0.5) * mask.shape[1] / w).astype(int)
-            m = (mask[np.ix_(iy, ix)] > 0.5) & np.isfinite(gt) & np.isfinite(guide) & (guide > 0)
+            m = (_at_pixels(mask, h, w) > 0.5) & np.isfinite(gt) & np.isfinite(guide) & (guide > 0)
             errs.append(np.abs(guide[m] - gt[m]))
-        e = np.concatenate(errs)
-        field_rows.append({"scene": r["scene"], "variant": r["mode"],
-                           "median_mm": round(float(np.median(e)), 4),
-                           "within_2mm": round(float((e < 2.0).mean()), 4)})
+        field_rows.append(_field_row(r, errs))
     return ({"what": "Points and mesh surface against the scan's 49-view pseudo ground truth "
                      "(benchmarks/dtu_pseudo_gt.py: PatchmatchNet on every view, fused where "
                      "three of eight neighbours agree, inside the object masks, cut to what the "

@@ -32,7 +32,7 @@ from svolsdf.config.validate import _short, validate_config
 from svolsdf.errors import InputError
 
 __all__ = ["load_config", "save_config", "config_from_dict", "apply_overrides", "parse_set",
-           "option_docs", "config_yaml", "RENAMED", "legacy_layout"]
+           "option_docs", "config_yaml", "known_keys", "RENAMED", "legacy_layout"]
 
 log = logging.getLogger("svolsdf.config")
 
@@ -225,20 +225,20 @@ def save_config(cfg: Config, path: str | Path) -> None:
     os.replace(tmp, path)
 
 
-def _known_keys(cfg: Any, prefix: str = "") -> list[str]:
+def known_keys(cfg: Any, prefix: str = "") -> list[str]:
     """Every dotted option key of ``cfg`` (``train.steps``, ``mesh.poisson.depth``, ...)."""
     out = []
     for f in fields(cfg):
         v = getattr(cfg, f.name)
         if dataclasses.is_dataclass(v):
-            out += _known_keys(v, f"{prefix}{f.name}.")
+            out += known_keys(v, f"{prefix}{f.name}.")
         else:
             out.append(prefix + f.name)
     return out
 
 
 def _unknown_key(cfg: Config, key: str, label: str | None = None) -> InputError:
-    near = difflib.get_close_matches(key, _known_keys(cfg), n=3, cutoff=0.6)
+    near = difflib.get_close_matches(key, known_keys(cfg), n=3, cutoff=0.6)
     hint = (f"; did you mean {' or '.join(near)}?" if near
             else f"; {_OUTPUT_GONE}" if key.startswith("output.")
             else "; `svolsdf config` lists every option")

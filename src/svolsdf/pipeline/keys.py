@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from svolsdf.config import Config
+from svolsdf.config.io import known_keys
 from svolsdf.pipeline.options import wants_mesh_fit, wants_unguided
 
 if TYPE_CHECKING:  # the stages import this module (field.py through loaded_run): no cycle
@@ -55,19 +56,7 @@ def _hash(*parts) -> str:
 def config_options() -> tuple[str, ...]:
     """Every option of `Config` by its dotted name ("preset", "scene.path", ...,
     "mesh.tsdf.resolution"); the sections themselves are not options."""
-    out: list[str] = []
-
-    def walk(cls: Any, prefix: str) -> None:
-        for f in dataclasses.fields(cls):
-            sub = (f.default_factory() if f.default_factory is not dataclasses.MISSING
-                   else None)
-            if dataclasses.is_dataclass(sub):
-                walk(type(sub), f"{prefix}{f.name}.")
-            else:
-                out.append(prefix + f.name)
-
-    walk(Config, "")
-    return tuple(out)
+    return tuple(known_keys(Config()))
 
 
 def option_value(cfg: Config, option: str) -> Any:
