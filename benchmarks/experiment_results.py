@@ -90,6 +90,21 @@ def field_alone(record: dict, run: Path, data: Path) -> dict:
                     "field alone, before stages 2-3 and fusion.", "rows": rows}
 
 
+def pgt_depth(points, camera, h: int, w: int):
+    """The depth of the pseudo ground truth's ``points`` (N, 3) seen by ``camera`` (one view,
+    `svolsdf.scene.cameras.Cameras`) at the pixels of an (h, w) grid: their z-buffer, (h, w)
+    float64, inf where no point projects."""
+    import torch
+
+    cam = camera.resize(w, h).to(dtype=torch.float64)
+    uv, z = cam.project(torch.from_numpy(points))
+    u, vv = uv[0, :, 0].floor().long(), uv[0, :, 1].floor().long()
+    ok = (u >= 0) & (u < w) & (vv >= 0) & (vv < h) & (z[0] > 0)
+    zb = torch.full((h * w,), float("inf"), dtype=torch.float64)
+    zb.scatter_reduce_(0, (vv * w + u)[ok], z[0][ok], reduce="amin")
+    return zb.reshape(h, w).numpy()
+
+
 def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, dict]:
     """Each DTU row's run scored against its scan's many-view pseudo ground truth
     (benchmarks/dtu_pseudo_gt.py: PatchmatchNet on all 49 views, fused, cut to what the input
@@ -102,7 +117,6 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
         ``(pseudo_gt, field_alone)`` sections of the record, rows keyed by scene and variant.
     """
     import numpy as np
-    import torch
     from dtu_pseudo_gt import references, score_run
 
     from svolsdf.scene.loaders import load_scene
@@ -134,13 +148,7 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
         for i, v in enumerate(r["views"]):
             guide = np.load(folder / "field" / "render_depth" / f"{v}.npy")
             h, w = guide.shape
-            cam = sc.cameras[[i]].resize(w, h).to(dtype=torch.float64)
-            uv, z = cam.project(torch.from_numpy(full))
-            u, vv = uv[0, :, 0].floor().long(), uv[0, :, 1].floor().long()
-            ok = (u >= 0) & (u < w) & (vv >= 0) & (vv < h) & (z[0] > 0)
-            zb = torch.full((h * w,), float("inf"), dtype=torch.float64)
-            zb.scatter_reduce_(0, (vv * w + u)[ok], z[0][ok], reduce="amin")
-            gt = zb.reshape(h, w).numpy()
+            gt = pgt_depth(full, sc.cameras[[i]], h, w)
             mask = sc.masks[i, 0].numpy()
             m = (_at_pixels(mask, h, w) > 0.5) & np.isfinite(gt) & np.isfinite(guide) & (guide > 0)
             errs.append(np.abs(guide[m] - gt[m]))
