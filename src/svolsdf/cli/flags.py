@@ -62,7 +62,8 @@ MVS_FLAGS: dict[str, str] = {
 #: `svolsdf synth` flag -> the field of `svolsdf.scene.synthetic.SynthConfig` it sets
 SYNTH_FLAGS: dict[str, str] = {
     "--seed": "seed", "--views": "views", "--object": "object",
-    "--texture-contrast": "texture_contrast", "--supersample": "supersample",
+    "--texture-contrast": "texture_contrast", "--specular": "specular",
+    "--shininess": "shininess", "--supersample": "supersample",
     "--distance": "distance", "--focal": "focal", "--intrinsics-jitter": "intrinsics_jitter",
     "--soft-shadows": "soft_shadows", "--gt-points": "gt_points",
 }

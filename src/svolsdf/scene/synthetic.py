@@ -30,7 +30,8 @@ object lies inside the unit sphere and the cameras within radius ~2.7 (VolSDF's 
 interest).
 
 Shading is Lambertian with an ambient term, a fixed directional light and soft shadows, so the
-images are consistent across views (no view-dependent effects); the textures are solid (3D)
+images are consistent across views (no view-dependent effects) unless ``specular`` adds a
+Blinn-Phong highlight to the object; the textures are solid (3D)
 procedural patterns (multi-octave value noise, stripes, checkers) so that multi-view stereo has
 texture to match everywhere. Output is byte-for-byte deterministic for a seed (every file,
 including the zip inside ``cameras.npz``).
@@ -142,6 +143,12 @@ class SynthConfig:
     texture_contrast: float = 1.0
     """Contrast of the object's texture: 1 the full procedural pattern, lower values a
     low-texture object (colours pulled towards each primitive's mean colour)."""
+    specular: float = 0.0
+    """Strength of a white Blinn-Phong highlight on the object (0: Lambertian, the default): a
+    view-dependent colour that multi-view photo-consistency does not model, as on DTU's metal
+    and glazed objects; with a low ``texture_contrast`` a texture-poor, specular object."""
+    shininess: float = 40.0
+    """Blinn-Phong exponent of that highlight (larger: smaller, sharper highlights)."""
 
     def __post_init__(self) -> None:
         if self.object not in OBJECT_KINDS:
@@ -159,6 +166,10 @@ class SynthConfig:
                              f"that svolsdf reconstruct takes), got {self.width}x{self.height}")
         if not 0.0 <= self.texture_contrast <= 1.0:
             raise InputError(f"--texture-contrast must be in [0, 1], got {self.texture_contrast}")
+        if not 0.0 <= self.specular <= 1.0:
+            raise InputError(f"--specular must be in [0, 1], got {self.specular}")
+        if self.shininess <= 0:
+            raise InputError(f"--shininess must be positive, got {self.shininess}")
         if self.supersample < 1:
             raise InputError(f"supersample must be >= 1, got {self.supersample}")
 
@@ -392,9 +403,18 @@ def made_with(folder: str | Path, cfg: SynthConfig) -> bool:
         meta = json.loads((Path(folder) / "scene.json").read_text())
     except (OSError, ValueError):
         return False
-    want = json.loads(json.dumps(_json_ready(asdict(cfg))))
+    want = json.loads(json.dumps(_json_ready(_config_record(cfg))))
     return isinstance(meta, dict) and meta.get("generator") == GENERATOR and meta.get(
         "config") == want
+
+
+def _config_record(cfg: SynthConfig) -> dict:
+    """``cfg`` as scene.json records it: a Lambertian scene (``specular`` 0) without the
+    highlight's options, as scenes were written before they existed (so those still match)."""
+    d = asdict(cfg)
+    if not cfg.specular:
+        d.pop("specular"), d.pop("shininess")
+    return d
 
 
 def _json_ready(x):
@@ -478,7 +498,8 @@ def _render_scene(out: Path, cfg: SynthConfig, borrowed: tuple | None) -> tuple[
     world = _World(obj=obj, table_half=cfg.table_size / 2,
                    light=(rot.T @ light).to(torch.float32),  # the light is given in world axes
                    ambient=cfg.ambient, soft_shadows=cfg.soft_shadows, table_seed=obj.seed + 1000,
-                   rot=rot, origin=origin, scale=scale)
+                   rot=rot, origin=origin, scale=scale, specular=cfg.specular,
+                   shininess=cfg.shininess)
     centre_w = world.to_world(torch.tensor(centre_loc)[None])[0].numpy()
     radius_w = radius_loc * scale
 
@@ -533,7 +554,7 @@ def _render_scene(out: Path, cfg: SynthConfig, borrowed: tuple | None) -> tuple[
         "generator": GENERATOR,
         "format": "idr",
         "units": "mm" if not cfg.cameras_from else "as in cameras_from",
-        "config": asdict(cfg),
+        "config": _config_record(cfg),
         "views": len(cams),
         "view_ids_source": view_ids,
         "width": cfg.width,

@@ -38,6 +38,8 @@ class _World:
     rot: Tensor  # (3, 3) float64 columns = local axes in world coordinates
     origin: Tensor  # (3,) float64 world position of the local origin
     scale: float  # world units per local unit
+    specular: float = 0.0  # strength of the object's white Blinn-Phong highlight
+    shininess: float = 40.0  # its exponent
 
     def __post_init__(self) -> None:
         self.table_noise = _Noise(self.table_seed)
@@ -174,7 +176,9 @@ def _cast(world: _World, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _shade(world: _World, o: Tensor, d: Tensor, t: Tensor, what: Tensor) -> Tensor:
-    """Colour of cast rays (N, 3) in [0, 1]: albedo * (ambient + (1 - ambient) max(0, n.l) vis)."""
+    """Colour of cast rays (N, 3) in [0, 1]: albedo * (ambient + (1 - ambient) max(0, n.l) vis),
+    plus on the object ``specular * max(0, n.h)^shininess * vis`` in white (Blinn-Phong, h the
+    half vector of the light and the view direction -d) when ``world.specular`` > 0."""
     y = (d[:, 2].clamp(-1, 1) + 1) / 2  # background: a dim vertical gradient
     rgb = torch.stack([0.10 + 0.10 * y, 0.11 + 0.12 * y, 0.14 + 0.16 * y], -1)
     light = world.light.to(o.dtype)
@@ -191,13 +195,18 @@ def _shade(world: _World, o: Tensor, d: Tensor, t: Tensor, what: Tensor) -> Tens
             n = _normals(world.obj, p)
             alb = world.obj.albedo(p)
         lam = (n @ light).clamp(min=0.0)
+        vis = (lam > 0).to(lam.dtype)
         if world.soft_shadows:
             lit = lam > 0
-            vis = torch.ones_like(lam)
             if bool(lit.any()):
                 vis[lit] = _soft_shadow(world.obj, p[lit] + 0.5 * n[lit], light)
             lam = lam * vis
-        rgb[sel] = alb * (world.ambient + (1 - world.ambient) * lam[:, None])
+        c = alb * (world.ambient + (1 - world.ambient) * lam[:, None])
+        if kind == 2 and world.specular > 0:
+            h = torch.nn.functional.normalize(light[None] - d[sel], dim=-1)
+            spec = (n * h).sum(-1).clamp(min=0.0) ** world.shininess
+            c = c + world.specular * (spec * vis)[:, None]
+        rgb[sel] = c
     return rgb.clamp(0.0, 1.0)
 
 
