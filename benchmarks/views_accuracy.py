@@ -103,6 +103,23 @@ def _accuracy_tail(points: Path, gt, obj) -> dict:
     return {"accuracy_median": float(np.median(d)), "beyond_2mm": float((d > 2).mean())}
 
 
+def fuse_again(folder: Path, target: Path, sets: list[str]) -> Path:
+    """A copy of the run ``folder`` at ``target`` fused again with the ``--set`` options ``sets``
+    (``svolsdf reconstruct -o target --from fusion``, the mesh by TSDF: only the points are
+    scored); reused when a finished copy is there. Returns ``target``."""
+    if not (target / "points.ply").is_file() or not (target / "done").is_file():
+        if target.exists():
+            shutil.rmtree(target)
+        shutil.copytree(folder, target)
+        (target / "benchmark_row.json").unlink(missing_ok=True)
+        cmd = ["svolsdf", "reconstruct", "-o", str(target), "--from", "fusion",
+               "--no-progress", "--set", "mesh.method=tsdf",
+               *[a for s in sets for a in ("--set", s)]]
+        subprocess.run(cmd, check=True)
+        (target / "done").write_text(" ".join(cmd[1:]) + "\n")
+    return target
+
+
 def fusion_variants(run: Path, data: Path, cache: Path, record: dict, work: Path) -> list[dict]:
     """Per view set and `FUSION_VARIANTS` entry: the S-VolSDF run copied into ``work``, fused
     again with the variant's options (``svolsdf reconstruct -o COPY --from fusion``), its points
@@ -124,17 +141,8 @@ def fusion_variants(run: Path, data: Path, cache: Path, record: dict, work: Path
             if sets is None:
                 target = folder.parent / "mvs-only"
             else:
-                target = work / name / tag / variant.split(" (")[0].replace(" ", "-")
-                if not (target / "points.ply").is_file() or not (target / "done").is_file():
-                    if target.exists():
-                        shutil.rmtree(target)
-                    shutil.copytree(folder, target)
-                    (target / "benchmark_row.json").unlink(missing_ok=True)
-                    cmd = ["svolsdf", "reconstruct", "-o", str(target), "--from", "fusion",
-                           "--no-progress", "--set", "mesh.method=tsdf",
-                           *[a for s in sets for a in ("--set", s)]]
-                    subprocess.run(cmd, check=True)
-                    (target / "done").write_text(" ".join(cmd[1:]) + "\n")
+                target = fuse_again(folder, work / name / tag / variant.split(" (")[0]
+                                    .replace(" ", "-"), sets)
             s = score_run(target, ref, obj, diag)["object"]["points"]
             s.update(_accuracy_tail(target / "points.ply", ref["object"][1], obj))
             timing = json.loads((target / "timing.json").read_text())
