@@ -41,6 +41,10 @@ REGENERABLE = {
     "gce_q.md": "benchmarks/experiment_results.py",
     "views_cpu.md": "benchmarks/experiment_results.py",
     "views_accuracy.md": "benchmarks/views_accuracy.py",
+    "ablation_fusion.md": "benchmarks/ablation_fusion.py",
+    "resolution_cpu.md": "benchmarks/experiment_results.py",
+    "ablation_synthetic_specular.md": "benchmarks/experiment_results.py",
+    "ablation_synthetic_specular_long.md": "benchmarks/experiment_results.py",
 }
 TABLE_BRANCH: set[str] = set()  # (table1.md is rendered by benchmarks/table1.py since issue 50)
 
