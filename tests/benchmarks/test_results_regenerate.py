@@ -43,6 +43,7 @@ REGENERABLE = {
     "views_accuracy.md": "benchmarks/views_accuracy.py",
     "ablation_fusion.md": "benchmarks/ablation_fusion.py",
     "resolution_cpu.md": "benchmarks/experiment_results.py",
+    "views_cpu_scan37.md": "benchmarks/experiment_results.py",
     "ablation_synthetic_specular.md": "benchmarks/experiment_results.py",
     "ablation_synthetic_specular_long.md": "benchmarks/experiment_results.py",
 }
