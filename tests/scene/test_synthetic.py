@@ -207,6 +207,11 @@ def test_a_specular_object_gains_a_highlight_that_moves_with_the_view(tmp_path):
 
     assert json.loads((b / "scene.json").read_text())["config"]["specular"] == 0.8
     assert "specular" not in json.loads((a / "scene.json").read_text())["config"]
+    from svolsdf.scene.synthetic import made_with
+
+    assert made_with(a, SynthConfig(**base)) and not made_with(a, SynthConfig(**base, specular=0.8))
+    assert made_with(b, SynthConfig(**base, specular=0.8, shininess=20))
+    assert not made_with(b, SynthConfig(**base))
     with pytest.raises(InputError, match="--specular"):
         SynthConfig(specular=1.5)
     with pytest.raises(InputError, match="--shininess"):

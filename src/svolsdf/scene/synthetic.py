@@ -403,16 +403,22 @@ def made_with(folder: str | Path, cfg: SynthConfig) -> bool:
         meta = json.loads((Path(folder) / "scene.json").read_text())
     except (OSError, ValueError):
         return False
-    want = json.loads(json.dumps(_json_ready(_config_record(cfg))))
-    return isinstance(meta, dict) and meta.get("generator") == GENERATOR and meta.get(
-        "config") == want
+    want = json.loads(json.dumps(_json_ready(asdict(cfg))))
+    have = meta.get("config") if isinstance(meta, dict) else None
+    if isinstance(have, dict):  # a scene.json without the highlight's options: a Lambertian one
+        have = {**_LAMBERTIAN, **have}
+    return isinstance(meta, dict) and meta.get("generator") == GENERATOR and have == want
+
+
+#: what a scene.json written without ``specular`` and ``shininess`` (`_config_record`) means
+_LAMBERTIAN = {"specular": 0.0, "shininess": 40.0}
 
 
 def _config_record(cfg: SynthConfig) -> dict:
     """``cfg`` as scene.json records it: a Lambertian scene (``specular`` 0) without the
     highlight's options, as scenes were written before they existed (so those still match)."""
     d = asdict(cfg)
-    if not cfg.specular:
+    if not cfg.specular and cfg.shininess == _LAMBERTIAN["shininess"]:
         d.pop("specular"), d.pop("shininess")
     return d
 
