@@ -101,10 +101,10 @@ class MVSConfig:
     1.4: the released code feeds at most 5 views, the reference and 4 sources); 0 = every other
     input view. Three inputs use both others either way; with more inputs the cap keeps the MVS time
     linear in the number of views (`svolsdf.mvs.backbone.select_sources`)."""
-    scale: float | None = _limited(None, gt=0)
+    scale: float | None = _limited(None, gt=0, max=4)
     """The cascade runs at ``scale`` x the working size (stage 3 at scale x; images upsampled
     bicubically, as the released code's x2_mvsres, docs/method.md 9.2.2), the field at the working
-    size. planesweep and casmvsnet: any scale > 0 (casmvsnet's input rounded to multiples of
+    size. planesweep and casmvsnet: any scale in (0, 4] (casmvsnet's input rounded to multiples of
     32; 1 and 2 are its x2_mvsres; 4/3 the paper's mid resolution); the patchmatchnet
     adapter runs at the working size. None = the backbone's own default."""
     native_images: bool = False

@@ -245,7 +245,7 @@ def memory_needs(cfg: Config, size: tuple[int, int] | None = None, views: int | 
             if b > need:
                 need, stage = b, k
         n = n_views if stage == 1 else 1
-        out.append((("mvs.ndepths",), need,
+        out.append((("mvs.ndepths", *(("mvs.scale",) if cfg.mvs.scale is not None else ())), need,
                     f"the stage-{stage} MVS volume{'s' if n > 1 else ''} ({n} view"
                     f"{'s' if n > 1 else ''} at {at} working size {W}x{H})"))
     return out
