@@ -18,9 +18,7 @@ ground truth (benchmarks/dtu_pseudo_gt.py, ``--pgt-cache``).
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -90,6 +88,7 @@ def experiment_rows(name: str, run: Path, data: Path, work: Path, cache: Path | 
             depth = depth_medians(folder, scene_dir, list(r["views"]), size)
         else:
             from dtu_pseudo_gt import references, score_run
+            from experiment_results import pgt_cloud
 
             if cache is None:
                 raise SystemExit(f"{run}: DTU rows need --pgt-cache")
@@ -101,9 +100,7 @@ def experiment_rows(name: str, run: Path, data: Path, work: Path, cache: Path | 
                            for f in (folder, copy))
             protocol = "pseudo ground truth"
             if scene not in clouds:  # the whole object reference, before the inputs' cut
-                import numpy as np
-
-                clouds[scene] = np.load(sorted((cache / scene).glob("pseudo_gt_*_dil0.npy"))[0])
+                clouds[scene] = pgt_cloud(cache, scene)
             depth = depth_medians(folder, scene_dir, list(r["views"]), size, clouds[scene])
         rows.append({"experiment": name, "scene": r["scene"], "variant": r["mode"],
                      "protocol": protocol, "depth_median": depth,
@@ -153,6 +150,8 @@ def main() -> None:
     ap.add_argument("--results", type=Path, required=True)
     ap.add_argument("--from-json", type=Path, help="only render this record's Markdown")
     args = ap.parse_args()
+    from views_accuracy import provenance, write_record
+
     if args.from_json:
         rec = json.loads(args.from_json.read_text())
         args.results.with_suffix(".md").write_text(markdown(rec))
@@ -161,18 +160,12 @@ def main() -> None:
     datas = dict(a.split("=", 1) for a in args.data)
     if not runs or set(runs) != set(datas) or args.work is None:
         ap.error("give --run NAME=OUT ..., the same names in --data NAME=DATA ..., and --work")
-    import torch
-
-    from svolsdf import __version__
-
     rows, commands, machine = [], {}, {}
     for name, out in runs.items():
         rows += experiment_rows(name, Path(out), Path(datas[name]), args.work, args.pgt_cache)
         record = json.loads((Path(out) / "experiment.json").read_text())
         commands[name] = record.get("command", "")
         machine = record.get("machine") or machine
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=Path(__file__).parent).stdout.strip()
     rec = {
         "what": "Points Chamfer (mm) of each svolsdf-mode run of the ablation experiments, as "
                 "the experiment fused them (the fast preset: the optimized surface counts as a "
@@ -188,19 +181,12 @@ def main() -> None:
                 "filters), against the exact depth or the pseudo ground truth's. Best Chamfer of "
                 "each scene and fusion in bold.",
         "rows": rows,
-        "commit": f"{commit} (svolsdf {__version__})",
-        "date": datetime.date.today().isoformat(),
-        "machine": (f"{machine.get('cpu') or platform.processor()}, "
-                    f"{machine.get('cores', '?')} cores, "
-                    f"torch {machine.get('torch') or torch.__version__}"),
+        **provenance(machine),
         "command": "python benchmarks/ablation_fusion.py --run NAME=OUT ... --data NAME=DATA ... "
                    "--work DIR --pgt-cache CACHE --results benchmarks/results/ablation_fusion.json",
         "runs_commands": commands,
     }
-    out = args.results.with_suffix(".json")
-    out.write_text(json.dumps(rec, indent=1) + "\n")
-    out.with_suffix(".md").write_text(markdown(json.loads(out.read_text())))
-    print(f"wrote {out} and {out.with_suffix('.md')}")
+    write_record(rec, args.results, markdown)
 
 
 if __name__ == "__main__":

@@ -90,6 +90,14 @@ def field_alone(record: dict, run: Path, data: Path) -> dict:
                     "field alone, before stages 2-3 and fusion.", "rows": rows}
 
 
+def pgt_cloud(cache: Path, scene: str):
+    """The whole object reference of ``scene``'s pseudo ground truth in ``cache`` (before the
+    inputs' cut; `dtu_pseudo_gt.references` wrote it): (N, 3) float array."""
+    import numpy as np
+
+    return np.load(sorted((cache / scene).glob("pseudo_gt_*_dil0.npy"))[0])
+
+
 def pgt_depth(points, camera, h: int, w: int):
     """The depth of the pseudo ground truth's ``points`` (N, 3) seen by ``camera`` (one view,
     `svolsdf.scene.cameras.Cameras`) at the pixels of an (h, w) grid: their z-buffer, (h, w)
@@ -141,7 +149,7 @@ def pseudo_gt(record: dict, run: Path, data: Path, cache: Path) -> tuple[dict, d
         if r.get("run_mode") != "svolsdf":
             continue
         if name not in clouds:  # the whole object reference, before the inputs' cut
-            clouds[name] = np.load(sorted((cache / name).glob("pseudo_gt_*_dil0.npy"))[0])
+            clouds[name] = pgt_cloud(cache, name)
         full = clouds[name]
         sc = load_scene(scene_dir, views=list(r["views"]), image_size=size)
         errs = []

@@ -52,7 +52,7 @@ def depth_set_errors(run: Path, data: Path, cache: Path, record: dict) -> list[d
     coverage (share of the mask's
     pixels with a reference depth that the set gives a depth)."""
     import numpy as np
-    from experiment_results import _at_pixels, pgt_depth, row_paths
+    from experiment_results import _at_pixels, pgt_cloud, pgt_depth, row_paths
 
     from svolsdf.scene.loaders import load_scene
 
@@ -63,7 +63,7 @@ def depth_set_errors(run: Path, data: Path, cache: Path, record: dict) -> list[d
             continue
         name, folder, scene_dir = row_paths(r, run, data)
         if name not in clouds:
-            clouds[name] = np.load(sorted((cache / name).glob("pseudo_gt_*_dil0.npy"))[0])
+            clouds[name] = pgt_cloud(cache, name)
         sc = load_scene(scene_dir, views=list(r["views"]), image_size=size)
         row = {"scene": r["scene"], "views": len(r["views"])}
         for key, (variant, sub, _) in DEPTH_SETS.items():
@@ -180,6 +180,31 @@ def markdown(rec: dict) -> str:
     return "\n".join(lines)
 
 
+def provenance(machine: dict | None) -> dict:
+    """The record's ``commit`` (this checkout's, with the package version), ``date`` and
+    ``machine`` (an experiment record's machine entry, else this machine's processor)."""
+    import torch
+
+    from svolsdf import __version__
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True, cwd=Path(__file__).parent).stdout.strip()
+    m = machine or {}
+    return {"commit": f"{commit} (svolsdf {__version__})",
+            "date": datetime.date.today().isoformat(),
+            "machine": (f"{m.get('cpu') or platform.processor()}, {m.get('cores', '?')} cores, "
+                        f"torch {m.get('torch') or torch.__version__}")}
+
+
+def write_record(rec: dict, results: Path, render) -> None:
+    """``rec`` written as ``results``' .json and rendered from that file by ``render`` into
+    its .md."""
+    out = results.with_suffix(".json")
+    out.write_text(json.dumps(rec, indent=1) + "\n")
+    out.with_suffix(".md").write_text(render(json.loads(out.read_text())))
+    print(f"wrote {out} and {out.with_suffix('.md')}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", type=Path, help="output folder of the views_cpu experiment")
@@ -195,16 +220,7 @@ def main() -> None:
         return
     if None in (args.run, args.data, args.pgt_cache, args.work):
         ap.error("give --run, --data, --pgt-cache and --work (or --from-json)")
-    import torch
-
-    from svolsdf import __version__
-
     record = json.loads((args.run / "experiment.json").read_text())
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=Path(__file__).parent).stdout.strip()
-    m = record.get("machine") or {}
-    cpu = (f"{m.get('cpu') or platform.processor()}, {m.get('cores', '?')} cores, "
-           f"torch {m.get('torch') or torch.__version__}")
     rec = {
         "what": "S-VolSDF (fast preset) and the MVS backbone alone on DTU scan 65 from 3, 6 and 9 "
                 "input views (benchmarks/results/views_cpu), in mm against the scan's 49-view "
@@ -222,17 +238,12 @@ def main() -> None:
                        "reference's diagonal, the DTU rule and F-score.",
         "depth_sets": depth_set_errors(args.run, args.data, args.pgt_cache, record),
         "fusion": fusion_variants(args.run, args.data, args.pgt_cache, record, args.work),
-        "commit": f"{commit} (svolsdf {__version__})",
-        "date": datetime.date.today().isoformat(),
-        "machine": cpu,
+        **provenance(record.get("machine")),
         "command": "python benchmarks/views_accuracy.py --run OUT --data DATA --pgt-cache CACHE "
                    "--work DIR --results benchmarks/results/views_accuracy.json",
         "runs_command": record.get("command", ""),
     }
-    out = args.results.with_suffix(".json")
-    out.write_text(json.dumps(rec, indent=1) + "\n")
-    out.with_suffix(".md").write_text(markdown(json.loads(out.read_text())))
-    print(f"wrote {out} and {out.with_suffix('.md')}")
+    write_record(rec, args.results, markdown)
 
 
 if __name__ == "__main__":
